@@ -1,0 +1,11 @@
+"""The one exception type for mistakes a user can fix."""
+
+from __future__ import annotations
+
+
+class UserError(Exception):
+    """A problem with the user's input: the message names the file, the field and the fix.
+
+    The command line prints it as one line and exits with status 2; it is never shown as a
+    traceback.
+    """

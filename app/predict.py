@@ -1,0 +1,232 @@
+"""`stairfit predict`: evaluate the forward model on a grid and write CSV.
+
+Degrees and nanometres at this edge; radians inside the model [conventions §1, §7].
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from . import _ranges
+from .errors import UserError
+from .outputs import atomic_text
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register the `predict` command."""
+    p = sub.add_parser(
+        "predict",
+        help="evaluate the staircase BRDF on a grid (CSV)",
+        description=(
+            "Evaluate the staircase model for given wedges, material, broadening and angles and "
+            "write CSV with a header. Angles in degrees (docs/conventions.md §1: theta_o = "
+            "theta_i is mirror reflection, theta_o = -theta_i retroreflection). By default the "
+            "table holds the broadened in-plane reflectance density rho (1/rad, §4); --lobes "
+            "gives the sharp lobes and --diffuse the diffuse-lighting integral."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("--wedge-deg", default="10,20,30,40,45,60", help="wedge angles beta2 (deg)")
+    p.add_argument("--layer-um", type=float, default=150.0, help="layer thickness l1 (um)")
+    p.add_argument("--material", default="pla", help="named dispersion model (see README)")
+    p.add_argument(
+        "--n", default=None, help="constant complex index instead, e.g. 1.5 or 1.5+0.01j"
+    )
+    p.add_argument("--delta-n", type=float, default=0.0, help="offset added to n")
+    p.add_argument("--sigma-deg", type=float, default=5.0, help="Gaussian broadening (deg)")
+    p.add_argument("--edge-radius-um", type=float, default=0.0, help="edge radius r (um)")
+    p.add_argument("--wavelength-nm", default="550", help="wavelengths (nm)")
+    p.add_argument("--theta-i-deg", default="0", help="angles of incidence (deg)")
+    p.add_argument("--theta-o-deg", default="-90:90:1", help="angles of observation (deg)")
+    p.add_argument("--lobes", action="store_true", help="write the sharp lobes instead")
+    p.add_argument("--diffuse", action="store_true", help="write the diffuse-lighting integral")
+    p.add_argument(
+        "--cosine-weighted", action="store_true", help="diffuse integral with cos(theta_i) weight"
+    )
+    p.add_argument("-o", "--output", type=Path, default=None, help="CSV file (default: stdout)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing --output file")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Evaluate and write; user mistakes raise UserError."""
+    import jax.numpy as jnp
+
+    from stairfit import model
+
+    wedges = _ranges.check_range(
+        _ranges.parse_values(args.wedge_deg, "--wedge-deg"), 0.01, 89.99, "--wedge-deg", "deg"
+    )
+    lam = _ranges.check_range(
+        _ranges.parse_values(args.wavelength_nm, "--wavelength-nm"),
+        200,
+        2000,
+        "--wavelength-nm",
+        "nm",
+    )
+    theta_i = _ranges.check_range(
+        _ranges.parse_values(args.theta_i_deg, "--theta-i-deg"), -90, 90, "--theta-i-deg", "deg"
+    )
+    theta_o = _ranges.check_range(
+        _ranges.parse_values(args.theta_o_deg, "--theta-o-deg"), -90, 90, "--theta-o-deg", "deg"
+    )
+    if args.sigma_deg < 0 or not np.isfinite(args.sigma_deg):
+        raise UserError("--sigma-deg: must be >= 0 (0 means the sharp model)")
+    if args.layer_um <= 0:
+        raise UserError("--layer-um: the layer thickness must be > 0 um")
+    if args.edge_radius_um != 0.0:
+        raise UserError("--edge-radius-um: the rounded-edge model is not available yet (issue 5)")
+    n_lam = _index(args, lam)
+    sharp = args.sigma_deg == 0.0
+    if sharp and not (args.lobes or args.diffuse):
+        raise UserError(
+            "--sigma-deg 0: the sharp model has no density; add --lobes (delta lobes) or "
+            "--diffuse (exact diffuse integral), or give a broadening > 0"
+        )
+    sigma = np.deg2rad(args.sigma_deg)
+    b2 = np.deg2rad(wedges)
+    with _open_output(args.output, args.force) as out:
+        w = csv.writer(out, lineterminator="\n")
+        if args.lobes:
+            w.writerow(
+                [
+                    "wedge_deg",
+                    "wavelength_nm",
+                    "n",
+                    "theta_i_deg",
+                    "lobe",
+                    "theta_o_deg",
+                    "weight",
+                    "fresnel",
+                    "ratio",
+                ]
+            )
+            B, N, T = np.meshgrid(b2, n_lam, np.deg2rad(theta_i), indexing="ij")
+            lobes = model.sharp_lobes(jnp.asarray(T), jnp.asarray(B), jnp.asarray(N))
+            L = np.broadcast_to(lam[None, :, None], B.shape)
+            for idx in np.ndindex(B.shape):
+                for k, name in enumerate(model.LOBE_NAMES):
+                    w.writerow(
+                        [
+                            _f(np.rad2deg(B[idx])),
+                            _f(L[idx]),
+                            _fn(N[idx]),
+                            _f(np.rad2deg(T[idx])),
+                            name,
+                            _f(np.rad2deg(float(lobes.theta_o[idx][k]))),
+                            _f(lobes.weight[idx][k]),
+                            _f(lobes.fresnel[idx][k]),
+                            _f(lobes.ratio[idx][k]),
+                        ]
+                    )
+        elif args.diffuse:
+            w.writerow(
+                [
+                    "wedge_deg",
+                    "wavelength_nm",
+                    "n",
+                    "theta_o_deg",
+                    "sigma_deg",
+                    "cosine_weighted",
+                    "diffuse",
+                ]
+            )
+            B, N, Th_o = np.meshgrid(b2, n_lam, np.deg2rad(theta_o), indexing="ij")
+            if sharp:
+                D = model.diffuse_sharp(Th_o, B, N, cosine_weighted=args.cosine_weighted)
+            else:
+                D = model.diffuse_broadened(Th_o, B, N, sigma, cosine_weighted=args.cosine_weighted)
+            L = np.broadcast_to(lam[None, :, None], B.shape)
+            for idx in np.ndindex(B.shape):
+                w.writerow(
+                    [
+                        _f(np.rad2deg(B[idx])),
+                        _f(L[idx]),
+                        _fn(N[idx]),
+                        _f(np.rad2deg(Th_o[idx])),
+                        _f(args.sigma_deg),
+                        int(args.cosine_weighted),
+                        _f(D[idx]),
+                    ]
+                )
+        else:
+            w.writerow(
+                [
+                    "wedge_deg",
+                    "wavelength_nm",
+                    "n",
+                    "theta_i_deg",
+                    "theta_o_deg",
+                    "sigma_deg",
+                    "rho_per_rad",
+                ]
+            )
+            B, N, T, Th_o = np.meshgrid(
+                b2, n_lam, np.deg2rad(theta_i), np.deg2rad(theta_o), indexing="ij"
+            )
+            R = model.brdf(T, Th_o, B, N, sigma)
+            L = np.broadcast_to(lam[None, :, None, None], B.shape)
+            for idx in np.ndindex(B.shape):
+                w.writerow(
+                    [
+                        _f(np.rad2deg(B[idx])),
+                        _f(L[idx]),
+                        _fn(N[idx]),
+                        _f(np.rad2deg(T[idx])),
+                        _f(np.rad2deg(Th_o[idx])),
+                        _f(args.sigma_deg),
+                        _f(R[idx]),
+                    ]
+                )
+    return 0
+
+
+def _index(args: argparse.Namespace, lam: np.ndarray) -> np.ndarray:
+    from stairfit import model
+
+    if args.n is not None:
+        try:
+            n = complex(args.n.replace(" ", ""))
+        except ValueError:
+            raise UserError(f"--n: cannot read {args.n!r}; give e.g. 1.46 or 1.5+0.01j") from None
+        if n.real <= 1.0 or n.imag < 0:
+            raise UserError("--n: need Re(n) > 1 and Im(n) >= 0 (docs/conventions.md §6)")
+        values = np.full(lam.shape, n if n.imag else n.real)
+    else:
+        try:
+            disp = model.get_material(args.material)
+        except ValueError as e:
+            raise UserError(f"--material: {e}") from None
+        values = np.asarray(disp(lam))
+    values = values + args.delta_n
+    if np.any(np.real(values) <= 1.0):
+        raise UserError("--delta-n: the resulting index must stay > 1")
+    return values
+
+
+def _f(x: float) -> str:
+    return f"{float(x):.10g}"
+
+
+def _fn(x: complex) -> str:
+    x = complex(x)
+    return _f(x.real) if x.imag == 0 else f"{x.real:.8g}{x.imag:+.8g}j"
+
+
+@contextmanager
+def _open_output(path: Path | None, force: bool) -> Iterator[TextIO]:
+    if path is None:
+        yield sys.stdout
+        return
+    if path.exists() and not force:
+        raise UserError(f"{path}: already exists; choose another --output or add --force")
+    with atomic_text(path) as fh:
+        yield fh

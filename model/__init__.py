@@ -1,0 +1,26 @@
+"""The staircase BRDF of FDM-printed surfaces: a pure, differentiable JAX forward model.
+
+Conventions (angles, facets, units) are in docs/conventions.md and cited as [conventions §N].
+"""
+
+from ._brdf import brdf as brdf
+from ._brdf import flat_reflectance as flat_reflectance
+from ._broadening import hemisphere_gaussian as hemisphere_gaussian
+from ._cell import Projections as Projections
+from ._cell import UnitCell as UnitCell
+from ._cell import facet_projections as facet_projections
+from ._cell import unit_cell as unit_cell
+from ._diffuse import diffuse_broadened as diffuse_broadened
+from ._diffuse import diffuse_sharp as diffuse_sharp
+from ._fresnel import SP as SP
+from ._fresnel import fresnel_sp as fresnel_sp
+from ._fresnel import fresnel_unpolarised as fresnel_unpolarised
+from ._lobes import LOBE_NAMES as LOBE_NAMES
+from ._lobes import Lobes as Lobes
+from ._lobes import lobe_directions as lobe_directions
+from ._lobes import lobe_fresnel as lobe_fresnel
+from ._lobes import lobe_weights as lobe_weights
+from ._lobes import sharp_lobes as sharp_lobes
+from .materials import MATERIALS as MATERIALS
+from .materials import get_material as get_material
+from .materials import refractive_index as refractive_index
