@@ -21,6 +21,12 @@ from ._lobes import lobe_directions as lobe_directions
 from ._lobes import lobe_fresnel as lobe_fresnel
 from ._lobes import lobe_weights as lobe_weights
 from ._lobes import sharp_lobes as sharp_lobes
+from ._measurement import Aperture as Aperture
+from ._measurement import band_density as band_density
+from ._measurement import radiance as radiance
 from .materials import MATERIALS as MATERIALS
 from .materials import get_material as get_material
 from .materials import refractive_index as refractive_index
+from .spectral import ChannelWeights as ChannelWeights
+from .spectral import channel_weights as channel_weights
+from .spectral import xyz_weights as xyz_weights

@@ -30,12 +30,14 @@ def diffuse_sharp(
 
     Each lobe is a delta at `theta_o = +-theta_i + const` with slope of magnitude 1, so its
     contribution is its reflectance ratio at the one `theta_i` that reaches `theta_o`, if that
-    `theta_i` lies in `[-pi/2, pi/2]` [conventions §3, §4]. The jumps where that source reaches
-    +-90 deg are the discontinuities of the paper's Fig. 5.
+    `theta_i` lies strictly inside `(-pi/2, pi/2)` [conventions §3, §4]: a source at exactly
+    +-90 deg is a beam of zero width and contributes nothing (paper Sec. 2). The jumps where a
+    source reaches +-90 deg are the discontinuities of the paper's Fig. 5; exactly at a jump the
+    value is the lower side's (the paper's "minimum").
     """
     theta_o, beta2 = jnp.broadcast_arrays(jnp.asarray(theta_o), jnp.asarray(beta2))
     src = _lobe_sources(theta_o, beta2)
-    inside = jnp.abs(src) <= HALF_PI
+    inside = jnp.abs(src) < HALF_PI  # "no contribution if theta_i = +-90 deg" (paper Sec. 2)
     src_safe = jnp.where(inside, src, 0.0)
     lobes = sharp_lobes(src_safe, beta2[..., None], jnp.asarray(n)[..., None])
     ratio = jnp.diagonal(lobes.ratio, axis1=-2, axis2=-1)  # lobe k evaluated at its own source

@@ -38,7 +38,9 @@ def fresnel_sp(cos_gamma: ArrayLike, n: ArrayLike) -> SP:
 
 def _abs2(z: Array) -> Array:
     """|z|^2 without the square root of `abs` (whose gradient is undefined at 0)."""
-    return jnp.real(z) ** 2 + jnp.imag(z) ** 2
+    if jnp.iscomplexobj(z):
+        return jnp.real(z) ** 2 + jnp.imag(z) ** 2
+    return z * z
 
 
 def fresnel_unpolarised(cos_gamma: ArrayLike, n: ArrayLike) -> Float[Array, "..."]:

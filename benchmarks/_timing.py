@@ -1,0 +1,40 @@
+"""Timing helpers shared by the benchmark scripts: medians of repeats, compile time apart."""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from typing import Any
+
+
+def block(x: Any) -> Any:
+    """Wait for JAX arrays (anything with block_until_ready) inside a result."""
+    import jax
+
+    return jax.tree_util.tree_map(
+        lambda a: a.block_until_ready() if hasattr(a, "block_until_ready") else a, x
+    )
+
+
+def first_call_seconds(fn: Callable[[], Any]) -> float:
+    """Wall time of the first call: tracing + compilation + one run, for JAX functions."""
+    t0 = time.perf_counter()
+    block(fn())
+    return time.perf_counter() - t0
+
+
+def median_seconds(fn: Callable[[], Any], repeats: int, min_time: float = 0.0) -> float:
+    """Median wall time of `repeats` calls (after any warm-up the caller did)."""
+    times = []
+    t_start = time.perf_counter()
+    while len(times) < repeats or (time.perf_counter() - t_start) < min_time:
+        t0 = time.perf_counter()
+        block(fn())
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def fmt_ms(seconds: float) -> str:
+    """Milliseconds with three significant figures."""
+    return f"{seconds * 1e3:.3g} ms"

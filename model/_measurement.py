@@ -1,0 +1,101 @@
+"""From the BRDF to what a camera records: spectral bands, finite apertures, radiance.
+
+[conventions §8, §9]. Everything is evaluated only where the scene needs it: at the observed
+angles, and at the wavelength samples each observation's channel sees.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from ._broadening import hemisphere_gaussian
+from ._lobes import lobe_directions, lobe_fresnel, lobe_weights
+
+COS_THETA_O_FLOOR = float(np.cos(np.deg2rad(89.9)))
+"""`cos(theta_o)` is floored here in the radiance conversion [conventions §9]."""
+
+
+class Aperture(NamedTuple):
+    """Finite angular extent of the light and of the viewed patch [conventions §9].
+
+    The density is averaged uniformly over `theta_i +- half_width_i_rad` and
+    `theta_o +- half_width_o_rad` with `n_nodes` Gauss-Legendre nodes along each (so
+    `n_nodes**2` evaluations; `n_nodes = 1` is a point evaluation). A light of diameter `D` at
+    distance `d` has `half_width_i = atan(D / 2d)`; a wedge face seen across a length `L` at
+    distance `d` spans about `half_width_o = atan(L cos(theta_o) / 2d)`.
+    """
+
+    half_width_i_rad: float = 0.0
+    half_width_o_rad: float = 0.0
+    n_nodes: int = 1
+
+    def nodes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Offsets in theta_i, offsets in theta_o, and weights (sum 1), each (n_nodes**2,)."""
+        if self.n_nodes == 1:
+            return np.zeros(1), np.zeros(1), np.ones(1)
+        x, w = np.polynomial.legendre.leggauss(self.n_nodes)
+        xi, xo = np.meshgrid(x, x, indexing="ij")
+        ww = np.outer(w, w) / 4.0
+        return (
+            (xi * self.half_width_i_rad).ravel(),
+            (xo * self.half_width_o_rad).ravel(),
+            ww.ravel(),
+        )
+
+
+def band_density(
+    theta_i: ArrayLike,
+    theta_o: ArrayLike,
+    beta2: ArrayLike,
+    n: ArrayLike,
+    spectral_weight: ArrayLike,
+    sigma: ArrayLike,
+    aperture: Aperture | None = None,
+) -> Float[Array, " n_obs"]:
+    """Band- and aperture-averaged reflectance density (1/rad) for each observation.
+
+    `theta_i`, `theta_o`, `beta2`, `sigma` have shape `(n_obs,)` (or broadcast to it);
+    `n` and `spectral_weight` have shape `(n_obs, n_lambda)`: the index (delta_n included) at
+    the wavelength samples the observation's channel sees, and the channel's normalised weights
+    there (rows sum to 1; one column with weight 1 is the one-effective-wavelength
+    approximation) [conventions §4, §8]. `aperture` (default: a point) averages over the finite
+    sizes of light and patch. Angles in radians [conventions §1].
+    """
+    dtype = jnp.result_type(jnp.asarray(theta_i), jnp.asarray(theta_o))
+    di, do, dw = (jnp.asarray(a, dtype) for a in (aperture or Aperture()).nodes())
+    half = jnp.pi / 2
+    ti = jnp.clip(jnp.asarray(theta_i)[..., None] + di, -half, half)  # (n_obs, n_nodes)
+    to = jnp.clip(jnp.asarray(theta_o)[..., None] + do, -half, half)
+    b2 = jnp.asarray(beta2)[..., None]
+    # Geometry and broadening do not depend on wavelength, and rho is linear in the Fresnel
+    # factors: average the Fresnel factors over the band first, then combine once.
+    weight = lobe_weights(ti, b2)  # (n_obs, n_nodes, 3)
+    kernel = hemisphere_gaussian(
+        to[..., None], lobe_directions(ti, b2), jnp.asarray(sigma)[..., None, None]
+    )
+    fresnel = lobe_fresnel(ti[..., None], b2[..., None], jnp.asarray(n)[..., None, :])
+    band_fresnel = jnp.einsum("ok,onkl->onl", jnp.asarray(spectral_weight, dtype), fresnel)
+    rho = jnp.sum(weight * band_fresnel * kernel, axis=-1)  # (n_obs, n_nodes)
+    return rho @ dw
+
+
+def radiance(
+    density: ArrayLike,
+    theta_i: ArrayLike,
+    theta_o: ArrayLike,
+    scale: ArrayLike,
+    floor: ArrayLike = 0.0,
+) -> Float[Array, " n_obs"]:
+    """Relative radiance a camera records from a density [conventions §9].
+
+    `scale * cos(theta_i) * rho / cos(theta_o) + floor * cos(theta_i)`: `scale` is light
+    intensity x camera gain x out-of-plane spread, `floor` a Lambertian body reflection. The
+    `cos(theta_o)` is floored at `cos(89.9 deg)`.
+    """
+    cos_i = jnp.cos(jnp.asarray(theta_i))
+    cos_o = jnp.maximum(jnp.cos(jnp.asarray(theta_o)), COS_THETA_O_FLOOR)
+    return jnp.asarray(scale) * cos_i * jnp.asarray(density) / cos_o + jnp.asarray(floor) * cos_i
