@@ -1,0 +1,550 @@
+"""The scene file: what was photographed, how, and where the wedges are in each photo.
+
+A TOML file (`scene.toml`) in the photo folder. TOML because Python reads it without an extra
+dependency (`tomllib`), it allows comments (the annotated example in docs/scene.md), and its
+types are unambiguous (no YAML "Norway problem": `no` stays a string). Every table is
+validated: unknown fields are errors with a suggestion, missing fields name the fix, values are
+range-checked. Angles are in degrees here (an edge of the program) [conventions §1].
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import UserError
+
+SCENE_FILE = "scene.toml"
+SCENE_VERSION = 1
+Polygon = tuple[tuple[float, float], ...]
+
+
+@dataclass(frozen=True)
+class IndexSpec:
+    """The dispersion model: a named material, or explicit parameters [conventions §7]."""
+
+    model: str  # "named", "constant", "cauchy", "sellmeier", "tabulated"
+    name: str = "pla"
+    params: tuple[tuple[str, Any], ...] = ()
+
+    def build(self) -> Any:
+        """The `stairfit.model.materials` object this spec describes."""
+        from stairfit.model import materials
+
+        p = dict(self.params)
+        if self.model == "named":
+            return materials.get_material(self.name)
+        if self.model == "constant":
+            return materials.ConstantIndex(n=p["n"], k=p.get("k", 0.0))
+        if self.model == "cauchy":
+            return materials.Cauchy(
+                a=p["a"], b_um2=p.get("b_um2", 0.0), c_um4=p.get("c_um4", 0.0), k=p.get("k", 0.0)
+            )
+        if self.model == "sellmeier":
+            return materials.Sellmeier(c0=p.get("c0", 0.0), b=tuple(p["b"]), c_um=tuple(p["c_um"]))
+        return materials.Tabulated(
+            wavelength_nm=tuple(p["wavelength_nm"]),
+            n=tuple(p["n"]),
+            k=tuple(p["k"]) if "k" in p else None,
+        )
+
+
+@dataclass(frozen=True)
+class Wedge:
+    """One printed wedge: its angle and where its face is (pixels, or base-plane mm)."""
+
+    name: str
+    angle_deg: float
+    roi_px: Polygon | None = None
+    face_mm: Polygon | None = None
+
+
+@dataclass(frozen=True)
+class Specimen:
+    """The printed specimen: layer thickness, material and wedges [conventions §2]."""
+
+    layer_um: float
+    index: IndexSpec
+    wedges: tuple[Wedge, ...]
+
+
+@dataclass(frozen=True)
+class Light:
+    """The light source: spectrum by name and angular diameter [conventions §8, §9]."""
+
+    illuminant: str = "D65"
+    angular_diameter_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class Camera:
+    """The camera: channel sensitivities by name, and the spread of viewing angles over a face."""
+
+    sensitivity: str = "ideal"
+    angular_extent_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class Marker:
+    """One ArUco marker on the base: its id and its corners in base-plane millimetres."""
+
+    id: int
+    corners_mm: Polygon
+
+
+@dataclass(frozen=True)
+class Markers:
+    """The marker layout used to place ROIs automatically."""
+
+    dictionary: str
+    markers: tuple[Marker, ...]
+    min_markers: int = 2
+
+
+@dataclass(frozen=True)
+class Reference:
+    """An optional reference patch (grey card or flat plate) measured in every photo."""
+
+    name: str
+    roi_px: Polygon | None = None
+    face_mm: Polygon | None = None
+
+
+@dataclass(frozen=True)
+class Photo:
+    """One photograph: its file, geometry and optional overrides."""
+
+    file: str
+    light_deg: float
+    view_deg: float
+    exposure_time_s: float | None = None
+    f_number: float | None = None
+    iso: float | None = None
+    roi_px: tuple[tuple[str, Polygon], ...] = ()
+
+
+@dataclass(frozen=True)
+class Extraction:
+    """Settings for turning pixels into measurements (see docs/imaging.md)."""
+
+    erode_px: int = 8
+    block_px: int = 8
+    saturation_level: float = 0.98
+    max_saturated_fraction: float = 0.5
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated scene file. `angles_relative_to` says how photo angles are given."""
+
+    path: Path
+    angles_relative_to: str
+    specimen: Specimen
+    light: Light
+    camera: Camera
+    photos: tuple[Photo, ...]
+    markers: Markers | None = None
+    reference: Reference | None = None
+    extraction: Extraction = field(default_factory=Extraction)
+
+    @property
+    def folder(self) -> Path:
+        """The photo folder (the scene file's folder)."""
+        return self.path.parent
+
+    def face_angles_deg(self, photo: Photo, wedge: Wedge) -> tuple[float, float]:
+        """(theta_i, theta_o) of this photo in this wedge's face frame, degrees.
+
+        With `angles_relative_to = "base"` the photo's angles are measured from the normal of
+        the specimen base, with the same sign rules as the face frame [conventions §1]: a
+        positive `light_deg` puts the light on the downhill side, a positive `view_deg` the
+        camera on the uphill side. The face is the base tilted by `beta2` towards downhill, so
+        `theta_i = light_deg - beta2` and `theta_o = view_deg + beta2`. With
+        `angles_relative_to = "face"` they are used as they are (same for every wedge).
+        """
+        if self.angles_relative_to == "face":
+            return photo.light_deg, photo.view_deg
+        return photo.light_deg - wedge.angle_deg, photo.view_deg + wedge.angle_deg
+
+
+# --- loading and validation -----------------------------------------------------------------
+
+
+def load_scene(path: Path) -> Scene:
+    """Read and validate a scene file (or the `scene.toml` inside a folder)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / SCENE_FILE
+    if not path.exists():
+        raise UserError(
+            f"{path}: no scene file; write one (annotated example: docs/scene.md, or run "
+            "'stairfit simulate OUT' to see a complete one)"
+        )
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as e:
+        raise UserError(f"{path}: not valid TOML ({e}); fix the syntax at that line") from None
+    except UnicodeDecodeError:
+        raise UserError(f"{path}: not a UTF-8 text file; save it as UTF-8 TOML") from None
+    return parse_scene(raw, path)
+
+
+def parse_scene(raw: dict[str, Any], path: Path) -> Scene:
+    """Validate a scene given as a dict (as read from TOML)."""
+    r = _Reader(path)
+    top = r.table(
+        raw,
+        "",
+        [
+            "version",
+            "angles_relative_to",
+            "specimen",
+            "light",
+            "camera",
+            "photos",
+            "markers",
+            "reference",
+            "extraction",
+        ],
+    )
+    version = r.get(top, "version", int, "", default=SCENE_VERSION)
+    if version != SCENE_VERSION:
+        r.fail("version", f"is {version}; this stairfit reads version {SCENE_VERSION}")
+    relative = r.get(top, "angles_relative_to", str, "", default="base")
+    if relative not in ("base", "face"):
+        r.fail("angles_relative_to", f'is {relative!r}; use "base" or "face"')
+    specimen = _specimen(r, r.need_table(top, "specimen", ""))
+    light = _light(r, r.opt_table(top, "light", ""))
+    camera = _camera(r, r.opt_table(top, "camera", ""))
+    markers = _markers(r, top["markers"], "markers") if "markers" in top else None
+    reference = _reference(r, top["reference"], "reference") if "reference" in top else None
+    extraction = _extraction(r, r.opt_table(top, "extraction", ""))
+    photos = _photos(r, top, specimen)
+    scene = Scene(path, relative, specimen, light, camera, photos, markers, reference, extraction)
+    _check_geometry(r, scene)
+    _check_rois(r, scene)
+    return scene
+
+
+class _Reader:
+    """Reads fields with messages naming the file and the field path."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def fail(self, where: str, what: str) -> None:
+        raise UserError(f"{self.path}: {where}: {what}")
+
+    def table(self, d: Any, where: str, allowed: list[str]) -> dict[str, Any]:
+        if not isinstance(d, dict):
+            self.fail(where or "top level", "must be a table")
+        for key in d:
+            if key not in allowed:
+                near = difflib.get_close_matches(key, allowed, n=1)
+                hint = (
+                    f"; did you mean {near[0]!r}?" if near else f"; allowed: {', '.join(allowed)}"
+                )
+                self.fail(_join(where, key), f"unknown field{hint}")
+        return d
+
+    def need_table(self, d: dict[str, Any], key: str, where: str) -> dict[str, Any]:
+        if key not in d:
+            self.fail(_join(where, key), "missing; add this table (see docs/scene.md)")
+        return d[key]
+
+    def opt_table(self, d: dict[str, Any], key: str, where: str) -> dict[str, Any]:
+        return d.get(key, {})
+
+    def get(
+        self,
+        d: dict[str, Any],
+        key: str,
+        kind: type,
+        where: str,
+        default: Any = ...,
+        lo: float | None = None,
+        hi: float | None = None,
+    ) -> Any:
+        name = _join(where, key)
+        if key not in d:
+            if default is ...:
+                self.fail(name, "missing; add it")
+            return default
+        v = d[key]
+        if kind is float and isinstance(v, int) and not isinstance(v, bool):
+            v = float(v)
+        if not isinstance(v, kind) or (isinstance(v, bool) and kind is not bool):
+            self.fail(name, f"must be {_kind_name(kind)}, not {v!r}")
+        if kind is float and not math.isfinite(v):
+            self.fail(name, f"must be a finite number, not {v!r}")
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            self.fail(name, f"{v!r} is outside [{lo}, {hi}]; fix the value")
+        return v
+
+    def polygon(self, d: dict[str, Any], key: str, where: str) -> Polygon | None:
+        if key not in d:
+            return None
+        name = _join(where, key)
+        v = d[key]
+        ok = (
+            isinstance(v, list)
+            and len(v) >= 3
+            and all(isinstance(p, list) and len(p) == 2 and all(_is_num(c) for c in p) for p in v)
+        )
+        if not ok:
+            self.fail(
+                name,
+                "must be a list of at least 3 [x, y] points, e.g. [[10, 10], "
+                "[200, 10], [200, 150], [10, 150]]",
+            )
+        return tuple((float(p[0]), float(p[1])) for p in v)
+
+
+def _specimen(r: _Reader, d: dict[str, Any]) -> Specimen:
+    w = "specimen"
+    r.table(d, w, ["layer_um", "material", "index", "wedges"])
+    layer = r.get(d, "layer_um", float, w, lo=1.0, hi=10_000.0)
+    if "index" in d and "material" in d:
+        r.fail(f"{w}.index", "give either 'material' (a name) or an 'index' table, not both")
+    if "index" in d:
+        index = _index(r, d["index"], f"{w}.index")
+    else:
+        name = r.get(d, "material", str, w, default="pla")
+        from stairfit.model import materials
+
+        if name.lower() not in materials.MATERIALS:
+            near = difflib.get_close_matches(name.lower(), list(materials.MATERIALS), n=1)
+            hint = (
+                f"did you mean {near[0]!r}?" if near else f"known: {', '.join(materials.MATERIALS)}"
+            )
+            r.fail(f"{w}.material", f"unknown material {name!r}; {hint}")
+        index = IndexSpec("named", name=name.lower())
+    wedges_raw = d.get("wedges")
+    if not isinstance(wedges_raw, list) or not wedges_raw:
+        r.fail(
+            f"{w}.wedges",
+            "missing or empty; add [[specimen.wedges]] tables with name and angle_deg",
+        )
+    wedges = []
+    for k, wd in enumerate(wedges_raw):
+        where = f"{w}.wedges[{k}]"
+        r.table(wd, where, ["name", "angle_deg", "roi_px", "face_mm"])
+        wedges.append(
+            Wedge(
+                name=r.get(wd, "name", str, where),
+                angle_deg=r.get(wd, "angle_deg", float, where, lo=0.01, hi=89.99),
+                roi_px=r.polygon(wd, "roi_px", where),
+                face_mm=r.polygon(wd, "face_mm", where),
+            )
+        )
+    names = [x.name for x in wedges]
+    dup = {x for x in names if names.count(x) > 1}
+    if dup:
+        r.fail(f"{w}.wedges", f"duplicate wedge name(s) {sorted(dup)}; names must be unique")
+    return Specimen(layer, index, tuple(wedges))
+
+
+def _index(r: _Reader, d: dict[str, Any], w: str) -> IndexSpec:
+    models = {
+        "constant": (["n"], ["k"]),
+        "cauchy": (["a"], ["b_um2", "c_um4", "k"]),
+        "sellmeier": (["b", "c_um"], ["c0"]),
+        "tabulated": (["wavelength_nm", "n"], ["k"]),
+    }
+    if not isinstance(d, dict):
+        r.fail(w, 'must be a table such as { model = "constant", n = 1.46 }')
+    model = r.get(d, "model", str, w)
+    if model not in models:
+        r.fail(f"{w}.model", f"is {model!r}; use one of {', '.join(models)}")
+    need, optional = models[model]
+    r.table(d, w, ["model", *need, *optional])
+    params: dict[str, Any] = {}
+    for key in need + optional:
+        if key not in d:
+            if key in need:
+                r.fail(f"{w}.{key}", f"missing; the {model} model needs {', '.join(need)}")
+            continue
+        v = d[key]
+        if isinstance(v, list):
+            if not v or not all(_is_num(x) for x in v):
+                r.fail(f"{w}.{key}", "must be a non-empty list of numbers")
+            params[key] = tuple(float(x) for x in v)
+        elif _is_num(v):
+            params[key] = float(v)
+        else:
+            r.fail(f"{w}.{key}", f"must be a number or list of numbers, not {v!r}")
+    if model == "tabulated":
+        lens = {len(params[k]) for k in ("wavelength_nm", "n", "k") if k in params}
+        if len(lens) != 1:
+            r.fail(w, "wavelength_nm, n (and k) must have the same length")
+    if model == "sellmeier" and len(params["b"]) != len(params["c_um"]):
+        r.fail(w, "b and c_um must have the same length")
+    spec = IndexSpec(model, params=tuple(sorted(params.items())))
+    import numpy as np
+
+    n550 = complex(np.asarray(spec.build()(np.array([550.0])))[0])
+    if not n550.real > 1.0 or n550.imag < 0:
+        r.fail(w, f"gives n(550 nm) = {n550:.4g}; need Re(n) > 1 and k >= 0")
+    return spec
+
+
+def _light(r: _Reader, d: dict[str, Any]) -> Light:
+    r.table(d, "light", ["illuminant", "angular_diameter_deg"])
+    ill = r.get(d, "illuminant", str, "light", default="D65")
+    from stairfit.model import spectral
+
+    try:
+        spectral.illuminant_spd(ill)
+    except ValueError as e:
+        r.fail("light.illuminant", str(e))
+    return Light(ill, r.get(d, "angular_diameter_deg", float, "light", default=0.0, lo=0, hi=30))
+
+
+def _camera(r: _Reader, d: dict[str, Any]) -> Camera:
+    r.table(d, "camera", ["sensitivity", "angular_extent_deg"])
+    sens = r.get(d, "sensitivity", str, "camera", default="ideal")
+    from stairfit.model import spectral
+
+    if sens not in spectral.CAMERAS:
+        r.fail(
+            "camera.sensitivity", f"unknown camera {sens!r}; known: {', '.join(spectral.CAMERAS)}"
+        )
+    ext = r.get(d, "angular_extent_deg", float, "camera", default=0.0, lo=0, hi=30)
+    return Camera(sens, ext)
+
+
+def _markers(r: _Reader, d: Any, w: str) -> Markers:
+    r.table(d, w, ["dictionary", "min_markers", "marker"])
+    items = d.get("marker")
+    if not isinstance(items, list) or not items:
+        r.fail(f"{w}.marker", "missing; add [[markers.marker]] tables with id and corners_mm")
+    markers = []
+    for k, m in enumerate(items):
+        where = f"{w}.marker[{k}]"
+        r.table(m, where, ["id", "corners_mm"])
+        corners = r.polygon(m, "corners_mm", where)
+        if corners is None or len(corners) != 4:
+            r.fail(f"{where}.corners_mm", "must list the marker's 4 corners in mm")
+        markers.append(Marker(r.get(m, "id", int, where, lo=0, hi=10_000), corners))
+    return Markers(
+        dictionary=r.get(d, "dictionary", str, w, default="DICT_4X4_50"),
+        markers=tuple(markers),
+        min_markers=r.get(d, "min_markers", int, w, default=2, lo=1, hi=1000),
+    )
+
+
+def _reference(r: _Reader, d: Any, w: str) -> Reference:
+    r.table(d, w, ["name", "roi_px", "face_mm"])
+    ref = Reference(
+        r.get(d, "name", str, w, default="reference"),
+        r.polygon(d, "roi_px", w),
+        r.polygon(d, "face_mm", w),
+    )
+    if ref.roi_px is None and ref.face_mm is None:
+        r.fail(w, "give roi_px (pixels) or face_mm (base-plane mm, needs [markers])")
+    return ref
+
+
+def _extraction(r: _Reader, d: dict[str, Any]) -> Extraction:
+    w = "extraction"
+    r.table(d, w, ["erode_px", "block_px", "saturation_level", "max_saturated_fraction"])
+    return Extraction(
+        erode_px=r.get(d, "erode_px", int, w, default=8, lo=0, hi=1000),
+        block_px=r.get(d, "block_px", int, w, default=8, lo=2, hi=512),
+        saturation_level=r.get(d, "saturation_level", float, w, default=0.98, lo=0.5, hi=1.0),
+        max_saturated_fraction=r.get(
+            d, "max_saturated_fraction", float, w, default=0.5, lo=0.0, hi=1.0
+        ),
+    )
+
+
+def _photos(r: _Reader, top: dict[str, Any], specimen: Specimen) -> tuple[Photo, ...]:
+    items = top.get("photos")
+    if not isinstance(items, list) or not items:
+        r.fail("photos", "missing or empty; add one [[photos]] table per photograph")
+    names = {w.name for w in specimen.wedges}
+    photos = []
+    for k, p in enumerate(items):
+        w = f"photos[{k}]"
+        r.table(
+            p, w, ["file", "light_deg", "view_deg", "exposure_time_s", "f_number", "iso", "roi_px"]
+        )
+        rois = p.get("roi_px", {})
+        if not isinstance(rois, dict):
+            r.fail(f"{w}.roi_px", "must be a table of wedge name = polygon")
+        roi_items = []
+        for name in rois:
+            if name not in names:
+                near = difflib.get_close_matches(name, sorted(names), n=1)
+                hint = (
+                    f"did you mean {near[0]!r}?" if near else f"wedges: {', '.join(sorted(names))}"
+                )
+                r.fail(f"{w}.roi_px.{name}", f"no such wedge; {hint}")
+            roi_items.append((name, r.polygon(rois, name, f"{w}.roi_px")))
+        photos.append(
+            Photo(
+                file=r.get(p, "file", str, w),
+                light_deg=r.get(p, "light_deg", float, w, lo=-90, hi=90),
+                view_deg=r.get(p, "view_deg", float, w, lo=-90, hi=90),
+                exposure_time_s=r.get(
+                    p, "exposure_time_s", float, w, default=None, lo=1e-6, hi=3600
+                ),
+                f_number=r.get(p, "f_number", float, w, default=None, lo=0.5, hi=256),
+                iso=r.get(p, "iso", float, w, default=None, lo=1, hi=1e7),
+                roi_px=tuple(roi_items),
+            )
+        )
+    files = [p.file for p in photos]
+    dup = {f for f in files if files.count(f) > 1}
+    if dup:
+        r.fail("photos", f"file(s) listed twice: {sorted(dup)}")
+    return tuple(photos)
+
+
+def _check_geometry(r: _Reader, scene: Scene) -> None:
+    for k, photo in enumerate(scene.photos):
+        for wedge in scene.specimen.wedges:
+            ti, to = scene.face_angles_deg(photo, wedge)
+            if abs(ti) >= 90:
+                r.fail(
+                    f"photos[{k}].light_deg",
+                    f"the light is behind wedge {wedge.name!r}'s face (theta_i = {ti:g} deg in "
+                    "its face frame); fix light_deg or angles_relative_to",
+                )
+            if abs(to) >= 90:
+                r.fail(
+                    f"photos[{k}].view_deg",
+                    f"the camera sees wedge {wedge.name!r}'s face from behind (theta_o = "
+                    f"{to:g} deg in its face frame); fix view_deg or angles_relative_to",
+                )
+
+
+def _check_rois(r: _Reader, scene: Scene) -> None:
+    for k, photo in enumerate(scene.photos):
+        per_photo = dict(photo.roi_px)
+        for wedge in scene.specimen.wedges:
+            placed = wedge.name in per_photo or wedge.roi_px is not None
+            if not placed and (wedge.face_mm is None or scene.markers is None):
+                r.fail(
+                    f"photos[{k}]",
+                    f"no ROI for wedge {wedge.name!r}: give specimen.wedges roi_px, a per-photo "
+                    "roi_px, or face_mm together with a [markers] layout",
+                )
+
+
+def _join(where: str, key: str) -> str:
+    return f"{where}.{key}" if where else key
+
+
+def _is_num(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _kind_name(kind: type) -> str:
+    return {float: "a number", int: "an integer", str: "a string", bool: "true or false"}.get(
+        kind, kind.__name__
+    )

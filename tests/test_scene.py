@@ -1,0 +1,120 @@
+"""The scene file: validation messages name the file, the field and the fix (issue 6)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import tomli_w
+
+from stairfit.errors import UserError
+from stairfit.scene import load_scene
+
+GOOD = {
+    "version": 1,
+    "angles_relative_to": "base",
+    "specimen": {
+        "layer_um": 150.0,
+        "material": "pla",
+        "wedges": [
+            {"name": "w10", "angle_deg": 10.0, "roi_px": [[10, 10], [90, 10], [90, 90], [10, 90]]},
+            {"name": "w45", "angle_deg": 45.0, "roi_px": [[110, 10], [190, 10], [190, 90]]},
+        ],
+    },
+    "light": {"illuminant": "D65", "angular_diameter_deg": 1.0},
+    "camera": {"sensitivity": "Nikon 5100 (NPL)"},
+    "photos": [
+        {"file": "a.dng", "light_deg": 0.0, "view_deg": 30.0},
+        {"file": "b.dng", "light_deg": 10.0, "view_deg": -20.0, "exposure_time_s": 0.5},
+    ],
+}
+
+
+def _write(tmp_path: Path, data: dict) -> Path:
+    p = tmp_path / "scene.toml"
+    p.write_text(tomli_w.dumps(data))
+    return p
+
+
+def _mutate(path: list, value=None, delete: bool = False) -> dict:
+    import copy
+
+    d = copy.deepcopy(GOOD)
+    node = d
+    for key in path[:-1]:
+        node = node[key]
+    if delete:
+        del node[path[-1]]
+    else:
+        node[path[-1]] = value
+    return d
+
+
+def test_good_scene_loads_and_converts_base_angles_to_face_angles(tmp_path):
+    scene = load_scene(_write(tmp_path, GOOD).parent)  # a folder works too
+    assert [w.name for w in scene.specimen.wedges] == ["w10", "w45"]
+    w10, w45 = scene.specimen.wedges
+    # conventions §1 in the base frame: theta_i = light - beta2, theta_o = view + beta2
+    assert scene.face_angles_deg(scene.photos[0], w10) == (-10.0, 40.0)
+    assert scene.face_angles_deg(scene.photos[1], w45) == (-35.0, 25.0)
+    assert scene.photos[1].exposure_time_s == 0.5
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "delete", "message"),
+    [
+        (
+            ["photos", 0, "view_dge"],
+            3.0,
+            False,
+            r"photos\[0\]\.view_dge: unknown field; did you mean 'view_deg'",
+        ),
+        (
+            ["specimen", "layr_um"],
+            3.0,
+            False,
+            r"specimen\.layr_um: unknown field; did you mean 'layer_um'",
+        ),
+        (["specimen", "layer_um"], None, True, r"specimen\.layer_um: missing"),
+        (["photos"], None, True, r"photos: missing or empty"),
+        (["specimen", "wedges", 0, "angle_deg"], 95.0, False, r"angle_deg: 95.0 is outside"),
+        (["photos", 0, "view_deg"], "thirty", False, r"view_deg: must be a number"),
+        (["photos", 0, "view_deg"], 85.0, False, r"from behind \(theta_o = 95 deg"),
+        (["light", "illuminant"], "D66", False, r"light\.illuminant: unknown illuminant"),
+        (["camera", "sensitivity"], "Brownie", False, r"camera\.sensitivity: unknown camera"),
+        (["specimen", "material"], "pla-bodurov", False, r"did you mean 'pla-bodurov2016'"),
+        (["photos", 1, "file"], "a.dng", False, r"listed twice"),
+        (["specimen", "wedges", 1, "name"], "w10", False, r"duplicate wedge name"),
+        (["version"], 2, False, r"version: is 2"),
+        (["angles_relative_to"], "camera", False, r'use "base" or "face"'),
+        (["specimen", "wedges", 0, "roi_px"], [[1, 2]], False, r"at least 3 \[x, y\] points"),
+        (["specimen", "wedges", 0, "roi_px"], None, True, r"no ROI for wedge 'w10'"),
+    ],
+)
+def test_bad_scene_fields_are_one_line_errors_naming_file_and_field(
+    tmp_path, path, value, delete, message
+):
+    p = _write(tmp_path, _mutate(path, value, delete))
+    with pytest.raises(UserError, match=message) as err:
+        load_scene(p)
+    text = str(err.value)
+    assert text.startswith(str(p))
+    assert "\n" not in text
+
+
+def test_missing_and_invalid_scene_file(tmp_path):
+    with pytest.raises(UserError, match="no scene file"):
+        load_scene(tmp_path)
+    (tmp_path / "scene.toml").write_text("version = 1\n[specimen\n")
+    with pytest.raises(UserError, match="not valid TOML"):
+        load_scene(tmp_path)
+
+
+def test_explicit_index_table(tmp_path):
+    d = _mutate(["specimen", "material"], None, delete=True)
+    d["specimen"]["index"] = {"model": "cauchy", "a": 1.45, "b_um2": 0.004}
+    scene = load_scene(_write(tmp_path, d))
+    assert float(scene.specimen.index.build()(500.0)) == pytest.approx(1.466)
+    d["specimen"]["index"] = {"model": "constant", "n": 0.9}
+    with pytest.raises(UserError, match=r"specimen\.index: gives n\(550 nm\)"):
+        load_scene(_write(tmp_path, d))
