@@ -505,22 +505,39 @@ def _photos(r: _Reader, top: dict[str, Any], specimen: Specimen) -> tuple[Photo,
     return tuple(photos)
 
 
+VISIBILITY_LIMIT_DEG = 89.0
+"""A wedge whose face is lit or seen at more than this from its normal is left out of a photo."""
+
+
+def visible(scene: Scene, photo: Photo, wedge: Wedge) -> bool:
+    """Whether the face of `wedge` is both lit and seen in `photo` (face angles below 89 deg).
+
+    With angles relative to the base, steep wedges turn their faces away from some views
+    (e.g. a 60-degree face is seen from behind once the camera is more than 30 degrees uphill);
+    such a wedge is simply not measured in that photo [conventions §1].
+    """
+    ti, to = scene.face_angles_deg(photo, wedge)
+    return abs(ti) < VISIBILITY_LIMIT_DEG and abs(to) < VISIBILITY_LIMIT_DEG
+
+
 def _check_geometry(r: _Reader, scene: Scene) -> None:
     for k, photo in enumerate(scene.photos):
-        for wedge in scene.specimen.wedges:
-            ti, to = scene.face_angles_deg(photo, wedge)
-            if abs(ti) >= 90:
+        seen = [w for w in scene.specimen.wedges if visible(scene, photo, w)]
+        for name, _ in photo.roi_px:
+            wedge = next(w for w in scene.specimen.wedges if w.name == name)
+            if wedge not in seen:
+                ti, to = scene.face_angles_deg(photo, wedge)
                 r.fail(
-                    f"photos[{k}].light_deg",
-                    f"the light is behind wedge {wedge.name!r}'s face (theta_i = {ti:g} deg in "
-                    "its face frame); fix light_deg or angles_relative_to",
+                    f"photos[{k}].roi_px.{name}",
+                    f"this photo cannot see wedge {name!r}'s face lit (face-frame theta_i = "
+                    f"{ti:g} deg, theta_o = {to:g} deg); fix light_deg/view_deg or drop the ROI",
                 )
-            if abs(to) >= 90:
-                r.fail(
-                    f"photos[{k}].view_deg",
-                    f"the camera sees wedge {wedge.name!r}'s face from behind (theta_o = "
-                    f"{to:g} deg in its face frame); fix view_deg or angles_relative_to",
-                )
+        if not seen:
+            r.fail(
+                f"photos[{k}]",
+                "no wedge face is both lit and visible in this photo; fix "
+                "light_deg/view_deg or angles_relative_to",
+            )
 
 
 def _check_rois(r: _Reader, scene: Scene) -> None:
@@ -528,7 +545,8 @@ def _check_rois(r: _Reader, scene: Scene) -> None:
         per_photo = dict(photo.roi_px)
         for wedge in scene.specimen.wedges:
             placed = wedge.name in per_photo or wedge.roi_px is not None
-            if not placed and (wedge.face_mm is None or scene.markers is None):
+            markers = wedge.face_mm is not None and scene.markers is not None
+            if visible(scene, photo, wedge) and not placed and not markers:
                 r.fail(
                     f"photos[{k}]",
                     f"no ROI for wedge {wedge.name!r}: give specimen.wedges roi_px, a per-photo "

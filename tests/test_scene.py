@@ -60,6 +60,19 @@ def test_good_scene_loads_and_converts_base_angles_to_face_angles(tmp_path):
     assert scene.photos[1].exposure_time_s == 0.5
 
 
+def test_wedges_turned_away_are_left_out_of_a_photo(tmp_path):
+    from stairfit.scene import visible
+
+    d = _mutate(["photos", 0, "view_deg"], 50.0)  # 45-degree face seen at 95 deg: behind
+    scene = load_scene(_write(tmp_path, d))
+    w10, w45 = scene.specimen.wedges
+    assert visible(scene, scene.photos[0], w10)
+    assert not visible(scene, scene.photos[0], w45)
+    d["photos"][0]["roi_px"] = {"w45": [[1, 1], [5, 1], [5, 5]]}  # an ROI for an unseen face
+    with pytest.raises(UserError, match=r"roi_px\.w45: this photo cannot see wedge 'w45'"):
+        load_scene(_write(tmp_path, d))
+
+
 @pytest.mark.parametrize(
     ("path", "value", "delete", "message"),
     [
@@ -79,7 +92,7 @@ def test_good_scene_loads_and_converts_base_angles_to_face_angles(tmp_path):
         (["photos"], None, True, r"photos: missing or empty"),
         (["specimen", "wedges", 0, "angle_deg"], 95.0, False, r"angle_deg: 95.0 is outside"),
         (["photos", 0, "view_deg"], "thirty", False, r"view_deg: must be a number"),
-        (["photos", 0, "view_deg"], 85.0, False, r"from behind \(theta_o = 95 deg"),
+        (["photos", 0, "light_deg"], -85.0, False, r"no wedge face is both lit and visible"),
         (["light", "illuminant"], "D66", False, r"light\.illuminant: unknown illuminant"),
         (["camera", "sensitivity"], "Brownie", False, r"camera\.sensitivity: unknown camera"),
         (["specimen", "material"], "pla-bodurov", False, r"did you mean 'pla-bodurov2016'"),
