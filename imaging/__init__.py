@@ -1,0 +1,48 @@
+"""RAW photographs to calibrated per-wedge radiance, with honest uncertainties.
+
+Decoding without demosaic (rawpy), ROIs from pixel polygons or ArUco markers (OpenCV), per-ROI
+and per-channel mean relative radiance with block standard errors, a cached CSV table, preview
+PNGs, and a generator of synthetic RAW photos (`stairfit.imaging.synthetic`). This package
+depends on no other stairfit package. Pixel and unit conventions: docs/imaging.md.
+
+The usual entry point::
+
+    from stairfit import imaging
+
+    specs = [imaging.PhotoSpec("a.dng", rois={"w30": [(10, 10), (200, 10), (200, 150)]})]
+    table = imaging.measure_photos(specs, imaging.ExtractionSettings(), cache="m.csv")
+"""
+
+from . import synthetic as synthetic
+from ._decode import CHANNELS as CHANNELS
+from ._decode import RawFrame as RawFrame
+from ._decode import decode_raw as decode_raw
+from ._decode import file_sha256 as file_sha256
+from ._errors import ImagingError as ImagingError
+from ._exposure import Exposure as Exposure
+from ._exposure import resolve_exposure as resolve_exposure
+from ._extract import ChannelStats as ChannelStats
+from ._extract import ExtractionSettings as ExtractionSettings
+from ._extract import roi_channel_stats as roi_channel_stats
+from ._markers import ARUCO_DICTIONARIES as ARUCO_DICTIONARIES
+from ._markers import MarkerDetection as MarkerDetection
+from ._markers import MarkerLayout as MarkerLayout
+from ._markers import Placement as Placement
+from ._markers import detect_markers as detect_markers
+from ._markers import fit_placement as fit_placement
+from ._pipeline import TABLE_VERSION as TABLE_VERSION
+from ._pipeline import FrameMeasurement as FrameMeasurement
+from ._pipeline import PhotoSpec as PhotoSpec
+from ._pipeline import cache_key as cache_key
+from ._pipeline import measure_frame as measure_frame
+from ._pipeline import measure_photo as measure_photo
+from ._pipeline import measure_photos as measure_photos
+from ._pipeline import preview_path as preview_path
+from ._preview import render_preview as render_preview
+from ._preview import write_preview as write_preview
+from ._roi import Polygon as Polygon
+from ._roi import RoiMask as RoiMask
+from ._roi import roi_mask as roi_mask
+from ._table import COLUMNS as COLUMNS
+from ._table import MeasurementRow as MeasurementRow
+from ._table import MeasurementTable as MeasurementTable

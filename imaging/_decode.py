@@ -1,0 +1,289 @@
+"""Decoding RAW photographs with rawpy (LibRaw): the linear sensor values, never demosaiced.
+
+`decode_raw` returns the visible part of the mosaic exactly as stored (no black subtraction, no
+white balance, no gamma), the colour of every CFA position, the black and white levels and the
+exposure tags. Pixel coordinates follow docs/imaging.md §Pixels: `data[y, x]`, x to the right,
+y down, (0, 0) the centre of the top-left visible pixel, in the sensor's orientation (the EXIF
+orientation flag is not applied).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import exifread
+import numpy as np
+import rawpy
+
+from ._errors import ImagingError
+
+CHANNELS: tuple[str, str, str] = ("R", "G", "B")
+"""Colour channels in the order used everywhere in `stairfit.imaging` (index 0, 1, 2)."""
+
+_CHANNEL_INDEX = {"R": 0, "G": 1, "B": 2}
+
+# exifread tag names for the exposure values, in order of preference.
+_EXIF_EXPOSURE_TIME = ("EXIF ExposureTime",)
+_EXIF_F_NUMBER = ("EXIF FNumber",)
+_EXIF_ISO = ("EXIF ISOSpeedRatings", "EXIF PhotographicSensitivity")
+
+
+@dataclass(frozen=True, eq=False)
+class RawFrame:
+    """One decoded RAW photograph: linear sensor values and the metadata needed to use them.
+
+    Attributes:
+        path: the file that was decoded.
+        name: the photo's name in messages and tables (the file name by default).
+        sha256: SHA-256 of the file's bytes (hex), as decoded.
+        data: the visible image as stored, uint16 DN. A CFA (mosaic) file gives shape (H, W),
+            one colour per pixel; a linear (already demosaiced) file gives (H, W, 3), the
+            planes R, G, B.
+        cfa: for a mosaic, the colour index (0 = R, 1 = G, 2 = B; both greens are 1) of each
+            position of the repeating CFA tile, shape (ph, pw), so that pixel (y, x) has colour
+            `cfa[y % ph, x % pw]` (already shifted for the sensor margins). None for a linear
+            file.
+        black: black level in DN, float32: per CFA tile position (shape (ph, pw)) for a mosaic,
+            per plane (shape (3,)) for a linear file.
+        white_level: the raw value at which the sensor saturates (DN).
+        camera_whitebalance: the camera's as-shot (R, G, B) multipliers as LibRaw reports them;
+            metadata only, never applied to the data.
+        exif_exposure_time_s, exif_f_number, exif_iso: the EXIF exposure values, or None when
+            the tag is absent or 0 (a missing value, as in files written by Magic Lantern).
+        make, model: camera make and model from EXIF ("" when absent).
+        notes: facts worth knowing about the file that do not stop a measurement.
+    """
+
+    path: Path
+    name: str
+    sha256: str
+    data: np.ndarray
+    cfa: np.ndarray | None
+    black: np.ndarray
+    white_level: float
+    camera_whitebalance: tuple[float, float, float]
+    exif_exposure_time_s: float | None
+    exif_f_number: float | None
+    exif_iso: float | None
+    make: str
+    model: str
+    notes: tuple[str, ...] = ()
+
+    @property
+    def is_linear(self) -> bool:
+        """True for a linear (already demosaiced, no CFA) file such as a LinearRaw DNG."""
+        return self.cfa is None
+
+    @property
+    def height(self) -> int:
+        """Visible height in pixels."""
+        return int(self.data.shape[0])
+
+    @property
+    def width(self) -> int:
+        """Visible width in pixels."""
+        return int(self.data.shape[1])
+
+    @property
+    def cfa_string(self) -> str:
+        """The CFA tile as letters row by row, e.g. "RGGB"; "" for a linear file."""
+        if self.cfa is None:
+            return ""
+        return "".join(CHANNELS[c] for c in self.cfa.ravel())
+
+    def black_level_per_channel(self) -> tuple[float, float, float]:
+        """Mean black level (DN) of the R, G and B pixels (for reports)."""
+        if self.cfa is None:
+            return tuple(float(b) for b in self.black)  # type: ignore[return-value]
+        return tuple(float(self.black[self.cfa == c].mean()) for c in range(3))  # type: ignore[return-value]
+
+    @property
+    def camera(self) -> str:
+        """Make and model in one string ("" when EXIF has neither)."""
+        return " ".join(s for s in (self.make, self.model) if s)
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 (hex) of a file's bytes, read in 1 MiB chunks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def decode_raw(path: str | Path, name: str | None = None) -> RawFrame:
+    """Decode a camera RAW file (anything LibRaw reads; DNG, CR2, NEF, ARW, ...) without demosaic.
+
+    Args:
+        path: the RAW file.
+        name: the photo's name for messages and tables; defaults to the file name.
+
+    Returns:
+        The visible mosaic (or the R, G, B planes of a linear DNG) as stored, with its CFA
+        pattern, black and white levels (DN), the camera white balance (metadata only) and the
+        EXIF exposure tags. See `RawFrame`.
+
+    Raises:
+        ImagingError: the file is missing, unreadable, not a RAW file LibRaw supports, corrupt
+            or truncated, or its colour filters are not R, G, B.
+    """
+    path = Path(path)
+    name = name or path.name
+    if not path.is_file():
+        raise ImagingError(
+            f"photo {name!r}: file {path} does not exist; check the photo's file name "
+            "(it is relative to the scene file's folder)"
+        )
+    try:
+        blob = path.read_bytes()
+    except OSError as e:
+        raise ImagingError(
+            f"photo {name!r}: cannot read {path} ({e}); check its permissions"
+        ) from e
+    sha = hashlib.sha256(blob).hexdigest()
+    try:
+        with rawpy.imread(io.BytesIO(blob)) as raw:
+            frame_parts = _read_libraw(raw, name)
+    except rawpy.LibRawError as e:
+        reason = (
+            e.args[0].decode(errors="replace")
+            if e.args and isinstance(e.args[0], bytes)
+            else str(e)
+        )
+        raise ImagingError(
+            f"photo {name!r}: LibRaw {'.'.join(map(str, rawpy.libraw_version))} cannot decode "
+            f"{path} ({type(e).__name__}: {reason}); it is not a camera RAW file LibRaw supports, "
+            "or it is truncated or corrupt. Check that it opens in a RAW converter, copy it from "
+            "the camera again, or convert it to DNG with Adobe DNG Converter"
+        ) from e
+    except (NotImplementedError, RuntimeError, ValueError) as e:
+        raise ImagingError(
+            f"photo {name!r}: rawpy cannot give the raw mosaic of {path} ({e}); convert it to "
+            "DNG with Adobe DNG Converter"
+        ) from e
+    data, cfa, black, white, wb = frame_parts
+    tags, exif_note = _read_exif(blob)
+    notes = [exif_note] if exif_note else []
+    median = float(
+        np.median(data[:: max(1, data.shape[0] // 256), :: max(1, data.shape[1] // 256)])
+    )
+    if median < float(black.min()):
+        notes.append(
+            f"the median raw value ({median:g}) is below the black level ({float(black.min()):g}): "
+            "the black level may not be in the data's units (seen in 8-bit lossy linear DNGs)"
+        )
+    values = {}
+    for key, names in (
+        ("exposure_time_s", _EXIF_EXPOSURE_TIME),
+        ("f_number", _EXIF_F_NUMBER),
+        ("iso", _EXIF_ISO),
+    ):
+        values[key], note = _exif_number(tags, names)
+        if note:
+            notes.append(note)
+    return RawFrame(
+        path=path,
+        name=name,
+        sha256=sha,
+        data=data,
+        cfa=cfa,
+        black=black,
+        white_level=white,
+        camera_whitebalance=wb,
+        exif_exposure_time_s=values["exposure_time_s"],
+        exif_f_number=values["f_number"],
+        exif_iso=values["iso"],
+        make=_exif_text(tags, "Image Make"),
+        model=_exif_text(tags, "Image Model"),
+        notes=tuple(notes),
+    )
+
+
+def _colour_indices(color_desc: bytes, n: int, name: str) -> list[int]:
+    """Map LibRaw colour indices 0..n-1 (letters of color_desc) to 0 = R, 1 = G, 2 = B."""
+    desc = color_desc.decode(errors="replace")
+    out = []
+    for k in range(n):
+        letter = desc[k] if k < len(desc) else "?"
+        if letter not in _CHANNEL_INDEX:
+            raise ImagingError(
+                f"photo {name!r}: colour filters {desc!r} are not R, G, B (e.g. a CMYG or "
+                "monochrome sensor); stairfit measures R, G and B only"
+            )
+        out.append(_CHANNEL_INDEX[letter])
+    return out
+
+
+def _read_libraw(
+    raw: rawpy.RawPy, name: str
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, float, tuple[float, float, float]]:
+    """(data, cfa, black, white, white balance) from an open rawpy object."""
+    blpc = np.asarray(raw.black_level_per_channel, dtype=np.float32)
+    white = float(raw.white_level)
+    desc = raw.color_desc
+    wb4 = list(raw.camera_whitebalance)
+    pattern = raw.raw_pattern
+    if pattern is None or raw.raw_type == rawpy.RawType.Stack:
+        planes = np.asarray(raw.raw_image_visible)
+        if planes.ndim != 3:
+            raise ImagingError(f"photo {name!r}: unexpected linear image shape {planes.shape}")
+        n = min(int(raw.num_colors), planes.shape[2])
+        chans = _colour_indices(desc, n, name)
+        if sorted(set(chans)) != [0, 1, 2]:
+            raise ImagingError(
+                f"photo {name!r}: the linear image's planes are {desc.decode()[:n]!r}; "
+                "R, G and B planes are needed"
+            )
+        first = [chans.index(c) for c in range(3)]
+        data = np.stack([planes[..., k] for k in first], axis=-1).astype(np.uint16, copy=False)
+        black = blpc[first].astype(np.float32)
+        wb = tuple(float(wb4[k]) for k in first)
+        return np.ascontiguousarray(data), None, black, white, wb  # type: ignore[return-value]
+    pattern = np.asarray(pattern)
+    s = raw.sizes
+    # raw_pattern is relative to the full sensor; shift it to the visible area's origin.
+    visible = np.roll(pattern, (-int(s.top_margin), -int(s.left_margin)), axis=(0, 1))
+    n_idx = int(pattern.max()) + 1
+    chans = _colour_indices(desc, n_idx, name)
+    cfa = np.asarray(chans, dtype=np.uint8)[visible]
+    if sorted(set(cfa.ravel().tolist())) != [0, 1, 2]:
+        raise ImagingError(f"photo {name!r}: the CFA pattern {visible.tolist()} lacks R, G or B")
+    black = blpc[visible].astype(np.float32)
+    data = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
+    idx = {c: chans.index(c) for c in range(3)}
+    wb = tuple(float(wb4[idx[c]]) if idx[c] < len(wb4) else float("nan") for c in range(3))
+    return data, cfa, black, white, wb  # type: ignore[return-value]
+
+
+def _read_exif(blob: bytes) -> tuple[dict, str]:
+    """exifread's tags of a file (an empty dict and a note when exifread cannot parse it)."""
+    try:
+        return exifread.process_file(io.BytesIO(blob), details=False), ""
+    except Exception as e:  # exifread raises many types on formats it does not know
+        return {}, f"exifread could not read EXIF ({type(e).__name__}: {e})"
+
+
+def _exif_number(tags: dict, names: tuple[str, ...]) -> tuple[float | None, str]:
+    """The first positive, finite value among `names`, or None and a note saying why not."""
+    for key in names:
+        if key not in tags:
+            continue
+        values = getattr(tags[key], "values", None)
+        try:
+            v = float(values[0]) if values else float("nan")
+        except (TypeError, ValueError, ZeroDivisionError, IndexError):
+            v = float("nan")
+        if math.isfinite(v) and v > 0:
+            return v, ""
+        return None, f"{key} is {tags[key]} (treated as absent)"
+    return None, f"{names[0]} is absent"
+
+
+def _exif_text(tags: dict, key: str) -> str:
+    """A string tag, stripped ("" when absent)."""
+    return str(tags[key]).strip().strip("\x00") if key in tags else ""

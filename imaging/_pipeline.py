@@ -1,0 +1,422 @@
+"""From photo specifications to the measurement table: ROIs, statistics, cache, parallelism.
+
+`measure_photos` is the entry point for the command line: it takes one `PhotoSpec` per photo
+(what the scene file says about it) and `ExtractionSettings`, reuses cached rows when neither the
+photo's bytes nor its ROI definition changed, measures the rest in parallel worker processes and
+returns (and caches) the `MeasurementTable`. See docs/imaging.md.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import multiprocessing
+import os
+import warnings
+from collections.abc import Mapping, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from ._decode import CHANNELS, RawFrame, decode_raw, file_sha256
+from ._errors import ImagingError
+from ._exposure import Exposure, resolve_exposure
+from ._extract import ChannelStats, ExtractionSettings, roi_channel_stats
+from ._markers import MarkerDetection, MarkerLayout, Placement, detect_markers, fit_placement
+from ._preview import write_preview
+from ._roi import Polygon, RoiMask, as_polygon, roi_mask
+from ._table import MeasurementRow, MeasurementTable
+
+TABLE_VERSION = 1
+"""Part of every cache key: bump it when a change to the code changes measured values."""
+
+
+def _named_polygons(
+    items: Mapping[str, object] | Sequence[tuple[str, object]], what: str
+) -> tuple[tuple[str, Polygon], ...]:
+    pairs = list(items.items()) if isinstance(items, Mapping) else list(items)
+    out = []
+    for name, poly in pairs:
+        out.append((str(name), as_polygon(poly, f"{what} {name!r}")))  # type: ignore[arg-type]
+    names = [n for n, _ in out]
+    if len(set(names)) != len(names):
+        raise ImagingError(f"{what}: names repeat: {names}")
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class PhotoSpec:
+    """Everything the measurement of one photo depends on, apart from `ExtractionSettings`.
+
+    Attributes:
+        path: the RAW file.
+        name: the photo's name in the table and in messages (default: the file name); unique.
+        exposure_time_s, f_number, iso: overrides of the EXIF exposure (None = use EXIF).
+        rois: ROI polygons in pixel coordinates (docs/imaging.md §Pixels), name -> polygon (a
+            mapping or (name, polygon) pairs). These win over `faces_mm` for the same name.
+        faces_mm: ROI outlines in base-plane millimetres, placed in the photo through the
+            markers (needs `markers`), name -> polygon.
+        markers: the marker layout, needed when some name is only in `faces_mm`.
+        reference: the name (in `rois` or `faces_mm`) of a reference patch: every other ROI's
+            value is divided by the reference's value in the same photo and channel.
+    """
+
+    path: Path
+    name: str = ""
+    exposure_time_s: float | None = None
+    f_number: float | None = None
+    iso: float | None = None
+    rois: tuple[tuple[str, Polygon], ...] = ()
+    faces_mm: tuple[tuple[str, Polygon], ...] = ()
+    markers: MarkerLayout | None = None
+    reference: str | None = None
+
+    def __post_init__(self) -> None:
+        path = Path(self.path)
+        name = self.name or path.name
+        object.__setattr__(self, "path", path)
+        object.__setattr__(self, "name", name)
+        object.__setattr__(self, "rois", _named_polygons(self.rois, f"photo {name!r}, ROI"))
+        object.__setattr__(
+            self, "faces_mm", _named_polygons(self.faces_mm, f"photo {name!r}, face_mm")
+        )
+        names = self.roi_names()
+        if not names:
+            raise ImagingError(f"photo {name!r}: no ROIs; give pixel polygons or faces in mm")
+        if self.placed_names() and self.markers is None:
+            raise ImagingError(
+                f"photo {name!r}: ROIs {list(self.placed_names())} are given in base-plane mm "
+                "but there is no marker layout; add a [markers] table or give roi_px polygons"
+            )
+        if self.reference is not None and self.reference not in names:
+            raise ImagingError(
+                f"photo {name!r}: the reference patch {self.reference!r} is not among the ROIs "
+                f"{list(names)}"
+            )
+        if self.reference is not None and len(names) < 2:
+            raise ImagingError(f"photo {name!r}: a reference patch needs at least one other ROI")
+
+    def roi_names(self) -> tuple[str, ...]:
+        """ROI names in table order: pixel polygons first, then marker-placed faces."""
+        px = [n for n, _ in self.rois]
+        return tuple(px + [n for n, _ in self.faces_mm if n not in px])
+
+    def placed_names(self) -> tuple[str, ...]:
+        """Names placed through the markers (in `faces_mm` and not in `rois`)."""
+        px = {n for n, _ in self.rois}
+        return tuple(n for n, _ in self.faces_mm if n not in px)
+
+
+@dataclass(frozen=True, eq=False)
+class FrameMeasurement:
+    """The result of measuring one decoded photo (for callers that want more than the rows)."""
+
+    rows: tuple[MeasurementRow, ...]
+    rois: dict[str, RoiMask]
+    exposure: Exposure
+    detection: MarkerDetection | None
+    placement: Placement | None
+
+
+def cache_key(spec: PhotoSpec, settings: ExtractionSettings) -> str:
+    """A hash of everything but the photo's bytes that the photo's rows depend on."""
+    payload = {
+        "version": TABLE_VERSION,
+        "rois": spec.rois,
+        "faces_mm": spec.faces_mm,
+        "markers": asdict(spec.markers) if spec.markers and spec.placed_names() else None,
+        "reference": spec.reference,
+        "exposure": [spec.exposure_time_s, spec.f_number, spec.iso],
+        "settings": asdict(settings),
+    }
+    text = json.dumps(payload, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _check_overlaps(rois: dict[str, RoiMask], photo: str) -> None:
+    """ImagingError if two eroded ROIs share pixels (their errors would not be independent)."""
+    items = list(rois.values())
+    for i, a in enumerate(items):
+        for b in items[i + 1 :]:
+            y0, x0 = max(a.y0, b.y0), max(a.x0, b.x0)
+            y1 = min(a.y0 + a.mask.shape[0], b.y0 + b.mask.shape[0])
+            x1 = min(a.x0 + a.mask.shape[1], b.x0 + b.mask.shape[1])
+            if y0 >= y1 or x0 >= x1:
+                continue
+            ma = a.mask[y0 - a.y0 : y1 - a.y0, x0 - a.x0 : x1 - a.x0]
+            mb = b.mask[y0 - b.y0 : y1 - b.y0, x0 - b.x0 : x1 - b.x0]
+            n = int((ma & mb).sum())
+            if n:
+                raise ImagingError(
+                    f"photo {photo!r}, wedges {a.name!r} and {b.name!r}: the ROIs overlap by "
+                    f"{n} px after erosion; fix the polygons so that each pixel belongs to one ROI"
+                )
+
+
+def _flags(s: ChannelStats, settings: ExtractionSettings) -> list[str]:
+    flags = []
+    if s.n_in_roi == 0:
+        flags.append("no_pixels")
+    elif s.saturated_fraction > settings.max_saturated_fraction or s.n_pixels == 0:
+        flags.append("saturated")
+    if s.n_pixels > 0 and s.n_blocks < settings.min_blocks:
+        flags.append("few_blocks")
+    if s.mean_dn < -5 * s.stderr_dn:
+        # E[raw - black] >= 0 with a correct black level; 5 sigma below is a wrong black level
+        flags.append("below_black")
+    return flags
+
+
+def measure_frame(
+    frame: RawFrame, spec: PhotoSpec, settings: ExtractionSettings
+) -> FrameMeasurement:
+    """Measure every ROI of `spec` in a decoded photo.
+
+    Places marker-based ROIs (when there are any), rasterises and erodes every ROI, resolves the
+    exposure, computes the per-channel statistics, flags, and the optional reference
+    normalisation.
+
+    Raises:
+        ImagingError: exposure unknown, ROI outside the image or empty after erosion, ROIs
+            overlapping, too few markers or a poor marker fit; the message names photo and wedge.
+    """
+    photo = spec.name
+    exposure = resolve_exposure(frame, spec.exposure_time_s, spec.f_number, spec.iso)
+    polygons: dict[str, tuple[Polygon, str]] = {n: (p, "polygon") for n, p in spec.rois}
+    detection = placement = None
+    placed = spec.placed_names()
+    if placed:
+        assert spec.markers is not None  # checked by PhotoSpec
+        detection = detect_markers(frame, spec.markers.dictionary)
+        placement = fit_placement(detection, spec.markers, photo=photo, wedges=placed)
+        faces = dict(spec.faces_mm)
+        for n in placed:
+            polygons[n] = (placement.polygon(faces[n]), "markers")
+    rois = {
+        n: roi_mask(
+            polygons[n][0],
+            (frame.height, frame.width),
+            settings.erode_px,
+            photo=photo,
+            wedge=n,
+            source=polygons[n][1],
+        )
+        for n in spec.roi_names()
+    }
+    _check_overlaps(rois, photo)
+    key = cache_key(spec, settings)
+    black = frame.black_level_per_channel()
+    stats = {n: roi_channel_stats(frame, roi, settings) for n, roi in rois.items()}
+    ref = stats[spec.reference] if spec.reference else None
+    ref_flags = [_flags(s, settings) for s in ref] if ref else None
+    rows = []
+    for n, roi in rois.items():
+        by_marker = roi.source == "markers" and placement is not None
+        for c, s in enumerate(stats[n]):
+            value = s.mean_dn * exposure.scale
+            stderr = s.stderr_dn * exposure.scale
+            flags = _flags(s, settings)
+            normalised_by = ""
+            if ref is not None and ref_flags is not None and n != spec.reference:
+                r = ref[c]
+                normalised_by = spec.reference or ""
+                flags += [f"reference-{f}" for f in ref_flags[c]]
+                if r.mean_dn > 0:
+                    ratio = s.mean_dn / r.mean_dn
+                    stderr = math.hypot(s.stderr_dn / r.mean_dn, ratio * r.stderr_dn / r.mean_dn)
+                    value = ratio
+                else:
+                    flags.append("reference-nonpositive")
+                    value = stderr = math.nan
+            rows.append(
+                MeasurementRow(
+                    photo=photo,
+                    photo_sha256=frame.sha256,
+                    settings_key=key,
+                    wedge=n,
+                    channel=CHANNELS[c],
+                    value=float(value),
+                    stderr=float(stderr),
+                    n_pixels=s.n_pixels,
+                    n_blocks=s.n_blocks,
+                    saturated_fraction=float(s.saturated_fraction),
+                    flag=";".join(flags),
+                    normalised_by=normalised_by,
+                    exposure_time_s=exposure.exposure_time_s,
+                    f_number=exposure.f_number,
+                    iso=exposure.iso,
+                    black_level=black[c],
+                    white_level=frame.white_level,
+                    roi_source=roi.source,
+                    reprojection_error_px=placement.rms_error_px if by_marker else None,  # type: ignore[union-attr]
+                    n_markers=len(placement.ids) if by_marker else None,  # type: ignore[union-attr]
+                    camera=frame.camera,
+                )
+            )
+    return FrameMeasurement(tuple(rows), rois, exposure, detection, placement)
+
+
+def measure_photo(
+    spec: PhotoSpec, settings: ExtractionSettings, preview: str | Path | None = None
+) -> tuple[MeasurementRow, ...]:
+    """Decode one photo, measure it, and optionally write its preview PNG.
+
+    When the measurement fails after decoding, the preview is still written (with the markers
+    found, if a layout was given) so that the failure can be looked at; then the error is raised.
+    """
+    frame = decode_raw(spec.path, spec.name)
+    try:
+        result = measure_frame(frame, spec, settings)
+    except ImagingError:
+        if preview is not None:
+            det = detect_markers(frame, spec.markers.dictionary) if spec.markers else None
+            write_preview(frame, {}, det, preview, saturation_level=settings.saturation_level)
+        raise
+    if preview is not None:
+        write_preview(
+            frame,
+            result.rois,
+            result.detection,
+            preview,
+            saturation_level=settings.saturation_level,
+        )
+    return result.rows
+
+
+def preview_path(preview_dir: str | Path, spec: PhotoSpec) -> Path:
+    """Where `measure_photos` writes a photo's preview: `<preview_dir>/<name>.png`."""
+    return Path(preview_dir) / f"{spec.name}.png"
+
+
+def _load_cache(cache: Path | None) -> dict[str, tuple[MeasurementRow, ...]]:
+    if cache is None or not cache.exists():
+        return {}
+    try:
+        table = MeasurementTable.read_csv(cache)
+    except ImagingError as e:
+        warnings.warn(f"ignoring the cache: {e}", stacklevel=3)
+        return {}
+    return {p: table.for_photo(p) for p in table.photos()}
+
+
+def _cached_rows(
+    spec: PhotoSpec,
+    settings: ExtractionSettings,
+    cached: dict[str, tuple[MeasurementRow, ...]],
+    preview_dir: Path | None,
+) -> tuple[MeasurementRow, ...] | None:
+    rows = cached.get(spec.name)
+    if not rows or not spec.path.is_file():
+        return None
+    if preview_dir is not None and not preview_path(preview_dir, spec).exists():
+        return None
+    key = cache_key(spec, settings)
+    if any(r.settings_key != key for r in rows):
+        return None
+    sha = file_sha256(spec.path)
+    if any(r.photo_sha256 != sha for r in rows):
+        return None
+    return rows
+
+
+def measure_photos(
+    specs: Sequence[PhotoSpec],
+    settings: ExtractionSettings | None = None,
+    *,
+    cache: str | Path | None = None,
+    preview_dir: str | Path | None = None,
+    progress: bool = False,
+    max_workers: int | None = None,
+) -> MeasurementTable:
+    """Measure a set of photos: the measurement table, one row per photo x ROI x channel.
+
+    Args:
+        specs: one `PhotoSpec` per photo (names must be unique).
+        settings: extraction settings (defaults: `ExtractionSettings()`).
+        cache: a CSV file. Rows found there are reused for a photo when the photo file's SHA-256
+            and its `cache_key` (ROIs, marker layout, reference, exposure overrides, settings,
+            table version) both match, so the photo is not decoded again. The file is then
+            rewritten (atomically) with exactly the rows returned.
+        preview_dir: if given, a preview PNG `<name>.png` is written there for every photo that
+            is decoded (a photo whose preview is missing is decoded again).
+        progress: show a tqdm progress bar (on stderr).
+        max_workers: worker processes; default min(2, CPU count, photos to decode). With 1,
+            photos are measured in this process. Each worker holds one photo at a time, so
+            memory stays bounded by a few photos.
+
+    Returns:
+        The table, rows in the order of `specs`.
+
+    Raises:
+        ImagingError: one or more photos failed; the message lists each (photo, wedge, fix).
+            Rows of the photos that succeeded are written to the cache first.
+    """
+    settings = settings or ExtractionSettings()
+    names = [s.name for s in specs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ImagingError(f"photo names must be unique; repeated: {dup} (give each a name)")
+    cache_path = Path(cache) if cache is not None else None
+    pdir = Path(preview_dir) if preview_dir is not None else None
+    cached = _load_cache(cache_path)
+    done: dict[str, tuple[MeasurementRow, ...]] = {}
+    errors: dict[str, str] = {}
+    bar = tqdm(total=len(specs), unit="photo", desc="photos", disable=not progress)
+    todo = []
+    for spec in specs:
+        rows = _cached_rows(spec, settings, cached, pdir)
+        if rows is None:
+            todo.append(spec)
+        else:
+            done[spec.name] = rows
+            bar.update(1)
+    workers = max_workers or min(2, os.cpu_count() or 1)
+    workers = max(1, min(workers, len(todo)))
+    try:
+        if workers == 1:
+            for spec in todo:
+                pv = preview_path(pdir, spec) if pdir else None
+                try:
+                    done[spec.name] = measure_photo(spec, settings, pv)
+                except ImagingError as e:
+                    errors[spec.name] = str(e)
+                bar.update(1)
+        else:
+            # "spawn": never fork a parent that may be running JAX threads.
+            ctx = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+                futures: dict[Future, PhotoSpec] = {
+                    pool.submit(
+                        measure_photo, spec, settings, preview_path(pdir, spec) if pdir else None
+                    ): spec
+                    for spec in todo
+                }
+                for fut in as_completed(futures):
+                    spec = futures[fut]
+                    try:
+                        done[spec.name] = fut.result()
+                    except ImagingError as e:
+                        errors[spec.name] = str(e)
+                    except BrokenProcessPool as e:
+                        raise ImagingError(
+                            f"photo {spec.name!r}: a worker process died ({e}); it may have run "
+                            "out of memory, or measure_photos was called while a script was "
+                            "being imported (put the call under `if __name__ == '__main__':`). "
+                            "Retry with max_workers=1"
+                        ) from e
+                    bar.update(1)
+    finally:
+        bar.close()
+    table = MeasurementTable(tuple(r for s in specs if s.name in done for r in done[s.name]))
+    if cache_path is not None:
+        table.write_csv(cache_path)
+    if errors:
+        listing = "\n  ".join(errors[n] for n in names if n in errors)
+        raise ImagingError(
+            f"{len(errors)} of {len(specs)} photos could not be measured:\n  {listing}"
+        )
+    return table

@@ -1,0 +1,158 @@
+"""Regions of interest: polygons in pixel coordinates, rasterised and eroded with OpenCV.
+
+Pixel convention (docs/imaging.md §Pixels): x to the right, y down, (0, 0) is the centre of the
+top-left pixel of the visible raw image, so pixel `data[y, x]` covers [x - 0.5, x + 0.5] x
+[y - 0.5, y + 0.5]. A polygon may therefore reach from -0.5 to W - 0.5 in x (and likewise in y).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ._errors import ImagingError
+
+Polygon = tuple[tuple[float, float], ...]
+"""A polygon: at least 3 (x, y) vertices, in order (either orientation)."""
+
+_SHIFT = 8  # fixed-point bits for cv2.fillPoly: vertices are placed to 1/256 px
+
+
+def as_polygon(points: Iterable[Sequence[float]], what: str) -> Polygon:
+    """`points` as a Polygon of floats; an ImagingError naming `what` if it is not one."""
+    try:
+        items = list(points)
+        poly = tuple((float(p[0]), float(p[1])) for p in items if len(p) == 2)
+        n_in = len(items)
+    except (TypeError, ValueError, IndexError):
+        poly, n_in = (), -1
+    if len(poly) < 3 or len(poly) != n_in or not all(map(math.isfinite, sum(poly, ()))):
+        raise ImagingError(
+            f"{what}: a polygon must be a list of at least 3 finite [x, y] points, "
+            "e.g. [[10, 10], [200, 10], [200, 150]]"
+        )
+    return poly
+
+
+@dataclass(frozen=True, eq=False)
+class RoiMask:
+    """The pixels of one region of interest after erosion.
+
+    Attributes:
+        name: the wedge (or reference patch) name.
+        polygon: the polygon before erosion, pixel coordinates.
+        source: "polygon" (given in pixels) or "markers" (placed from ArUco markers).
+        y0, x0: the image coordinates of `mask[0, 0]`.
+        mask: boolean mask of the eroded region, shape (h, w), a box of the image.
+        n_before_erosion: pixels inside the polygon before erosion.
+    """
+
+    name: str
+    polygon: Polygon
+    source: str
+    y0: int
+    x0: int
+    mask: np.ndarray
+    n_before_erosion: int
+
+    @property
+    def n_pixels(self) -> int:
+        """Pixels in the eroded region."""
+        return int(self.mask.sum())
+
+    def box(self) -> tuple[slice, slice]:
+        """(rows, columns) slices of the image that `mask` covers."""
+        h, w = self.mask.shape
+        return slice(self.y0, self.y0 + h), slice(self.x0, self.x0 + w)
+
+
+def roi_mask(
+    polygon: Polygon,
+    image_shape: tuple[int, int],
+    erode_px: int,
+    *,
+    photo: str,
+    wedge: str,
+    source: str = "polygon",
+) -> RoiMask:
+    """Rasterise a polygon (cv2.fillPoly) and erode it by `erode_px` pixels (cv2.erode, disk).
+
+    Args:
+        polygon: vertices in pixel coordinates (docs/imaging.md §Pixels).
+        image_shape: (height, width) of the visible image.
+        erode_px: erosion radius in pixels (>= 0): a pixel is kept only if every pixel within
+            this distance is inside the polygon, so edges and background never leak in.
+        photo, wedge: names used in error messages.
+        source: "polygon" or "markers", recorded and used in messages.
+
+    Raises:
+        ImagingError: a vertex lies outside the image, or nothing is left after erosion.
+    """
+    h_img, w_img = int(image_shape[0]), int(image_shape[1])
+    pts = np.asarray(polygon, dtype=np.float64)
+    how = "placed from the markers" if source == "markers" else "given in pixels"
+    fix = (
+        "check the face's face_mm and the marker layout"
+        if source == "markers"
+        else "fix the polygon: pixel coordinates of the visible raw image, origin at the centre "
+        "of the top-left pixel (see docs/imaging.md)"
+    )
+    outside = (
+        (pts[:, 0] < -0.5)
+        | (pts[:, 0] > w_img - 0.5)
+        | (pts[:, 1] < -0.5)
+        | (pts[:, 1] > h_img - 0.5)
+    )
+    if outside.any():
+        x, y = pts[int(np.argmax(outside))]
+        raise ImagingError(
+            f"photo {photo!r}, wedge {wedge!r}: the ROI ({how}) has a vertex at "
+            f"({x:.1f}, {y:.1f}), outside the image ({w_img} x {h_img} px: x in [-0.5, "
+            f"{w_img - 0.5}], y in [-0.5, {h_img - 0.5}]); {fix}"
+        )
+    x0 = max(0, math.floor(pts[:, 0].min()) - 1)
+    y0 = max(0, math.floor(pts[:, 1].min()) - 1)
+    x1 = min(w_img, math.ceil(pts[:, 0].max()) + 2)
+    y1 = min(h_img, math.ceil(pts[:, 1].max()) + 2)
+    box = np.zeros((y1 - y0, x1 - x0), dtype=np.uint8)
+    fixed = np.round((pts - (x0, y0)) * (1 << _SHIFT)).astype(np.int32)
+    cv2.fillPoly(box, [fixed], 1, lineType=cv2.LINE_8, shift=_SHIFT)
+    n_before = int(box.sum())
+    if erode_px > 0:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
+        # Outside the box is outside the polygon, except at the image border, which is not an
+        # edge of the face: erode with a border of ones only there.
+        pad = erode_px
+        padded = np.pad(
+            box,
+            (
+                (pad if y0 > 0 else 0, pad if y1 < h_img else 0),
+                (pad if x0 > 0 else 0, pad if x1 < w_img else 0),
+            ),
+        )
+        eroded = cv2.erode(padded, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=1)
+        oy, ox = (pad if y0 > 0 else 0), (pad if x0 > 0 else 0)
+        box = eroded[oy : oy + box.shape[0], ox : ox + box.shape[1]]
+    mask = box.astype(bool)
+    if not mask.any():
+        raise ImagingError(
+            f"photo {photo!r}, wedge {wedge!r}: the ROI ({how}) is empty after eroding it by "
+            f"{erode_px} px ({n_before} px before erosion); enlarge the polygon or lower "
+            "extraction.erode_px"
+        )
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    mask = mask[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+    return RoiMask(
+        name=wedge,
+        polygon=tuple(map(tuple, pts.tolist())),  # type: ignore[arg-type]
+        source=source,
+        y0=y0 + int(rows[0]),
+        x0=x0 + int(cols[0]),
+        mask=np.ascontiguousarray(mask),
+        n_before_erosion=n_before,
+    )

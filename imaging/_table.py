@@ -1,0 +1,175 @@
+"""The measurement table: one row per photo x ROI x channel, written to and read from CSV."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import types
+import typing
+from collections.abc import Iterator
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import ImagingError
+from ._io import atomic_write_bytes
+
+
+@dataclass(frozen=True)
+class MeasurementRow:
+    """One measured value: a colour channel of one ROI in one photo (docs/imaging.md §Table).
+
+    Attributes:
+        photo: the photo's name (its file name by default).
+        photo_sha256: SHA-256 of the photo file that was decoded.
+        settings_key: hash of everything else the value depends on (ROIs, marker layout,
+            reference, exposure overrides, extraction settings, table version); the cache key.
+        wedge: the ROI's name (a wedge, or the reference patch).
+        channel: "R", "G" or "B".
+        value: mean relative radiance (DN x N^2 / (t x ISO/100)), or, when `normalised_by` is
+            set, the ratio to that reference patch's mean (dimensionless). NaN if no pixels.
+        stderr: standard error of `value` (block scatter; docs/imaging.md §Standard errors).
+        n_pixels: unsaturated pixels averaged.
+        n_blocks: non-empty blocks behind the standard error.
+        saturated_fraction: fraction of the channel's ROI pixels that were saturated.
+        flag: "" when usable, else ";"-separated reasons ("saturated", "few_blocks",
+            "below_black", "no_pixels", "reference-..."). Flagged rows must not be fitted.
+        normalised_by: the reference patch `value` is divided by ("" if none).
+        exposure_time_s, f_number, iso: the exposure used (EXIF or override).
+        black_level: mean black level of the channel (DN).
+        white_level: the white (saturation) level (DN).
+        roi_source: "polygon" (pixel polygon given) or "markers" (placed from ArUco markers).
+        reprojection_error_px: RMS marker reprojection error (px) for marker-placed ROIs.
+        n_markers: markers used for the placement, for marker-placed ROIs.
+        camera: camera make and model from EXIF ("" when absent).
+    """
+
+    photo: str
+    photo_sha256: str
+    settings_key: str
+    wedge: str
+    channel: str
+    value: float
+    stderr: float
+    n_pixels: int
+    n_blocks: int
+    saturated_fraction: float
+    flag: str
+    normalised_by: str
+    exposure_time_s: float
+    f_number: float
+    iso: float
+    black_level: float
+    white_level: float
+    roi_source: str
+    reprojection_error_px: float | None
+    n_markers: int | None
+    camera: str
+
+
+COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(MeasurementRow))
+"""The CSV header, in order."""
+
+_HINTS = typing.get_type_hints(MeasurementRow)
+
+
+def _base_type(hint: object) -> type:
+    """The non-None type of a hint such as `float | None`."""
+    if isinstance(hint, types.UnionType):
+        return next(a for a in typing.get_args(hint) if a is not type(None))
+    return hint  # type: ignore[return-value]
+
+
+_TYPES = {name: _base_type(_HINTS[name]) for name in COLUMNS}
+_OPTIONAL = {name for name in COLUMNS if isinstance(_HINTS[name], types.UnionType)}
+
+
+def _format(v: object) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else str(v)
+    return str(v)
+
+
+def _parse(name: str, text: str) -> object:
+    if text == "" and name in _OPTIONAL:
+        return None
+    return _TYPES[name](text)
+
+
+@dataclass(frozen=True)
+class MeasurementTable:
+    """The measurements of a set of photos: an immutable sequence of `MeasurementRow`s."""
+
+    rows: tuple[MeasurementRow, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __iter__(self) -> Iterator[MeasurementRow]:
+        return iter(self.rows)
+
+    def photos(self) -> tuple[str, ...]:
+        """Photo names, in order of first appearance."""
+        return tuple(dict.fromkeys(r.photo for r in self.rows))
+
+    def for_photo(self, photo: str) -> tuple[MeasurementRow, ...]:
+        """The rows of one photo."""
+        return tuple(r for r in self.rows if r.photo == photo)
+
+    def column(self, name: str) -> np.ndarray:
+        """One column as an array (float for numeric columns, None -> NaN; object for text)."""
+        if name not in _TYPES:
+            raise KeyError(f"no column {name!r}; columns are {', '.join(COLUMNS)}")
+        values = [getattr(r, name) for r in self.rows]
+        if _TYPES[name] in (int, float):
+            return np.array([np.nan if v is None else v for v in values], dtype=np.float64)
+        return np.array(values, dtype=object)
+
+    def to_csv(self) -> str:
+        """The table as CSV text with a header line (floats at full precision)."""
+        buf = io.StringIO()
+        writer = csv.writer(buf, lineterminator="\n")
+        writer.writerow(COLUMNS)
+        for r in self.rows:
+            writer.writerow([_format(getattr(r, c)) for c in COLUMNS])
+        return buf.getvalue()
+
+    def write_csv(self, path: str | Path) -> Path:
+        """Write the table as CSV, atomically (temporary file + os.replace)."""
+        return atomic_write_bytes(path, self.to_csv().encode())
+
+    @classmethod
+    def read_csv(cls, path: str | Path) -> MeasurementTable:
+        """Read a table written by `write_csv`.
+
+        Raises:
+            ImagingError: the file is missing or is not a measurement table of this version.
+        """
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except OSError as e:
+            raise ImagingError(f"measurement table {path}: cannot read it ({e})") from e
+        reader = csv.reader(io.StringIO(text))
+        header = next(reader, None)
+        if header is None or tuple(header) != COLUMNS:
+            raise ImagingError(
+                f"measurement table {path}: the header is not {','.join(COLUMNS)}; it was "
+                "written by another version or is not a measurement table; delete it"
+            )
+        rows = []
+        for k, line in enumerate(reader, start=2):
+            if len(line) != len(COLUMNS):
+                raise ImagingError(
+                    f"measurement table {path}, line {k}: expected {len(COLUMNS)} fields"
+                )
+            try:
+                values = {c: _parse(c, t) for c, t in zip(COLUMNS, line, strict=True)}
+            except ValueError as e:
+                raise ImagingError(f"measurement table {path}, line {k}: {e}") from e
+            rows.append(MeasurementRow(**values))  # type: ignore[arg-type]
+        return cls(tuple(rows))

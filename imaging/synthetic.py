@@ -1,0 +1,452 @@
+"""Synthetic RAW photographs of wedges on a marked base, for tests, the demo and benchmarks.
+
+`render_photo` draws a Bayer mosaic from per-face relative radiance (the units `measure_photos`
+recovers): faces and background, ArUco markers on the base, a mild multiplicative texture,
+vignetting, then the sensor: DN = radiance * t * (ISO/100) / N^2 above black, Poisson shot noise
+in electrons, Gaussian read noise, black level, quantisation and clipping at the white level.
+It also returns the exact noise-free expectation of every ROI mean the decoder computes, so tests
+can compute pulls. `write_dng` writes a real DNG (tifffile) that rawpy and exifread read back.
+
+It knows nothing about BRDFs: the caller turns model predictions into per-face radiance.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+
+import cv2
+import numpy as np
+import tifffile
+
+from ._decode import CHANNELS
+from ._errors import ImagingError
+from ._exposure import Exposure
+from ._io import temporary_sibling
+from ._markers import MarkerLayout
+from ._roi import Polygon, RoiMask, as_polygon, roi_mask
+
+# XYZ (D65) -> linear sRGB: the synthetic camera's colour matrix (its channels are sRGB's).
+_XYZ_TO_CAMERA = (
+    (3.2406, -1.5372, -0.4986),
+    (-0.9689, 1.8758, 0.0415),
+    (0.0557, -0.2040, 1.0570),
+)
+_SHIFT = 8
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """The synthetic camera's sensor.
+
+    Attributes:
+        bits: bit depth of the raw values (12 or 14; stored unpacked as uint16).
+        black_level: black level (DN), the same for every channel.
+        white_level: saturation level (DN); default 2**bits - 1.
+        gain_e_per_dn: electrons per DN at ISO 100; at ISO s it is gain * 100 / s.
+        read_noise_dn: Gaussian read noise (DN, standard deviation).
+        cfa: the 2 x 2 CFA tile, row by row ("RGGB", "BGGR", "GRBG" or "GBRG").
+    """
+
+    bits: int = 14
+    black_level: int = 1024
+    white_level: int | None = None
+    gain_e_per_dn: float = 1.0
+    read_noise_dn: float = 2.0
+    cfa: str = "RGGB"
+
+    def __post_init__(self) -> None:
+        if self.bits not in (12, 14, 16):
+            raise ImagingError("sensor: bits must be 12, 14 or 16")
+        if sorted(self.cfa) != ["B", "G", "G", "R"]:
+            raise ImagingError(f"sensor: cfa {self.cfa!r} must be a Bayer tile such as 'RGGB'")
+        if not 0 <= self.black_level < self.white:
+            raise ImagingError("sensor: need 0 <= black_level < white_level")
+        if self.white > 2**self.bits - 1:
+            raise ImagingError(f"sensor: white_level exceeds {2**self.bits - 1} ({self.bits} bits)")
+
+    @property
+    def white(self) -> int:
+        """The white level in DN."""
+        return self.white_level if self.white_level is not None else 2**self.bits - 1
+
+    def pattern(self) -> np.ndarray:
+        """The CFA tile as colour indices (0 = R, 1 = G, 2 = B), shape (2, 2)."""
+        return np.array([CHANNELS.index(ch) for ch in self.cfa], dtype=np.uint8).reshape(2, 2)
+
+
+@dataclass(frozen=True, eq=False)
+class SyntheticPhoto:
+    """A rendered photo and the truth behind it.
+
+    Attributes:
+        mosaic: the raw mosaic, uint16 DN, shape (H, W).
+        exposure: the exposure it was rendered with.
+        sensor: the sensor model.
+        faces_px: the face polygons (pixel coordinates).
+        erode_px: the erosion the expectations below were computed for.
+        expected: face -> (3,) the exact noise-free mean relative radiance (R, G, B) over the
+            eroded ROI, as the decoder averages it: texture and vignetting included.
+        expected_untextured: the same with the texture replaced by its mean (1).
+        marker_corners_px: marker id -> (4, 2) true corner positions (px).
+        field: the noise-free relative radiance of every pixel (H, W), if kept.
+    """
+
+    mosaic: np.ndarray
+    exposure: Exposure
+    sensor: SensorModel
+    faces_px: dict[str, Polygon]
+    erode_px: int
+    expected: dict[str, np.ndarray]
+    expected_untextured: dict[str, np.ndarray]
+    marker_corners_px: dict[int, np.ndarray]
+    field: np.ndarray | None = None
+
+    def write_dng(
+        self,
+        path: str | Path,
+        *,
+        exif: bool = True,
+        make: str = "stairfit",
+        model: str = "synthetic",
+    ) -> Path:
+        """Write the photo as a DNG (see `write_dng`); `exif=False` leaves the exposure out."""
+        return write_dng(
+            path,
+            self.mosaic,
+            cfa=self.sensor.cfa,
+            black_level=self.sensor.black_level,
+            white_level=self.sensor.white,
+            exposure=self.exposure if exif else None,
+            make=make,
+            model=model,
+        )
+
+
+def _cfa_field(pattern: np.ndarray, lut: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """Per-pixel value lut[label, colour of the pixel], float32, for a 2 x 2 CFA tile."""
+    out = np.empty(label.shape, dtype=np.float32)
+    for dy in range(2):
+        for dx in range(2):
+            out[dy::2, dx::2] = lut[label[dy::2, dx::2], int(pattern[dy, dx])]
+    return out
+
+
+def _draw_markers(
+    field: np.ndarray,
+    label: np.ndarray,
+    pattern: np.ndarray,
+    layout: MarkerLayout,
+    plane_to_image: np.ndarray,
+    background: np.ndarray,
+    white: np.ndarray,
+    black: np.ndarray,
+) -> dict[int, np.ndarray]:
+    """Draw the markers (with a one-cell white quiet zone) on the background pixels, in place."""
+    h_img, w_img = field.shape
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, layout.dictionary))
+    cells = dictionary.markerSize + 2  # data bits plus the black border, per side
+    corners_px = {}
+    for mid, corners_mm in layout.corners_mm().items():
+        if mid >= dictionary.bytesList.shape[0]:
+            raise ImagingError(f"marker {mid} is not in {layout.dictionary}")
+        local = np.array([[0, 0], [cells, 0], [cells, cells], [0, cells]], dtype=np.float32)
+        loc_to_mm = cv2.getPerspectiveTransform(local, corners_mm.astype(np.float32))
+        loc_to_px = plane_to_image @ loc_to_mm
+        pts = cv2.perspectiveTransform(corners_mm.reshape(-1, 1, 2), plane_to_image).reshape(4, 2)
+        corners_px[mid] = pts
+        quiet = np.array(
+            [[-1, -1], [cells + 1, -1], [cells + 1, cells + 1], [-1, cells + 1]], float
+        )
+        q = cv2.perspectiveTransform(quiet.reshape(-1, 1, 2), loc_to_px).reshape(4, 2)
+        x0, y0 = max(0, math.floor(q[:, 0].min())), max(0, math.floor(q[:, 1].min()))
+        x1, y1 = min(w_img, math.ceil(q[:, 0].max()) + 1), min(h_img, math.ceil(q[:, 1].max()) + 1)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        cell_px = float(np.linalg.norm(pts[1] - pts[0])) / cells
+        p = max(4, math.ceil(2 * cell_px))  # marker-image pixels per cell: 2x oversampled
+        img = cv2.aruco.generateImageMarker(dictionary, mid, cells * p, borderBits=1)
+        img = np.pad(img, p, constant_values=255).astype(np.float32) / 255.0
+        to_local = np.array([[1 / p, 0, 0.5 / p - 1], [0, 1 / p, 0.5 / p - 1], [0, 0, 1]])
+        shift = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1]], dtype=np.float64)
+        m = shift @ loc_to_px @ to_local
+        size = (x1 - x0, y1 - y0)
+        flags = cv2.INTER_LINEAR
+        whiteness = cv2.warpPerspective(img, m, size, flags=flags, borderValue=0)
+        cover = cv2.warpPerspective(np.ones_like(img), m, size, flags=flags, borderValue=0)
+        ys, xs = np.arange(y0, y1), np.arange(x0, x1)
+        chan = pattern[(ys % 2)[:, None], (xs % 2)[None, :]]
+        value = background[chan] * (1 - cover) + black[chan] * cover
+        value += (white[chan] - black[chan]) * whiteness
+        box = field[y0:y1, x0:x1]
+        bg = label[y0:y1, x0:x1] == 0
+        box[bg] = value[bg]
+    return corners_px
+
+
+def _vignetting(h: int, w: int, falloff: float) -> np.ndarray | None:
+    """cos^4-law vignetting 1 / (1 + r^2/f^2)^2, with 1 - falloff in the image corners."""
+    if falloff <= 0:
+        return None
+    cy, cx = (h - 1) / 2, (w - 1) / 2
+    f2 = (cx**2 + cy**2) / ((1 - falloff) ** -0.5 - 1)
+    ry = ((np.arange(h, dtype=np.float32) - cy) ** 2 / f2)[:, None]
+    rx = ((np.arange(w, dtype=np.float32) - cx) ** 2 / f2)[None, :]
+    v = 1.0 / (1.0 + ry + rx)
+    return (v * v).astype(np.float32)
+
+
+def _channel_means(field: np.ndarray, pattern: np.ndarray, roi: RoiMask) -> np.ndarray:
+    """(3,) mean of `field` over each colour's pixels in an ROI."""
+    rows, cols = roi.box()
+    sub = field[rows, cols]
+    ys = np.arange(roi.y0, roi.y0 + roi.mask.shape[0])
+    xs = np.arange(roi.x0, roi.x0 + roi.mask.shape[1])
+    chan = pattern[(ys % 2)[:, None], (xs % 2)[None, :]]
+    return np.array(
+        [float(sub[roi.mask & (chan == c)].astype(np.float64).mean()) for c in range(3)]
+    )
+
+
+def render_photo(
+    size: tuple[int, int],
+    faces_px: Mapping[str, Polygon],
+    radiance: Mapping[str, Sequence[float]],
+    exposure: Exposure,
+    *,
+    background: Sequence[float],
+    sensor: SensorModel | None = None,
+    markers: MarkerLayout | None = None,
+    plane_to_image: np.ndarray | None = None,
+    marker_white: Sequence[float] | None = None,
+    marker_black: Sequence[float] | None = None,
+    texture_amplitude: float = 0.02,
+    texture_sigma_px: float = 1.5,
+    vignetting: float = 0.04,
+    erode_px: int = 8,
+    seed: int = 0,
+    keep_field: bool = False,
+) -> SyntheticPhoto:
+    """Render a RAW photo of wedge faces on a base.
+
+    Args:
+        size: (width, height) in pixels.
+        faces_px: face name -> polygon in pixel coordinates (docs/imaging.md §Pixels).
+        radiance: face name -> (R, G, B) relative radiance, the units the decoder recovers:
+            DN above black = radiance * t * (ISO/100) / N^2 (see `Exposure.scale`).
+        exposure: the exposure (time, f-number, ISO).
+        background: (R, G, B) relative radiance of the base.
+        sensor: the sensor model (default `SensorModel()`: 14 bits, RGGB).
+        markers: ArUco markers to draw on the base (needs `plane_to_image`).
+        plane_to_image: 3 x 3 homography from base-plane mm to pixels.
+        marker_white, marker_black: (R, G, B) radiance of the markers' white and black cells
+            (default: the background, and a tenth of it).
+        texture_amplitude: relative standard deviation of the multiplicative texture.
+        texture_sigma_px: correlation scale of the texture: Gaussian smoothing (px) of white
+            noise; the texture's autocorrelation is a Gaussian of width sigma * sqrt(2).
+        vignetting: relative falloff in the image corners (cos^4 law).
+        erode_px: erosion of the ROIs for which `expected` is computed (as in extraction).
+        seed: seeds the texture and the noise (deterministic).
+        keep_field: keep the noise-free radiance image in the result (memory: 4 bytes/pixel).
+
+    Returns:
+        A `SyntheticPhoto` with the mosaic and the exact expected ROI means.
+    """
+    sensor = sensor or SensorModel()
+    w_img, h_img = int(size[0]), int(size[1])
+    if w_img < 2 or h_img < 2:
+        raise ImagingError("render_photo: size must be at least 2 x 2")
+    names = list(faces_px)
+    if len(names) > 254:
+        raise ImagingError("render_photo: at most 254 faces")
+    missing = [n for n in names if n not in radiance]
+    if missing:
+        raise ImagingError(f"render_photo: no radiance for faces {missing}")
+    pattern = sensor.pattern()
+    bg = np.asarray(background, dtype=np.float32).reshape(3)
+    lut = np.vstack([bg] + [np.asarray(radiance[n], dtype=np.float32).reshape(3) for n in names])
+    label = np.zeros((h_img, w_img), dtype=np.uint8)
+    polys = {n: as_polygon(faces_px[n], f"face {n!r}") for n in names}
+    for k, n in enumerate(names, start=1):
+        pts = np.round(np.asarray(polys[n]) * (1 << _SHIFT)).astype(np.int32)
+        cv2.fillPoly(label, [pts], k, lineType=cv2.LINE_8, shift=_SHIFT)
+    field = _cfa_field(pattern, lut, label)
+    corners_px: dict[int, np.ndarray] = {}
+    if markers is not None:
+        if plane_to_image is None:
+            raise ImagingError("render_photo: markers need plane_to_image (a 3 x 3 homography)")
+        white = np.asarray(marker_white if marker_white is not None else bg, np.float32)
+        black = np.asarray(marker_black if marker_black is not None else 0.1 * bg, np.float32)
+        corners_px = _draw_markers(
+            field, label, pattern, markers, np.asarray(plane_to_image, float), bg, white, black
+        )
+    del label
+    vig = _vignetting(h_img, w_img, vignetting)
+    if vig is not None:
+        field *= vig
+        del vig
+    rng = np.random.default_rng(seed)
+    untextured = field
+    if texture_amplitude > 0:
+        noise = rng.standard_normal((h_img, w_img), dtype=np.float32)
+        if texture_sigma_px > 0:
+            noise = cv2.GaussianBlur(noise, (0, 0), texture_sigma_px)
+        noise -= noise.mean()
+        noise *= texture_amplitude / noise.std()
+        noise += 1.0
+        field = untextured * noise
+        del noise
+    expected, expected_untextured = {}, {}
+    for n in names:
+        roi = roi_mask(polys[n], (h_img, w_img), erode_px, photo="synthetic", wedge=n)
+        expected[n] = _channel_means(field, pattern, roi)
+        expected_untextured[n] = _channel_means(untextured, pattern, roi)
+    del untextured
+    # The sensor: electrons -> Poisson -> DN, read noise, black, quantisation, clipping.
+    gain = sensor.gain_e_per_dn * 100.0 / exposure.iso  # electrons per DN at this ISO
+    electrons = np.maximum(field / np.float32(exposure.scale), 0.0) * np.float32(gain)
+    dn = rng.poisson(electrons).astype(np.float32)
+    del electrons
+    dn /= np.float32(gain)
+    dn += rng.standard_normal((h_img, w_img), dtype=np.float32) * np.float32(sensor.read_noise_dn)
+    dn += np.float32(sensor.black_level)
+    np.rint(dn, out=dn)
+    np.clip(dn, 0, sensor.white, out=dn)
+    mosaic = dn.astype(np.uint16)
+    return SyntheticPhoto(
+        mosaic=mosaic,
+        exposure=exposure,
+        sensor=sensor,
+        faces_px=polys,
+        erode_px=erode_px,
+        expected=expected,
+        expected_untextured=expected_untextured,
+        marker_corners_px=corners_px,
+        field=field if keep_field else None,
+    )
+
+
+def _rational(x: float, max_den: int) -> tuple[int, int]:
+    fr = Fraction(x).limit_denominator(max_den)
+    return fr.numerator, fr.denominator
+
+
+def write_dng(
+    path: str | Path,
+    mosaic: np.ndarray,
+    *,
+    cfa: str = "RGGB",
+    black_level: int = 1024,
+    white_level: int = 16383,
+    exposure: Exposure | None = None,
+    make: str = "stairfit",
+    model: str = "synthetic",
+) -> Path:
+    """Write a Bayer mosaic as a DNG 1.4 file (tifffile), atomically.
+
+    The file has PhotometricInterpretation 32803 (CFA), CFARepeatPatternDim 2 x 2, CFAPattern,
+    BlackLevel, WhiteLevel, a colour matrix (linear sRGB camera, D65) and, when `exposure` is
+    given, an EXIF sub-IFD with ExposureTime, FNumber and ISOSpeedRatings (rawpy reports ISO only
+    from there). Data are stored unpacked as uint16, so rawpy reads them back bit-exactly.
+
+    Args:
+        path: the .dng file to write.
+        mosaic: (H, W) uint16 raw values.
+        cfa: the 2 x 2 CFA tile, e.g. "RGGB".
+        black_level, white_level: in DN.
+        exposure: exposure tags to write; None writes no EXIF exposure.
+        make, model: camera make and model tags.
+    """
+    mosaic = np.asarray(mosaic)
+    if mosaic.ndim != 2 or mosaic.dtype != np.uint16:
+        raise ImagingError("write_dng: the mosaic must be a 2-D uint16 array")
+    if sorted(cfa) != ["B", "G", "G", "R"]:
+        raise ImagingError(f"write_dng: cfa {cfa!r} must be a Bayer tile such as 'RGGB'")
+    cm: list[int] = []
+    for row in _XYZ_TO_CAMERA:
+        for v in row:
+            cm += [round(v * 10000), 10000]
+    tags = [
+        (271, "s", 0, make, True),
+        (272, "s", 0, model, True),
+        (33421, "H", 2, (2, 2), True),  # CFARepeatPatternDim
+        (33422, "B", 4, tuple(CHANNELS.index(c) for c in cfa), True),  # CFAPattern
+        (50706, "B", 4, (1, 4, 0, 0), True),  # DNGVersion
+        (50707, "B", 4, (1, 1, 0, 0), True),  # DNGBackwardVersion
+        (50708, "s", 0, f"{make} {model}", True),  # UniqueCameraModel
+        (50710, "B", 3, (0, 1, 2), True),  # CFAPlaneColor
+        (50711, "H", 1, 1, True),  # CFALayout: rectangular
+        (50713, "H", 2, (1, 1), True),  # BlackLevelRepeatDim
+        (50714, "I", 1, int(black_level), True),  # BlackLevel
+        (50717, "I", 1, int(white_level), True),  # WhiteLevel
+        (50721, "2i", 9, tuple(cm), True),  # ColorMatrix1
+        (50728, "2I", 3, (1, 1, 1, 1, 1, 1), True),  # AsShotNeutral
+        (50778, "H", 1, 21, True),  # CalibrationIlluminant1: D65
+    ]
+    path = Path(path)
+    tmp = temporary_sibling(path)
+    try:
+        tifffile.imwrite(
+            tmp,
+            mosaic,
+            photometric=32803,
+            extratags=tags,
+            software="stairfit",
+            metadata=None,
+            byteorder="<",
+            bigtiff=False,
+        )
+        if exposure is not None:
+            _append_exif_ifd(tmp, exposure)
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _append_exif_ifd(path: Path, exposure: Exposure) -> None:
+    """Add an EXIF sub-IFD to a little-endian classic TIFF written by tifffile.
+
+    tifffile does not write the ExifIFD pointer (tag 34665) itself, so this appends the EXIF IFD
+    and a copy of IFD0 with the pointer inserted at the end of the file, then points the header
+    at the new IFD0. Out-of-line values of IFD0 keep their offsets, so the copy stays valid.
+    """
+    with open(path, "r+b") as f:
+        data = f.read()
+        if data[:4] != b"II*\x00":
+            raise ImagingError("write_dng: expected a little-endian classic TIFF from tifffile")
+        ifd0 = struct.unpack_from("<I", data, 4)[0]
+        n = struct.unpack_from("<H", data, ifd0)[0]
+        entries = [data[ifd0 + 2 + 12 * k : ifd0 + 14 + 12 * k] for k in range(n)]
+        next_ifd = struct.unpack_from("<I", data, ifd0 + 2 + 12 * n)[0]
+        exif_at = len(data) + len(data) % 2
+        n_exif = 4
+        values_at = exif_at + 2 + 12 * n_exif + 4
+        t_num, t_den = _rational(exposure.exposure_time_s, 1_000_000)
+        f_num, f_den = _rational(exposure.f_number, 1000)
+        iso = round(exposure.iso)
+        if not 1 <= iso <= 65535:
+            raise ImagingError(f"write_dng: ISO {exposure.iso} does not fit the EXIF SHORT tag")
+        payload = struct.pack("<IIII", t_num, t_den, f_num, f_den)
+        exif_entries = [
+            struct.pack("<HHII", 33434, 5, 1, values_at),  # ExposureTime, RATIONAL
+            struct.pack("<HHII", 33437, 5, 1, values_at + 8),  # FNumber, RATIONAL
+            struct.pack("<HHIHH", 34855, 3, 1, iso, 0),  # ISOSpeedRatings, SHORT
+            struct.pack("<HHI4s", 36864, 7, 4, b"0230"),  # ExifVersion, UNDEFINED
+        ]
+        exif = struct.pack("<H", n_exif) + b"".join(exif_entries) + struct.pack("<I", 0) + payload
+        new_ifd0 = exif_at + len(exif)
+        new_ifd0 += new_ifd0 % 2
+        entries.append(struct.pack("<HHII", 34665, 4, 1, exif_at))  # ExifIFD pointer, LONG
+        entries.sort(key=lambda e: struct.unpack_from("<H", e)[0])
+        ifd = struct.pack("<H", len(entries)) + b"".join(entries) + struct.pack("<I", next_ifd)
+        f.seek(0, 2)
+        f.write(b"\0" * (exif_at - len(data)) + exif + b"\0" * (new_ifd0 - exif_at - len(exif)))
+        f.write(ifd)
+        f.seek(4)
+        f.write(struct.pack("<I", new_ifd0))
