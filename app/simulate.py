@@ -1,0 +1,420 @@
+"""`stairfit simulate OUT`: a synthetic photo folder (real DNGs, scene file, truth) from known
+physical parameters.
+
+The model predicts each wedge face's relative radiance in every photo (`stairfit.fitting.predict`
+at the face angles of the scene geometry, conventions §1 and §9); `stairfit.imaging.synthetic`
+renders and writes the RAW photos. The truth goes to `truth.json`, apart from the photos.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from ._layout import SpecimenLayout, camera_for
+from .errors import UserError
+from .scene import SCENE_FILE, SCENE_VERSION
+
+DEG = np.pi / 180
+TRUTH_FILE = "truth.json"
+
+
+@dataclass(frozen=True)
+class Truth:
+    """The physical parameters a synthetic scene is rendered from (units in the names)."""
+
+    sigma_deg: float = 6.0
+    delta_n: float = 0.0
+    edge_radius_um: float = 0.0
+    scale: float = 2.0e6  # relative radiance per unit density: exposures of about a second
+    floor: float = 4000.0  # a Lambertian body reflection of about 1/1000 of scale
+
+
+@dataclass(frozen=True)
+class SimulationSettings:
+    """Everything about a synthetic scene other than the physics."""
+
+    wedges_deg: tuple[float, ...] = (10.0, 20.0, 30.0, 40.0, 45.0, 60.0)
+    layer_um: float = 150.0
+    material: str = "pla"
+    camera: str = "Nikon 5100 (NPL)"
+    illuminant: str = "D65"
+    light_deg: float = -10.0  # base frame: slightly uphill, so tread and retro peaks are seen
+    views_deg: tuple[float, ...] = tuple(float(v) for v in np.linspace(-80.0, 20.0, 19))
+    megapixels: float = 12.0
+    light_angular_diameter_deg: float = 1.0
+    camera_angular_extent_deg: float = 1.0
+    seed: int = 1
+    workers: int = 1
+    truth: Truth = field(default_factory=Truth)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register the `simulate` command."""
+    p = sub.add_parser(
+        "simulate",
+        help="write a synthetic photo folder (DNGs + scene.toml + truth.json)",
+        description=(
+            "Render a synthetic photo folder from known parameters: real DNG files of six wedges "
+            "on a marked base seen from several angles, the scene file that describes them, and "
+            "the truth in truth.json (kept apart from the photos)."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("out", type=Path, help="the folder to create")
+    add_truth_options(p)
+    p.add_argument("--force", action="store_true", help="replace an existing folder")
+    p.set_defaults(func=run)
+
+
+def add_truth_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by `simulate` and `demo`."""
+    t, s = Truth(), SimulationSettings()
+    p.add_argument("--sigma-deg", type=float, default=t.sigma_deg, help="true broadening (deg)")
+    p.add_argument("--delta-n", type=float, default=t.delta_n, help="true index offset")
+    p.add_argument(
+        "--edge-radius-um", type=float, default=t.edge_radius_um, help="true edge radius (um)"
+    )
+    p.add_argument("--floor", type=float, default=t.floor, help="true diffuse floor")
+    p.add_argument("--megapixels", type=float, default=s.megapixels, help="photo size")
+    p.add_argument(
+        "--views",
+        type=int,
+        default=len(s.views_deg),
+        help="number of photos (viewing angles from -80 to 20 deg, base frame)",
+    )
+    p.add_argument("--seed", type=int, default=s.seed, help="seed of texture and noise")
+    p.add_argument("--workers", type=int, default=s.workers, help="processes for rendering")
+
+
+def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
+    """Validated settings from command-line options (user mistakes raise UserError)."""
+    if not 0.0 < args.sigma_deg <= 45.0:
+        raise UserError(f"--sigma-deg: {args.sigma_deg} is outside (0, 45] deg")
+    if not -0.3 <= args.delta_n <= 0.5:
+        raise UserError(f"--delta-n: {args.delta_n} is outside [-0.3, 0.5]")
+    if args.floor < 0:
+        raise UserError("--floor: must be >= 0")
+    if not 0.05 <= args.megapixels <= 60:
+        raise UserError(f"--megapixels: {args.megapixels} is outside [0.05, 60]")
+    if not 3 <= args.views <= 200:
+        raise UserError(f"--views: {args.views} is outside [3, 200]")
+    if args.workers < 1:
+        raise UserError("--workers: must be >= 1")
+    base = SimulationSettings()
+    truth = Truth(args.sigma_deg, args.delta_n, args.edge_radius_um, base.truth.scale, args.floor)
+    views = tuple(float(v) for v in np.linspace(-80.0, 20.0, args.views))
+    settings = SimulationSettings(
+        megapixels=args.megapixels,
+        views_deg=views,
+        seed=args.seed,
+        workers=args.workers,
+        truth=truth,
+    )
+    _check_edge_radius(settings)
+    return settings
+
+
+def _check_edge_radius(s: SimulationSettings) -> None:
+    r = s.truth.edge_radius_um
+    if r < 0:
+        raise UserError("--edge-radius-um: must be >= 0")
+    if r > 0:
+        from stairfit import model
+
+        if not hasattr(model, "max_edge_radius"):
+            raise UserError("--edge-radius-um: this installation lacks the rounded-edge model")
+        r_max = min(float(model.max_edge_radius(b * DEG, s.layer_um)) for b in s.wedges_deg)
+        if r > r_max:
+            raise UserError(
+                f"--edge-radius-um: {r} um does not fit the finest cell; the maximum for these "
+                f"wedges and {s.layer_um} um layers is {r_max:.1f} um"
+            )
+
+
+def run(args: argparse.Namespace) -> int:
+    """`stairfit simulate OUT`."""
+    settings = settings_from_args(args)
+    with staged_folder(args.out, args.force) as tmp:
+        simulate(tmp, settings, progress=True)
+    print(f"wrote {len(settings.views_deg)} photos, {SCENE_FILE} and {TRUTH_FILE} to {args.out}")
+    return 0
+
+
+@contextmanager
+def staged_folder(out: Path, force: bool) -> Iterator[Path]:
+    """Build a folder under a temporary name next to `out` and move it into place on success.
+
+    A crash leaves no folder named `out`; an existing `out` is only replaced with `force`.
+    """
+    out = Path(out)
+    if out.exists() and not force:
+        raise UserError(
+            f"{out}: already exists; choose another folder or add --force to replace it"
+        )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    try:
+        yield tmp
+        if out.exists():
+            trash = out.with_name(f".{out.name}.old-{os.getpid()}")
+            out.rename(trash)
+            tmp.rename(out)
+            shutil.rmtree(trash, ignore_errors=True)
+        else:
+            tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def image_size(megapixels: float) -> tuple[int, int]:
+    """(width, height) with a 4:3 aspect ratio and even sides (whole CFA tiles)."""
+    h = round(float(np.sqrt(megapixels * 1e6 * 3 / 4)) / 2) * 2
+    w = round(h * 4 / 3 / 2) * 2
+    return w, h
+
+
+def face_radiance(settings: SimulationSettings) -> np.ndarray:
+    """(n_views, n_wedges, 3) true relative radiance of every face in every photo.
+
+    Evaluated with the accurate settings (5 nm spectra, a 5 x 5 aperture quadrature over the
+    light's and the face's angular extents), so that a fit with faster settings also meets the
+    model error a real scene would show.
+    """
+    from stairfit import fitting, model
+
+    layout = SpecimenLayout(settings.wedges_deg)
+    rows = []
+    for p, view in enumerate(settings.views_deg):
+        for k, beta2 in enumerate(layout.wedges_deg):
+            ti, to = settings.light_deg - beta2, view + beta2  # scene.Scene.face_angles_deg
+            for c in range(3):
+                rows.append((p, k, c, ti, to, beta2))
+    a = np.array(rows, float)
+    obs = fitting.Observations.from_arrays(
+        theta_i_rad=a[:, 3] * DEG,
+        theta_o_rad=a[:, 4] * DEG,
+        beta2_rad=a[:, 5] * DEG,
+        layer_um=np.full(len(a), settings.layer_um),
+        wedge_index=a[:, 1].astype(int),
+        channel_index=a[:, 2].astype(int),
+        value=np.zeros(len(a)),
+        stderr=np.ones(len(a)),
+        photo_index=a[:, 0].astype(int),
+    )
+    spectral = fitting.spectral_setup(settings.material, settings.camera, settings.illuminant)
+    t = settings.truth
+    params = fitting.Params(
+        sigma_rad=t.sigma_deg * DEG,
+        delta_n=t.delta_n,
+        edge_radius_um=t.edge_radius_um,
+        scale=t.scale,
+        floor=t.floor,
+    )
+    aperture = model.Aperture(
+        0.5 * settings.light_angular_diameter_deg * DEG,
+        0.5 * settings.camera_angular_extent_deg * DEG,
+        5,
+    )
+    if t.edge_radius_um > 0:
+        values = fitting.predict(params, obs, spectral, aperture=aperture)
+    else:  # the same model, compiled once: about 10x faster than evaluating op by op
+        values = np.asarray(_sharp_values(obs, spectral, params, aperture))
+    return values.reshape(len(settings.views_deg), len(settings.wedges_deg), 3)
+
+
+def _sharp_values(obs: Any, spectral: Any, params: Any, aperture: Any) -> Any:
+    import jax
+
+    from stairfit import model
+
+    def values(ti: Any, to: Any, b2: Any, n: Any, w: Any) -> Any:
+        dens = model.band_density(ti, to, b2, n, w, params.sigma_rad, aperture)
+        return model.radiance(dens, ti, to, params.scale, params.floor)
+
+    n = np.asarray(spectral.n_base)[obs.channel_index] + params.delta_n
+    w = np.asarray(spectral.weights)[obs.channel_index]
+    return jax.jit(values)(obs.theta_i_rad, obs.theta_o_rad, obs.beta2_rad, n, w)
+
+
+def simulate(folder: Path, settings: SimulationSettings, progress: bool = False) -> dict[str, Any]:
+    """Render every photo into `folder` and write the scene file and the truth."""
+    import tomli_w
+    from tqdm import tqdm
+
+    layout = SpecimenLayout(settings.wedges_deg)
+    radiance = face_radiance(settings)
+    size = image_size(settings.megapixels)
+    jobs = [
+        _PhotoJob(folder, p, view, size, layout, radiance[p], settings.seed * 1000 + p)
+        for p, view in enumerate(settings.views_deg)
+    ]
+    photos: list[dict[str, Any]] = []
+    bar = tqdm(total=len(jobs), desc="rendering photos", unit="photo", disable=not progress)
+    if settings.workers > 1:
+        with ProcessPoolExecutor(max_workers=settings.workers) as pool:
+            for entry in pool.map(_render, jobs):
+                photos.append(entry)
+                bar.update()
+    else:
+        for job in jobs:
+            photos.append(_render(job))
+            bar.update()
+    bar.close()
+    scene = _scene_dict(settings, layout, photos)
+    text = _compact_arrays(tomli_w.dumps(scene))
+    (folder / SCENE_FILE).write_text(_SCENE_HEADER + text, encoding="utf-8")
+    truth = {
+        "stairfit_version": __version__,
+        "parameters": {
+            "sigma_deg": settings.truth.sigma_deg,
+            "delta_n": settings.truth.delta_n,
+            "edge_radius_um": settings.truth.edge_radius_um,
+            "scale": settings.truth.scale,
+            "floor": settings.truth.floor,
+        },
+        "settings": {k: v for k, v in asdict(settings).items() if k != "truth"},
+        "face_radiance": {
+            "note": "noise-free relative radiance per photo, wedge and channel (R, G, B)",
+            "values": np.round(radiance, 6).tolist(),
+        },
+    }
+    (folder / TRUTH_FILE).write_text(json.dumps(truth, indent=2), encoding="utf-8")
+    return truth
+
+
+@dataclass(frozen=True)
+class _PhotoJob:
+    folder: Path
+    index: int
+    view_deg: float
+    size: tuple[int, int]
+    layout: SpecimenLayout
+    radiance: np.ndarray  # (n_wedges, 3)
+    seed: int
+
+
+def _render(job: _PhotoJob) -> dict[str, Any]:
+    """Render and write one photo; returns its [[photos]] entry for the scene file."""
+    from stairfit.imaging import Exposure, MarkerLayout, synthetic
+
+    names = [_wedge_name(b) for b in job.layout.wedges_deg]
+    cam = camera_for(job.layout, job.view_deg, *job.size)
+    faces = {n: cam.project(job.layout.face_corners_mm(k)).tolist() for k, n in enumerate(names)}
+    sensor = synthetic.SensorModel(bits=14, black_level=1024, gain_e_per_dn=1.0, read_noise_dn=2.0)
+    peak = float(job.radiance.max())
+    # A photographer's exposure: the brightest face at about half of the raw range.
+    f_number, iso = 5.6, 100.0
+    full = sensor.white - sensor.black_level
+    t = 0.5 * full * f_number**2 / (iso / 100.0) / peak
+    t = _third_stop(t)
+    exposure = Exposure(t, f_number, iso)
+    markers_mm = dict(job.layout.markers_mm())
+    src = np.array([c for m in markers_mm.values() for c in m], float)
+    dst = cam.project_base(src)
+    import cv2
+
+    h, _ = cv2.findHomography(src, dst)
+    background = np.full(3, 0.02 * peak)
+    photo = synthetic.render_photo(
+        job.size,
+        faces,
+        {n: job.radiance[k] for k, n in enumerate(names)},
+        exposure,
+        background=background,
+        sensor=sensor,
+        markers=MarkerLayout({i: c.tolist() for i, c in markers_mm.items()}),
+        plane_to_image=h,
+        marker_white=np.full(3, 0.3 * peak),
+        marker_black=np.full(3, 0.01 * peak),
+        vignetting=0.0,  # as if flat-field corrected: the pipeline does not correct vignetting
+        seed=job.seed,
+    )
+    name = f"IMG_{job.index + 1:04d}.dng"
+    photo.write_dng(job.folder / name)
+    return {
+        "file": name,
+        "light_deg": None,  # filled in by _scene_dict (same light for every photo)
+        "view_deg": round(job.view_deg, 6),
+        "roi_px": {n: [[round(x, 2), round(y, 2)] for x, y in faces[n]] for n in names},
+    }
+
+
+def _compact_arrays(toml_text: str) -> str:
+    """Put numeric arrays (and arrays of them, e.g. polygons) on one line each.
+
+    tomli_w writes every element of a nested array on its own line; the document's meaning is
+    unchanged (checked by `load_scene` reading it back in the tests).
+    """
+    import re
+
+    number = r"-?[0-9][0-9_.eE+-]*"
+    flat = re.compile(rf"\[\s*((?:{number},\s*)+)\]")
+    nested = re.compile(r"\[\s*((?:\[[^\[\]\n]*\],\s*)+)\]")
+
+    def join(m: re.Match[str]) -> str:
+        items = [x.strip() for x in m.group(1).split(",") if x.strip()]
+        return "[" + ", ".join(items) + "]"
+
+    def join_nested(m: re.Match[str]) -> str:
+        items = re.findall(r"\[[^\[\]\n]*\]", m.group(1))
+        return "[" + ", ".join(items) + "]"
+
+    return nested.sub(join_nested, flat.sub(join, toml_text))
+
+
+def _third_stop(t: float) -> float:
+    """Round an exposure time down to the nearest third of a stop (a camera's steps)."""
+    return float(2.0 ** (np.floor(np.log2(t) * 3) / 3))
+
+
+def _wedge_name(beta2_deg: float) -> str:
+    return f"w{beta2_deg:g}".replace(".", "p")
+
+
+def _scene_dict(
+    s: SimulationSettings, layout: SpecimenLayout, photos: Sequence[dict[str, Any]]
+) -> dict[str, Any]:
+    wedges = [
+        {
+            "name": _wedge_name(b),
+            "angle_deg": b,
+            "face_mm": np.round(layout.face_base_mm(k), 4).tolist(),
+        }
+        for k, b in enumerate(layout.wedges_deg)
+    ]
+    return {
+        "version": SCENE_VERSION,
+        "angles_relative_to": "base",
+        "specimen": {"layer_um": s.layer_um, "material": s.material, "wedges": wedges},
+        "light": {"illuminant": s.illuminant, "angular_diameter_deg": s.light_angular_diameter_deg},
+        "camera": {"sensitivity": s.camera, "angular_extent_deg": s.camera_angular_extent_deg},
+        "markers": {
+            "dictionary": "DICT_4X4_50",
+            "marker": [{"id": i, "corners_mm": c.tolist()} for i, c in layout.markers_mm()],
+        },
+        "photos": [{**p, "light_deg": s.light_deg} for p in photos],
+    }
+
+
+_SCENE_HEADER = """\
+# stairfit scene file, written by `stairfit simulate` (see docs/scene.md for every field).
+# Angles are in degrees, relative to the specimen base: a positive light_deg puts the light on
+# the downhill side of the wedges, a positive view_deg the camera on the uphill side.
+# Each photo lists its wedge ROIs in pixels (x right, y down); face_mm + [markers] would place
+# them automatically instead.
+
+"""
