@@ -131,3 +131,40 @@ def test_explicit_index_table(tmp_path):
     d["specimen"]["index"] = {"model": "constant", "n": 0.9}
     with pytest.raises(UserError, match=r"specimen\.index: gives n\(550 nm\)"):
         load_scene(_write(tmp_path, d))
+
+
+def test_annotated_example_in_docs_is_valid(tmp_path):
+    import re
+
+    from conftest import REPO
+
+    text = (REPO / "docs" / "scene.md").read_text()
+    block = re.search(r"```toml\n(.*?)```", text, re.S).group(1)
+    (tmp_path / "scene.toml").write_text(block)
+    scene = load_scene(tmp_path)
+    assert scene.specimen.wedges[0].name == "w10"
+    assert scene.markers is not None and scene.reference is not None
+    assert scene.photos[0].exposure_time_s == 1.0
+
+
+def test_simulated_scene_reads_back(tmp_path):
+    # the scene writer (simulate) and the reader agree; no photos are rendered here
+    import tomli_w
+
+    from stairfit._layout import SpecimenLayout
+    from stairfit.simulate import SimulationSettings, _compact_arrays, _scene_dict
+
+    s = SimulationSettings()
+    layout = SpecimenLayout(s.wedges_deg)
+    photos = [{"file": f"p{k}.dng", "view_deg": v, "roi_px": {}} for k, v in enumerate(s.views_deg)]
+    text = _compact_arrays(tomli_w.dumps(_scene_dict(s, layout, photos)))
+    (tmp_path / "scene.toml").write_text(text)
+    scene = load_scene(tmp_path)
+    assert len(scene.photos) == len(s.views_deg)
+    assert [w.angle_deg for w in scene.specimen.wedges] == list(s.wedges_deg)
+    assert scene.specimen.wedges[2].face_mm == (
+        (0.0, 52.0),
+        (20.0, 52.0),
+        (20.0, 72.0),
+        (0.0, 72.0),
+    )
