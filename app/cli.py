@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import __version__, predict, simulate
+from . import __version__, demo, fit, predict, simulate
 from .errors import UserError
 
 
@@ -23,6 +23,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     predict.add_parser(sub)
     simulate.add_parser(sub)
+    fit.add_parser(sub)
+    demo.add_parser(sub)
     return parser
 
 

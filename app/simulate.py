@@ -79,8 +79,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def add_truth_options(p: argparse.ArgumentParser) -> None:
-    """Options shared by `simulate` and `demo`."""
+def add_truth_options(p: argparse.ArgumentParser, seed_and_workers: bool = True) -> None:
+    """Options shared by `simulate` and `demo` (whose fit options bring --seed/--workers)."""
     t, s = Truth(), SimulationSettings()
     p.add_argument("--sigma-deg", type=float, default=t.sigma_deg, help="true broadening (deg)")
     p.add_argument("--delta-n", type=float, default=t.delta_n, help="true index offset")
@@ -95,8 +95,9 @@ def add_truth_options(p: argparse.ArgumentParser) -> None:
         default=len(s.views_deg),
         help="number of photos (viewing angles from -80 to 20 deg, base frame)",
     )
-    p.add_argument("--seed", type=int, default=s.seed, help="seed of texture and noise")
-    p.add_argument("--workers", type=int, default=s.workers, help="processes for rendering")
+    if seed_and_workers:
+        p.add_argument("--seed", type=int, default=s.seed, help="seed of texture and noise")
+        p.add_argument("--workers", type=int, default=s.workers, help="processes for rendering")
 
 
 def settings_from_args(args: argparse.Namespace) -> SimulationSettings:

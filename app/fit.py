@@ -1,0 +1,462 @@
+"""`stairfit fit DIR`: decode -> extract -> fit -> select model -> posterior -> results.
+
+Degrees at this edge, radians inside [conventions §1]. Every stage shows a progress bar; the
+results are written into a temporary folder that is moved into place only when complete.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import UserError
+from .presets import PRESETS, Preset, get_preset
+from .scene import Scene, load_scene, visible
+
+DEG = np.pi / 180
+CACHE_DIR = ".stairfit-cache"
+MEASUREMENT_CACHE = "measurements.csv"
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register the `fit` command."""
+    p = sub.add_parser(
+        "fit",
+        help="fit the staircase model to a folder of RAW photos",
+        description=(
+            "Decode the RAW photos listed in DIR/scene.toml, measure every wedge face, fit the "
+            "model ladder by least squares, choose the simplest model the data support, sample "
+            "its posterior, and write results.json, the measurement table, figures and "
+            "report.html to the output folder."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("folder", type=Path, metavar="DIR", help="photo folder with scene.toml")
+    add_fit_options(p)
+    p.set_defaults(func=run)
+
+
+def add_fit_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by `fit` and `demo`."""
+    p.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=None,
+        help="results folder (default: DIR-fit next to DIR)",
+    )
+    p.add_argument(
+        "--preset",
+        default="balanced",
+        choices=sorted(PRESETS),
+        help="speed/accuracy preset (README: Speed and accuracy)",
+    )
+    p.add_argument("--no-posterior", action="store_true", help="skip the emcee posterior")
+    p.add_argument(
+        "--model",
+        default=None,
+        help="force one model variant (e.g. 'sharp+delta_n') instead of selecting",
+    )
+    p.add_argument(
+        "--no-model-error", action="store_true", help="do not fit a fractional model-error term"
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the posterior sampler")
+    p.add_argument(
+        "--workers", type=int, default=1, help="processes decoding photos (1 is fastest on 2 cores)"
+    )
+    p.add_argument(
+        "--no-cache", action="store_true", help=f"decode every photo again (ignore DIR/{CACHE_DIR})"
+    )
+    p.add_argument("--force", action="store_true", help="replace an existing results folder")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """What `fit` was asked to do (recorded in results.json)."""
+
+    preset: Preset
+    posterior: bool
+    model: str | None
+    model_error: bool
+    seed: int
+    workers: int
+    cache: bool
+    progress: bool
+
+
+def options_from_args(args: argparse.Namespace) -> FitOptions:
+    """Validated options (user mistakes raise UserError)."""
+    if args.workers < 1:
+        raise UserError("--workers: must be >= 1")
+    return FitOptions(
+        preset=get_preset(args.preset),
+        posterior=not args.no_posterior,
+        model=args.model,
+        model_error=not args.no_model_error,
+        seed=args.seed,
+        workers=args.workers,
+        cache=not args.no_cache,
+        progress=not args.quiet,
+    )
+
+
+def default_output(folder: Path) -> Path:
+    """`DIR-fit` next to the photo folder."""
+    folder = Path(folder).resolve()
+    return folder.with_name(f"{folder.name}-fit")
+
+
+def run(args: argparse.Namespace) -> int:
+    """`stairfit fit DIR`."""
+    from .report import print_summary
+    from .simulate import staged_folder
+
+    options = options_from_args(args)
+    scene = load_scene(args.folder)
+    out = args.output or default_output(args.folder)
+    if out.exists() and not args.force:
+        raise UserError(f"{out}: already exists; choose another --output or add --force")
+    check_photos(scene)
+    with staged_folder(out, args.force) as tmp:
+        outcome = fit_scene(scene, tmp, options)
+    print_summary(outcome, out)
+    return 0
+
+
+def check_photos(scene: Scene) -> None:
+    """Every listed photo exists (a one-line error names the missing one)."""
+    for k, photo in enumerate(scene.photos):
+        path = scene.folder / photo.file
+        if not path.is_file():
+            raise UserError(
+                f"{scene.path}: photos[{k}].file: {photo.file!r} is not in {scene.folder}; fix "
+                "the name or remove the [[photos]] entry"
+            )
+
+
+@dataclass
+class FitOutcome:
+    """Everything a fit produced, for the report and the summary."""
+
+    scene: Scene
+    options: FitOptions
+    table: Any  # imaging.MeasurementTable
+    observations: Any  # fitting.Observations
+    row_info: list[dict[str, Any]]
+    spectral: Any
+    selection: Any
+    posterior: Any | None
+    timings: dict[str, float]
+    notes: list[str]
+
+
+def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
+    """The whole pipeline into the (temporary) folder `out`."""
+    from .report import write_outputs
+
+    timings: dict[str, float] = {}
+    notes: list[str] = []
+    t0 = time.perf_counter()
+    table = measure(scene, out, options)
+    timings["measure_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    observations, row_info, excluded_notes = to_observations(scene, table)
+    notes.extend(excluded_notes)
+    spectral, aperture = fit_setup(scene, options.preset)
+    selection = select(observations, spectral, aperture, options)
+    timings["fit_s"] = time.perf_counter() - t0
+
+    posterior = None
+    if options.posterior:
+        t0 = time.perf_counter()
+        posterior = sample(selection.fit, out, options)
+        timings["posterior_s"] = time.perf_counter() - t0
+
+    outcome = FitOutcome(
+        scene,
+        options,
+        table,
+        observations,
+        row_info,
+        spectral,
+        selection,
+        posterior,
+        timings,
+        notes,
+    )
+    t0 = time.perf_counter()
+    write_outputs(outcome, out)
+    timings["outputs_s"] = time.perf_counter() - t0
+    return outcome
+
+
+# --- stages ---------------------------------------------------------------------------------
+
+
+def photo_specs(scene: Scene) -> list[Any]:
+    """One `imaging.PhotoSpec` per photo: the ROIs of the wedges it can see."""
+    from stairfit import imaging
+
+    layout = None
+    if scene.markers is not None:
+        layout = imaging.MarkerLayout(
+            {m.id: m.corners_mm for m in scene.markers.markers},
+            scene.markers.dictionary,
+            scene.markers.min_markers,
+        )
+    specs = []
+    for photo in scene.photos:
+        per_photo = dict(photo.roi_px)
+        rois: dict[str, Any] = {}
+        faces: dict[str, Any] = {}
+        for wedge in scene.specimen.wedges:
+            if not visible(scene, photo, wedge):
+                continue
+            if wedge.name in per_photo:
+                rois[wedge.name] = per_photo[wedge.name]
+            elif wedge.roi_px is not None:
+                rois[wedge.name] = wedge.roi_px
+            elif wedge.face_mm is not None:
+                faces[wedge.name] = wedge.face_mm
+        reference = None
+        if scene.reference is not None:
+            reference = scene.reference.name
+            if scene.reference.roi_px is not None:
+                rois[reference] = scene.reference.roi_px
+            else:
+                faces[reference] = scene.reference.face_mm
+        specs.append(
+            imaging.PhotoSpec(
+                path=scene.folder / photo.file,
+                name=photo.file,
+                exposure_time_s=photo.exposure_time_s,
+                f_number=photo.f_number,
+                iso=photo.iso,
+                rois=tuple(rois.items()),
+                faces_mm=tuple(faces.items()),
+                markers=layout if faces else None,
+                reference=reference,
+            )
+        )
+    return specs
+
+
+def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
+    """Decode and measure every photo (cached in DIR/.stairfit-cache), previews into out."""
+    from stairfit import imaging
+
+    e = scene.extraction
+    settings = imaging.ExtractionSettings(
+        erode_px=e.erode_px,
+        block_px=e.block_px,
+        saturation_level=e.saturation_level,
+        max_saturated_fraction=e.max_saturated_fraction,
+    )
+    cache = scene.folder / CACHE_DIR / MEASUREMENT_CACHE if options.cache else None
+    try:
+        if cache is not None:
+            cache.parent.mkdir(exist_ok=True)
+    except OSError:
+        cache = None  # a read-only photo folder: measure without a cache
+    try:
+        return imaging.measure_photos(
+            photo_specs(scene),
+            settings,
+            cache=cache,
+            preview_dir=out / "previews",
+            progress=options.progress,
+            max_workers=options.workers,
+        )
+    except imaging.ImagingError as err:
+        raise UserError(f"{scene.path}: {err}") from None
+
+
+def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]], list[str]]:
+    """The fit's observation table from the measurement table and the scene geometry.
+
+    Rows that imaging flagged, or in which any pixel saturated (their mean is biased low), are
+    kept but excluded from the fit (`use = False`) and counted in the notes.
+    """
+    from stairfit import fitting
+
+    wedges = {w.name: (k, w) for k, w in enumerate(scene.specimen.wedges)}
+    photos = {p.file: (k, p) for k, p in enumerate(scene.photos)}
+    channels = {"R": 0, "G": 1, "B": 2}
+    rows, info = [], []
+    n_flagged = n_saturated = 0
+    reference = scene.reference.name if scene.reference is not None else None
+    for r in table:
+        if r.wedge == reference:
+            continue
+        k, wedge = wedges[r.wedge]
+        p, photo = photos[r.photo]
+        ti, to = scene.face_angles_deg(photo, wedge)
+        flagged = bool(r.flag)
+        saturated = r.saturated_fraction > 0
+        n_flagged += flagged
+        n_saturated += saturated and not flagged
+        finite = np.isfinite(r.value) and np.isfinite(r.stderr) and r.stderr > 0
+        use = not flagged and not saturated and finite
+        rows.append(
+            {
+                "theta_i_deg": ti,
+                "theta_o_deg": to,
+                "beta2_deg": wedge.angle_deg,
+                "layer_um": scene.specimen.layer_um,
+                "wedge_index": k,
+                "channel_index": channels[r.channel],
+                "value": r.value if finite else 0.0,
+                "stderr": r.stderr if finite else 1.0,
+                "use": use,
+                "photo_index": p,
+                "saturated": saturated,
+            }
+        )
+        info.append(
+            {
+                "photo": r.photo,
+                "wedge": r.wedge,
+                "channel": r.channel,
+                "light_deg": photo.light_deg,
+                "view_deg": photo.view_deg,
+                "theta_i_deg": ti,
+                "theta_o_deg": to,
+                "use": use,
+            }
+        )
+    if not rows or not any(r["use"] for r in rows):
+        raise UserError(
+            f"{scene.path}: no usable measurement: every ROI is flagged or saturated (see the "
+            "previews and the flag column); shorten the exposures or move the ROIs"
+        )
+    try:
+        obs = fitting.Observations.from_rows(rows)
+    except fitting.FitInputError as err:
+        raise UserError(f"{scene.path}: {err}") from None
+    notes = []
+    if n_flagged:
+        notes.append(
+            f"{n_flagged} measurements flagged by imaging (saturated, too few blocks, "
+            "...) were not fitted"
+        )
+    if n_saturated:
+        notes.append(f"{n_saturated} measurements with some saturated pixels were not fitted")
+    return obs, info, notes
+
+
+def fit_setup(scene: Scene, preset: Preset) -> tuple[Any, Any]:
+    """Spectral setup and aperture from the scene and the preset [conventions §8, §9]."""
+    from stairfit import fitting, model
+
+    spectral = fitting.spectral_setup(
+        scene.specimen.index.build(),
+        scene.camera.sensitivity,
+        scene.light.illuminant,
+        sampling=preset.spectral,
+    )
+    aperture = model.Aperture(
+        0.5 * scene.light.angular_diameter_deg * DEG,
+        0.5 * scene.camera.angular_extent_deg * DEG,
+        preset.aperture_nodes
+        if (scene.light.angular_diameter_deg > 0 or scene.camera.angular_extent_deg > 0)
+        else 1,
+    )
+    return spectral, aperture
+
+
+def ladder_for(preset: Preset) -> tuple[Any, ...]:
+    """The model ladder of a preset (shared sigma only, or also per-wedge sigma)."""
+    from stairfit import fitting
+
+    if preset.ladder == "full":
+        return fitting.DEFAULT_LADDER
+    return tuple(v for v in fitting.DEFAULT_LADDER if not v.per_wedge_sigma)
+
+
+def select(observations: Any, spectral: Any, aperture: Any, options: FitOptions) -> Any:
+    """Fit the ladder and choose (or fit the forced variant)."""
+    from stairfit import fitting
+
+    ladder = ladder_for(options.preset)
+    if options.model is not None:
+        names = [v.name for v in fitting.DEFAULT_LADDER]
+        if options.model not in names:
+            import difflib
+
+            near = difflib.get_close_matches(options.model, names, n=1)
+            hint = f"did you mean {near[0]!r}?" if near else f"variants: {', '.join(names)}"
+            raise UserError(f"--model: unknown variant {options.model!r}; {hint}")
+        ladder = fitting.DEFAULT_LADDER
+    if not fitting.rounded_model_available():
+        ladder = tuple(v for v in ladder if "edge_radius_um" not in v.free)
+    with _Progress(options.progress, "fitting models") as tick:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", fitting.FitWarningCategory)
+            try:
+                selection = fitting.select_model(
+                    observations,
+                    spectral,
+                    ladder,
+                    force=options.model,
+                    model_error=options.model_error,
+                    sigma_starts_rad=tuple(s * DEG for s in options.preset.sigma_starts_deg),
+                    aperture=aperture,
+                    resolution=options.preset.rounded_resolution,
+                )
+            except (fitting.FitError, fitting.FitInputError) as err:
+                raise UserError(f"the fit failed: {err}") from None
+        tick()
+    return selection
+
+
+def sample(fit: Any, out: Path, options: FitOptions) -> Any:
+    """The posterior of the chosen variant; the chain is saved as out/chain.npz."""
+    from stairfit import fitting
+
+    try:
+        return fitting.sample_posterior(
+            fit,
+            seed=options.seed,
+            tau_factor=options.preset.posterior_tau_factor,
+            max_steps=options.preset.posterior_max_steps,
+            chain_path=out / "chain.npz",
+            progress=options.progress,
+            emit_warnings=False,
+        )
+    except (fitting.FitError, fitting.FitInputError) as err:
+        raise UserError(f"the posterior could not be sampled: {err}") from None
+
+
+class _Progress:
+    """A one-step tqdm bar for a stage that has no finer progress to report."""
+
+    def __init__(self, enabled: bool, desc: str) -> None:
+        self.enabled, self.desc = enabled, desc
+
+    def __enter__(self) -> Callable[[], None]:
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=1, desc=self.desc, disable=not self.enabled, unit="stage")
+        return lambda: self.bar.update()
+
+    def __exit__(self, *exc: object) -> None:
+        self.bar.close()
+
+
+def sha256_of(path: Path) -> str:
+    """SHA-256 of a file (for results.json)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()

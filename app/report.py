@@ -1,0 +1,547 @@
+"""Everything `fit` writes: results.json, tables, figures, report.html, and the summary.
+
+Degrees on every axis and in every file [conventions §1]; the fitted broadening is reported as
+`sigma_deg`.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime
+import html
+import json
+import platform
+import sys
+from importlib import metadata
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from . import __version__
+from .figures import brdf_map, reflected_colours, save
+
+if TYPE_CHECKING:
+    from .fit import FitOutcome
+
+DEG = np.pi / 180
+PACKAGES = (
+    "jax",
+    "jaxlib",
+    "optimistix",
+    "equinox",
+    "numpy",
+    "emcee",
+    "rawpy",
+    "opencv-contrib-python-headless",
+    "colour-science",
+    "tifffile",
+    "matplotlib",
+)
+
+
+# --- parameters at the edge ---------------------------------------------------------------
+
+
+def display_name(name: str) -> tuple[str, float]:
+    """Name and factor for files and screens: radians become degrees."""
+    if name.startswith("sigma_rad"):
+        return name.replace("sigma_rad", "sigma_deg", 1), 1.0 / DEG
+    return name, 1.0
+
+
+def display_unit(name: str, unit: str) -> str:
+    """Unit for files and screens."""
+    return "deg" if name.startswith("sigma_rad") else unit
+
+
+def parameter_records(outcome: FitOutcome) -> list[dict[str, Any]]:
+    """One record per free parameter: least-squares and posterior estimates, display units."""
+    fit, post = outcome.selection.fit, outcome.posterior
+    records = []
+    for i, e in enumerate(fit.estimates):
+        name, f = display_name(e.name)
+        rec: dict[str, Any] = {
+            "name": name,
+            "unit": display_unit(e.name, e.unit),
+            "least_squares": {
+                "value": e.value * f,
+                "stderr": None if e.stderr is None else e.stderr * f,
+                "at_bound": e.at_bound,
+            },
+        }
+        if post is not None and e.name in post.names:
+            j = post.names.index(e.name)
+            rec["posterior"] = {
+                "median": float(post.median[j]) * f,
+                "p16": float(post.p16[j]) * f,
+                "p84": float(post.p84[j]) * f,
+                "p2_5": float(post.p2_5[j]) * f,
+                "p97_5": float(post.p97_5[j]) * f,
+                "width_over_ls_stderr": float(post.width_ratio[j]),
+            }
+        rec["index"] = i
+        records.append(rec)
+    return records
+
+
+def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
+    """Parameters the chosen variant kept fixed, with their values (display units)."""
+    fit = outcome.selection.fit
+    free = set(fit.variant.free)
+    out: dict[str, Any] = {}
+    for name in ("delta_n", "edge_radius_um", "floor", "model_error_frac"):
+        if name not in free:
+            out[name] = float(getattr(fit.params, name))
+    if "sigma_rad" not in free and not fit.variant.per_wedge_sigma:
+        out["sigma_deg"] = float(np.mean(fit.params.sigma_rad)) / DEG
+    return out
+
+
+# --- files ----------------------------------------------------------------------------------
+
+
+def write_outputs(outcome: FitOutcome, out: Path) -> None:
+    """Write every output into `out` (a temporary folder moved into place by the caller)."""
+    out.mkdir(parents=True, exist_ok=True)
+    outcome.table.write_csv(out / "measurements.csv")
+    write_observations(outcome, out / "observations.csv")
+    figures = write_figures(outcome, out / "figures")
+    results = results_dict(outcome, figures)
+    (out / "results.json").write_text(json.dumps(results, indent=2, allow_nan=False))
+    (out / "report.html").write_text(report_html(outcome, results, figures, out))
+
+
+def write_observations(outcome: FitOutcome, path: Path) -> None:
+    """The fitted rows: geometry, measurement, model, uncertainty and whitened residual."""
+    fit = outcome.selection.fit
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(
+            [
+                "photo",
+                "wedge",
+                "channel",
+                "light_deg",
+                "view_deg",
+                "theta_i_deg",
+                "theta_o_deg",
+                "value",
+                "stderr",
+                "used",
+                "model",
+                "uncertainty",
+                "whitened_residual",
+            ]
+        )
+        obs = outcome.observations
+        for i, info in enumerate(outcome.row_info):
+            w.writerow(
+                [
+                    info["photo"],
+                    info["wedge"],
+                    info["channel"],
+                    info["light_deg"],
+                    info["view_deg"],
+                    f"{info['theta_i_deg']:.6g}",
+                    f"{info['theta_o_deg']:.6g}",
+                    f"{obs.value[i]:.8g}",
+                    f"{obs.stderr[i]:.6g}",
+                    int(bool(obs.use[i])),
+                    f"{fit.model[i]:.8g}",
+                    f"{fit.uncertainty[i]:.6g}",
+                    f"{fit.residuals[i]:.5g}",
+                ]
+            )
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, np.generic):
+        return _jsonable(x.item())
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    if isinstance(x, Path):
+        return str(x)
+    return x
+
+
+def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]:
+    """The content of results.json (see the README's "Outputs")."""
+    from .fit import sha256_of
+
+    sel, fit, post, scene = (
+        outcome.selection,
+        outcome.selection.fit,
+        outcome.posterior,
+        outcome.scene,
+    )
+    names = [display_name(n)[0] for n in fit.names]
+    corr = None if fit.correlation is None else np.round(fit.correlation, 6)
+    versions = {}
+    for pkg in PACKAGES:
+        try:
+            versions[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            versions[pkg] = None
+    result = {
+        "stairfit_version": __version__,
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "package_versions": versions,
+        "settings": {
+            "preset": outcome.options.preset.as_dict(),
+            "posterior": outcome.options.posterior,
+            "forced_model": outcome.options.model,
+            "model_error": outcome.options.model_error,
+            "seed": outcome.options.seed,
+            "workers": outcome.options.workers,
+        },
+        "inputs": {
+            "scene": {"file": scene.path.name, "sha256": sha256_of(scene.path)},
+            "photos": [
+                {"file": name, "sha256": outcome.table.for_photo(name)[0].photo_sha256}
+                for name in outcome.table.photos()
+            ],
+        },
+        "model_selection": {
+            "chosen": sel.chosen,
+            "forced": sel.forced,
+            "criterion": sel.criterion,
+            "threshold": sel.threshold,
+            "reason": sel.reason,
+            "table": [
+                {
+                    "variant": r.name,
+                    "features": list(r.features),
+                    "n_free": r.n_free,
+                    "chi2": r.chi2,
+                    "log_likelihood": r.log_likelihood,
+                    "bic": r.bic,
+                    "aic": r.aic,
+                    "laplace_log_evidence": r.laplace_log_evidence,
+                    "delta": r.delta,
+                    "status": r.status,
+                    "notes": r.notes,
+                }
+                for r in sel.table
+            ],
+        },
+        "parameters": parameter_records(outcome),
+        "fixed_parameters": fixed_parameters(outcome),
+        "correlation": {"names": names, "matrix": corr},
+        "diagnostics": {
+            "least_squares": {
+                "solver": fit.solver,
+                "success": fit.success,
+                "message": fit.message,
+                "num_steps": fit.num_steps,
+                "chi2": fit.chi2,
+                "dof": fit.dof,
+                "reduced_chi2": fit.reduced_chi2,
+                "n_used": fit.n_used,
+                "n_rows": fit.n_rows,
+                "n_excluded": len(fit.excluded_rows),
+                "n_saturated": fit.n_saturated,
+                "starts_sigma_deg": [s / DEG for s in fit.starts_sigma_rad],
+                "starts_chi2": list(fit.starts_chi2),
+                "unidentified": list(fit.unidentified),
+                "warnings": [
+                    {"code": w.code, "parameter": w.parameter, "message": w.message}
+                    for w in fit.warnings
+                ],
+            },
+            "posterior": None
+            if post is None
+            else {
+                "seed": post.seed,
+                "n_walkers": post.n_walkers,
+                "n_steps": post.n_steps,
+                "tau": list(post.tau),
+                "tau_max": post.tau_max,
+                "converged": post.converged,
+                "burn_in": post.burn_in,
+                "thin": post.thin,
+                "n_samples": post.n_samples,
+                "n_independent": post.n_independent,
+                "acceptance_fraction": post.acceptance_fraction,
+                "chain_file": "chain.npz",
+                "warnings": [
+                    {"code": w.code, "parameter": w.parameter, "message": w.message}
+                    for w in post.warnings
+                ],
+            },
+            "notes": outcome.notes,
+            "timings_s": outcome.timings,
+        },
+        "files": {
+            "measurements": "measurements.csv",
+            "observations": "observations.csv",
+            "report": "report.html",
+            "figures": figures,
+            "previews": "previews/",
+        },
+    }
+    return _jsonable(result)
+
+
+# --- figures --------------------------------------------------------------------------------
+
+
+def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
+    """Every figure of the report; returns {key: relative path}."""
+    from stairfit import model
+
+    fit = outcome.selection.fit
+    p = fit.params
+    figs: dict[str, str] = {}
+    figs["fit"] = _rel(save(fit_per_wedge(outcome), folder / "fit_per_wedge.png"), folder)
+    figs["residuals"] = _rel(save(residual_figure(outcome), folder / "residuals.png"), folder)
+    if outcome.posterior is not None and outcome.posterior.samples.shape[1] >= 1:
+        figs["corner"] = _rel(save(corner_figure(outcome), folder / "corner.png"), folder)
+    wedges = [w.angle_deg for w in outcome.scene.specimen.wedges]
+    pick = sorted({min(wedges), max(wedges)})
+    sigma_deg = float(np.mean(p.sigma_rad)) / DEG
+    disp = outcome.scene.specimen.index.build()
+    n550 = complex(np.asarray(model.refractive_index(disp, np.array([550.0]), p.delta_n))[0])
+    n550 = n550.real if n550.imag == 0 else n550
+    figs["brdf_map"] = _rel(
+        save(
+            brdf_map(
+                pick,
+                n=n550,
+                sigma_deg=sigma_deg,
+                title=f"fitted BRDF at 550 nm (sigma = {sigma_deg:.3g} deg)",
+            ),
+            folder / "brdf_map.png",
+        ),
+        folder,
+    )
+    figs["colours"] = _rel(
+        save(
+            reflected_colours(wedges, disp, delta_n=float(p.delta_n), sigma_deg=sigma_deg),
+            folder / "colours.png",
+        ),
+        folder,
+    )
+    return figs
+
+
+def _rel(path: Path, folder: Path) -> str:
+    return f"figures/{path.relative_to(folder)}"
+
+
+def fit_per_wedge(outcome: FitOutcome) -> plt.Figure:
+    """Measured (error bars) and fitted radiance against the face-frame viewing angle, one
+    panel per wedge and one colour per channel (like the paper's Fig. 9)."""
+    fit, obs = outcome.selection.fit, outcome.observations
+    wedges = outcome.scene.specimen.wedges
+    ncol = min(3, len(wedges))
+    nrow = int(np.ceil(len(wedges) / ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.3 * ncol, 3.2 * nrow), squeeze=False)
+    colours = ("tab:red", "tab:green", "tab:blue")
+    theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
+    for k, wedge in enumerate(wedges):
+        ax = axes.flat[k]
+        for c, col in enumerate(colours):
+            sel = (obs.wedge_index == k) & (obs.channel_index == c)
+            if not np.any(sel):
+                continue
+            order = np.argsort(theta_o[sel])
+            x, y = theta_o[sel][order], obs.value[sel][order]
+            used = obs.use[sel][order]
+            err = fit.uncertainty[sel][order]
+            ax.errorbar(
+                x[used],
+                y[used],
+                yerr=err[used],
+                fmt="o",
+                ms=3,
+                color=col,
+                alpha=0.8,
+                label="RGB"[c],
+            )
+            if np.any(~used):
+                ax.plot(x[~used], y[~used], "x", color=col, alpha=0.6)
+            ax.plot(x, fit.model[sel][order], "-", color=col, lw=1)
+        ax.set(
+            title=f"{wedge.name} ({wedge.angle_deg:g} deg)",
+            xlabel="theta_o (deg, face)",
+            ylabel="relative radiance",
+        )
+        ax.set_yscale("log")
+    for ax in axes.flat[len(wedges) :]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize="small", title="channel")
+    fig.suptitle(
+        f"measured (points, x = not fitted) and model '{outcome.selection.chosen}' (lines)"
+    )
+    fig.tight_layout()
+    return fig
+
+
+def residual_figure(outcome: FitOutcome) -> plt.Figure:
+    """Whitened residuals against viewing angle per wedge, and their histogram vs N(0, 1)."""
+    fit, obs = outcome.selection.fit, outcome.observations
+    theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
+    used = np.asarray(obs.use, bool)
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 3.6), gridspec_kw={"width_ratios": [2, 1]})
+    for k, wedge in enumerate(outcome.scene.specimen.wedges):
+        sel = used & (obs.wedge_index == k)
+        a1.plot(theta_o[sel], fit.residuals[sel], "o", ms=3, label=wedge.name)
+    a1.axhline(0, color="k", lw=0.8)
+    a1.set(xlabel="theta_o (deg, face)", ylabel="(measured - model) / uncertainty")
+    a1.legend(fontsize="x-small", ncol=3)
+    r = fit.residuals[used]
+    a2.hist(r, bins=30, density=True, alpha=0.6)
+    x = np.linspace(-4, 4, 200)
+    a2.plot(x, np.exp(-0.5 * x * x) / np.sqrt(2 * np.pi), "k-", label="N(0, 1)")
+    a2.set(xlabel="whitened residual", title=f"reduced chi2 = {fit.reduced_chi2:.3g}")
+    a2.legend(fontsize="small")
+    fig.tight_layout()
+    return fig
+
+
+def corner_figure(outcome: FitOutcome) -> plt.Figure:
+    """Corner plot of the posterior samples (display units)."""
+    import corner
+
+    post = outcome.posterior
+    labels, factors = zip(*(display_name(n) for n in post.names), strict=True)
+    samples = post.samples * np.asarray(factors)[None, :]
+    return corner.corner(
+        samples, labels=list(labels), quantiles=(0.16, 0.5, 0.84), show_titles=True, title_fmt=".3g"
+    )
+
+
+# --- report and summary ---------------------------------------------------------------------
+
+
+def report_html(
+    outcome: FitOutcome, results: dict[str, Any], figures: dict[str, str], out: Path
+) -> str:
+    """A single self-explaining HTML page (figures referenced by relative path)."""
+    e = html.escape
+    sel = outcome.selection
+    rows = []
+    for rec in results["parameters"]:
+        ls = rec["least_squares"]
+        se = "n/a" if ls["stderr"] is None else f"{ls['stderr']:.4g}"
+        po = rec.get("posterior")
+        post = (
+            f"{po['median']:.5g} [{po['p16']:.5g}, {po['p84']:.5g}] "
+            f"(95%: {po['p2_5']:.5g} .. {po['p97_5']:.5g})"
+            if po
+            else "not sampled"
+        )
+        rows.append(
+            f"<tr><td>{e(rec['name'])}</td><td>{e(rec['unit'])}</td>"
+            f"<td>{ls['value']:.5g} &plusmn; {se}</td><td>{e(post)}</td></tr>"
+        )
+    fixed = "".join(f"<li>{e(k)} = {v:.4g}</li>" for k, v in results["fixed_parameters"].items())
+    table = "".join(
+        f"<tr><td>{'&#10003;' if r['variant'] == sel.chosen else ''}</td><td>{e(r['variant'])}"
+        f"</td><td>{_fmt(r['n_free'], 'd')}</td><td>{_fmt(r['chi2'], '.5g')}</td>"
+        f"<td>{_fmt(r['bic'], '.6g')}</td><td>{_fmt(r['delta'], '.3g')}</td>"
+        f"<td>{e(r['status'])}{'; ' + e(r['notes']) if r['notes'] else ''}</td></tr>"
+        for r in results["model_selection"]["table"]
+    )
+    imgs = "".join(
+        f"<h3>{e(title)}</h3><img src='{e(figures[key])}' style='max-width:100%'>"
+        for key, title in (
+            ("fit", "Measured against model"),
+            ("residuals", "Residuals"),
+            ("corner", "Posterior"),
+            ("brdf_map", "Fitted BRDF (Fig. 3 style)"),
+            ("colours", "Colour of the reflected light (Fig. 7 style)"),
+        )
+        if key in figures
+    )
+    previews = sorted((out / "previews").glob("*.png")) if (out / "previews").exists() else []
+    prev = "".join(
+        f"<figure style='display:inline-block;width:30%'><img src='previews/{e(p.name)}' "
+        f"style='width:100%'><figcaption>{e(p.stem)}</figcaption></figure>"
+        for p in previews
+    )
+    diag = results["diagnostics"]
+    ls = diag["least_squares"]
+    po = diag["posterior"]
+    post_line = (
+        "posterior not sampled"
+        if po is None
+        else f"posterior: {po['n_walkers']} walkers x {po['n_steps']} steps, tau_max = "
+        f"{po['tau_max']:.3g}, {po['n_independent']:.0f} independent samples, acceptance "
+        f"{po['acceptance_fraction']:.2f}, {'converged' if po['converged'] else 'NOT converged'}"
+    )
+    warn = "".join(
+        f"<li>{e(w['message'])}</li>" for w in ls["warnings"] + (po["warnings"] if po else [])
+    )
+    notes = "".join(f"<li>{e(n)}</li>" for n in diag["notes"])
+    return f"""<!doctype html><html><head><meta charset="utf-8"><title>stairfit report</title>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}td,th{{padding:2px 8px}}
+table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}</style></head><body>
+<h1>stairfit report: {e(outcome.scene.folder.name)}</h1>
+<p>Chosen model: <b>{e(sel.chosen)}</b>. {e(sel.reason)}</p>
+<h2>Parameters</h2><table><tr><th>parameter</th><th>unit</th><th>least squares</th>
+<th>posterior median [16%, 84%]</th></tr>{"".join(rows)}</table>
+<p>Fixed:</p><ul>{fixed}</ul>
+<h2>Model selection ({e(sel.criterion.upper())}, threshold {sel.threshold:g})</h2>
+<table><tr><th></th><th>variant</th><th>k</th><th>chi2</th><th>BIC</th><th>delta</th>
+<th>status / notes</th></tr>{table}</table>
+<h2>Diagnostics</h2><p>least squares: {e(ls["message"])}, {ls["num_steps"]} steps; chi2 =
+{ls["chi2"]:.5g} for {ls["dof"]} degrees of freedom (reduced {ls["reduced_chi2"]:.3g});
+{ls["n_used"]} of {ls["n_rows"]} measurements fitted.<br>{e(post_line)}</p>
+<ul>{warn}{notes}</ul>
+<h2>Figures</h2>{imgs}
+<h2>Regions of interest</h2>{prev}
+<p style="color:#777">stairfit {e(__version__)}; conventions: docs/conventions.md; all numbers
+also in results.json.</p></body></html>
+"""
+
+
+def _fmt(x: Any, spec: str) -> str:
+    """Format a number, or an empty cell for None (skipped variants)."""
+    return "" if x is None else format(x, spec)
+
+
+def print_summary(outcome: FitOutcome, out: Path, source: Path | None = None) -> None:
+    """The one-screen summary printed at the end of `fit` (`source`: the photo folder)."""
+    sel = outcome.selection
+    recs = parameter_records(outcome)
+    print()
+    print(f"stairfit fit: {source or outcome.scene.folder}")
+    print(f"  model: {sel.chosen}  ({sel.reason})")
+    print(f"  {'parameter':<26} {'least squares':>24}   {'posterior median [16%, 84%]':>34}")
+    for rec in recs:
+        ls = rec["least_squares"]
+        se = "n/a" if ls["stderr"] is None else f"{ls['stderr']:.3g}"
+        po = rec.get("posterior")
+        pos = f"{po['median']:.5g} [{po['p16']:.5g}, {po['p84']:.5g}]" if po else "-"
+        print(
+            f"  {rec['name'] + ' (' + rec['unit'] + ')':<26} {ls['value']:>13.5g} +- {se:<8}"
+            f"   {pos:>34}"
+        )
+    for k, v in fixed_parameters(outcome).items():
+        print(f"  {k} fixed at {v:.4g}")
+    fit = sel.fit
+    print(
+        f"  chi2 / dof = {fit.chi2:.4g} / {fit.dof}; {fit.n_used} of {fit.n_rows} "
+        f"measurements fitted"
+    )
+    for w in fit.warnings:
+        print(f"  warning: {w.message}")
+    if outcome.posterior is not None and not outcome.posterior.converged:
+        print("  warning: the posterior chain hit its step limit before 50 tau (see results.json)")
+    for note in outcome.notes:
+        print(f"  note: {note}")
+    print(f"  results: {out / 'results.json'}; report: {out / 'report.html'}")
