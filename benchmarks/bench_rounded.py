@@ -1,0 +1,209 @@
+"""Benchmark: the rounded-edge model at each resolution, side by side with the sharp model.
+
+The case is the sharp benchmark's (benchmarks/bench_model.py): 6 wedges (10-60 deg) x 181
+viewing angles x 31 wavelengths (400-700 nm, Bodurov PLA dispersion), theta_i = 20 deg, the
+radiance model of conventions §9, sigma = 5 deg; here with an edge radius r = 30 um on 150 um
+layers. Jacobians by forward mode (`jax.jacfwd`): with respect to (sigma, delta_n, scale) for the
+sharp model, (sigma, delta_n, r, scale) for the rounded one. Every row is its own geometry (as in
+a fit, where each observation has its own theta_i).
+
+Errors are against a converged reference (resolution 32): max |error| / max |value| of the
+radiance, and of each Jacobian column (worst column), at sigma = 5 deg and at sigma = 1 deg.
+With `--tracer`, also the unbroadened structure against the brute-force ray tracer
+(tests/raytrace.py): power in 2-degree bins (max error / total) and total reflectance, for
+beta2 in {10, 30, 45, 60}, r / l1 in {0.05, 0.2, 0.4}, 25 angles of incidence, 100 000 rays.
+Timings are medians of `--repeats` calls after compilation; compilation is reported apart.
+
+    python benchmarks/bench_rounded.py [--repeats 20] [--tracer] [--out results.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _timing import first_call_seconds, fmt_ms, median_seconds
+
+from stairfit import model
+
+DEG = np.pi / 180
+LAYER_UM = 150.0
+RADIUS_UM = 30.0
+RESOLUTIONS = (1, 2, 3, 4, 6, 8, 12)
+REFERENCE = 32
+
+
+def make_case() -> dict[str, np.ndarray]:
+    """Flattened observation arrays: rows (wedge, theta_o), columns wavelengths."""
+    wedges = np.array([10, 20, 30, 40, 45, 60]) * DEG
+    theta_o = np.linspace(-90, 90, 181) * DEG
+    lam = np.linspace(400, 700, 31)
+    b, to = np.meshgrid(wedges, theta_o, indexing="ij")
+    n_base = np.asarray(model.materials.PLA_BODUROV_2016(lam))
+    n_obs = b.size
+    return {
+        "theta_i": np.full((n_obs, 1), 20 * DEG),
+        "theta_o": to.reshape(n_obs, 1),
+        "beta2": b.reshape(n_obs, 1),
+        "n_base": np.broadcast_to(n_base, (n_obs, lam.size)).copy(),
+        "weight": np.full((n_obs, lam.size), 1.0 / lam.size),
+    }
+
+
+def sharp_value(p: jax.Array, c: dict[str, jax.Array]) -> jax.Array:
+    """Radiance of the sharp model for p = (sigma, delta_n, scale)."""
+    rho = model.brdf(c["theta_i"], c["theta_o"], c["beta2"], c["n_base"] + p[1], p[0])
+    dens = jnp.sum(rho * c["weight"], axis=-1)
+    return model.radiance(dens, c["theta_i"][:, 0], c["theta_o"][:, 0], p[2])
+
+
+def rounded_value(p: jax.Array, c: dict[str, jax.Array], resolution: int) -> jax.Array:
+    """Radiance of the rounded model for p = (sigma, delta_n, r, scale)."""
+    rho = model.brdf_rounded(
+        c["theta_i"],
+        c["theta_o"],
+        c["beta2"],
+        c["n_base"] + p[1],
+        p[0],
+        LAYER_UM,
+        p[2],
+        resolution=resolution,
+    )
+    dens = jnp.sum(rho * c["weight"], axis=-1)
+    return model.radiance(dens, c["theta_i"][:, 0], c["theta_o"][:, 0], p[3])
+
+
+def _rel_err(a: np.ndarray, ref: np.ndarray) -> float:
+    return float(np.max(np.abs(a - ref)) / np.max(np.abs(ref)))
+
+
+def _jac_err(a: np.ndarray, ref: np.ndarray) -> float:
+    scale = np.max(np.abs(ref), axis=0)
+    return float(np.max(np.max(np.abs(a - ref), axis=0) / np.where(scale > 0, scale, 1.0)))
+
+
+def run(repeats: int) -> list[tuple[str, ...]]:
+    """Time and measure everything; returns table rows."""
+    jax.config.update("jax_enable_x64", True)
+    case = {k: jnp.asarray(v) for k, v in make_case().items()}
+    rows = []
+
+    ps = jnp.array([5 * DEG, 0.01, 2.0])
+    value = jax.jit(sharp_value)
+    both = jax.jit(lambda q, c: (sharp_value(q, c), jax.jacfwd(sharp_value)(q, c)))
+    c_v = first_call_seconds(lambda: value(ps, case))
+    c_b = first_call_seconds(lambda: both(ps, case))
+    t_v = median_seconds(lambda: value(ps, case), repeats)
+    t_b = median_seconds(lambda: both(ps, case), repeats)
+    rows.append(("sharp", fmt_ms(c_v), fmt_ms(c_b), fmt_ms(t_v), fmt_ms(t_b), "exact", "", ""))
+
+    def make(resolution: int):
+        v = jax.jit(lambda q, c: rounded_value(q, c, resolution))
+        b = jax.jit(
+            lambda q, c: (
+                rounded_value(q, c, resolution),
+                jax.jacfwd(lambda x: rounded_value(x, c, resolution))(q),
+            )
+        )
+        return v, b
+
+    p5 = jnp.array([5 * DEG, 0.01, RADIUS_UM, 2.0])
+    p1 = p5.at[0].set(1 * DEG)
+    _ref_v, ref_b = make(REFERENCE)
+    ref5 = [np.asarray(a) for a in ref_b(p5, case)]
+    ref1 = [np.asarray(a) for a in ref_b(p1, case)]
+    for res in RESOLUTIONS:
+        v, b = make(res)
+        c_v = first_call_seconds(lambda v=v: v(p5, case))
+        c_b = first_call_seconds(lambda b=b: b(p5, case))
+        t_v = median_seconds(lambda v=v: v(p5, case), repeats)
+        t_b = median_seconds(lambda b=b: b(p5, case), max(3, repeats // 4))
+        out5 = [np.asarray(a) for a in b(p5, case)]
+        out1 = [np.asarray(a) for a in b(p1, case)]
+        rows.append(
+            (
+                f"rounded, resolution {res}",
+                fmt_ms(c_v),
+                fmt_ms(c_b),
+                fmt_ms(t_v),
+                fmt_ms(t_b),
+                f"{_rel_err(out5[0], ref5[0]):.1e}",
+                f"{_jac_err(out5[1], ref5[1]):.1e}",
+                f"{_rel_err(out1[0], ref1[0]):.1e}",
+            )
+        )
+    return rows
+
+
+def run_tracer(resolutions: tuple[int, ...]) -> list[tuple[str, str, str]]:
+    """Unbroadened structure against the brute-force tracer, per resolution."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from raytrace import Staircase, histogram, total_reflectance, trace
+
+    jax.config.update("jax_enable_x64", True)
+    edges = np.arange(-90.7, 91.4, 2.0)
+    tis = np.array([-89, -85, -70, -60, -45, -40, -30, -20, -10, -5, 0, 5, 10, 20, 25, 30, 40])
+    tis = np.concatenate([tis, [45, 50, 55, 60, 70, 80, 85, 89]]).astype(float)
+    refs = {}
+    for b2 in (10, 30, 45, 60):
+        for frac in (0.05, 0.2, 0.4):
+            for ti in tis:
+                res = trace(Staircase(b2, LAYER_UM, frac * LAYER_UM), ti, 1.46, n_rays=100_000)
+                refs[b2, frac, ti] = (histogram(res, edges), total_reflectance(res))
+    rows = []
+    for resolution in resolutions:
+        fn = jax.jit(
+            lambda t, b, r, resolution=resolution: (
+                model.rounded_binned(
+                    t, jnp.asarray(edges * DEG), b, 1.46, LAYER_UM, r, resolution=resolution
+                ),
+                model.rounded_total(t, b, 1.46, LAYER_UM, r, resolution=resolution),
+            )
+        )
+        worst_bin = worst_total = 0.0
+        for b2 in (10, 30, 45, 60):
+            for frac in (0.05, 0.2, 0.4):
+                binned, total = (
+                    np.asarray(a) for a in fn(jnp.asarray(tis * DEG), b2 * DEG, frac * LAYER_UM)
+                )
+                for i, ti in enumerate(tis):
+                    h_ref, t_ref = refs[b2, frac, ti]
+                    worst_bin = max(worst_bin, float(np.max(np.abs(binned[i] - h_ref)) / t_ref))
+                    worst_total = max(worst_total, abs(float(total[i]) / t_ref - 1.0))
+        rows.append((str(resolution), f"{worst_bin:.1e}", f"{worst_total:.1e}"))
+    return rows
+
+
+def main() -> None:
+    """Command line entry."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--tracer", action="store_true", help="also compare with the ray tracer")
+    ap.add_argument("--out", type=Path, default=None, help="also write the tables here (markdown)")
+    args = ap.parse_args()
+    rows = run(args.repeats)
+    head = (
+        "| model | compile: value | compile: value + Jacobian | value | value + Jacobian "
+        "| error (sigma 5 deg) | Jacobian error (sigma 5 deg) | error (sigma 1 deg) |\n"
+        "|---|---|---|---|---|---|---|---|\n"
+    )
+    table = head + "\n".join("| " + " | ".join(r) + " |" for r in rows)
+    if args.tracer:
+        t_rows = run_tracer((1, 2, 3, 4, 8))
+        table += (
+            "\n\n| resolution | bins: max error / total | total: max relative error |\n"
+            "|---|---|---|\n" + "\n".join("| " + " | ".join(r) + " |" for r in t_rows)
+        )
+    print(table)
+    if args.out:
+        args.out.write_text(table + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,68 @@
+"""Errors and structured warnings of the fitting layer.
+
+User mistakes raise `FitInputError` with a message naming the row or field and the fix; a fit
+that cannot produce an honest answer raises `FitError`. Things worth knowing that do not stop a
+fit are recorded as `FitWarning` records in the result *and* emitted with `warnings.warn` under
+one of the warning categories below, so that callers can filter them.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+
+class FitInputError(ValueError):
+    """The observations, the spectral setup or a fit option is invalid (message says the fix)."""
+
+
+class FitError(RuntimeError):
+    """A fit did not converge or produced non-finite values; nothing is reported as success."""
+
+
+class FitWarningCategory(UserWarning):
+    """Base class of every warning the fitting layer emits."""
+
+
+class UnidentifiedParameterWarning(FitWarningCategory):
+    """A free parameter was not constrained by the data and was fixed at its default."""
+
+
+class BoundaryWarning(FitWarningCategory):
+    """A parameter ended at (or numerically next to) a bound of its transform."""
+
+
+class ConvergenceWarning(FitWarningCategory):
+    """A least-squares start or the posterior sampler did not meet its convergence test."""
+
+
+class FitWarning(NamedTuple):
+    """One structured warning recorded in a result.
+
+    `code` is one of `"unidentified"`, `"at_bound"`, `"start_failed"`, `"not_converged"`,
+    `"chain_too_short"`, `"low_acceptance"`; `parameter` names the parameter concerned (or is
+    None); `message` is the human-readable sentence also passed to `warnings.warn`.
+    """
+
+    code: str
+    parameter: str | None
+    message: str
+
+
+WARNING_CATEGORIES: dict[str, type[FitWarningCategory]] = {
+    "unidentified": UnidentifiedParameterWarning,
+    "at_bound": BoundaryWarning,
+    "start_failed": ConvergenceWarning,
+    "not_converged": ConvergenceWarning,
+    "chain_too_short": ConvergenceWarning,
+    "low_acceptance": ConvergenceWarning,
+}
+"""The `warnings` category used for each `FitWarning.code`."""
+
+
+def emit(records: tuple[FitWarning, ...], stacklevel: int = 3) -> None:
+    """Pass structured warnings on to `warnings.warn` with their category."""
+    import warnings
+
+    for rec in records:
+        category = WARNING_CATEGORIES.get(rec.code, FitWarningCategory)
+        warnings.warn(rec.message, category, stacklevel=stacklevel)

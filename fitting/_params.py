@@ -1,0 +1,389 @@
+"""Physical parameters, their transforms, priors and the model variants [conventions §5, §7, §9].
+
+Every fit works in an *unconstrained* vector `z`; one transform per parameter maps it to the
+physical value `x` and is shared by least squares and the posterior (docs/fitting.md):
+
+| parameter          | unit | bounds        | transform                                      |
+|--------------------|------|---------------|------------------------------------------------|
+| `sigma_rad`        | rad  | `> 0`         | `x = exp(z)`                                   |
+| `delta_n`          | 1    | (`n > 1`)     | `x = z` (identity; a normal prior)             |
+| `edge_radius_um`   | um   | `[0, r_max]`  | `x = r_max (1 + sin z) / 2`, `z in [-pi/2, pi/2]` |
+| `scale`            | *    | `> 0`         | `x = exp(z)`                                   |
+| `floor`            | *    | `>= 0`        | `x = z` (bound: active set + prior support)    |
+| `model_error_frac` | 1    | `>= 0`        | `x = abs(z)` (the likelihood depends on `x^2`) |
+
+(*) `scale` and `floor` are in the units of the measured relative radiance [conventions §9].
+The three parameters whose natural value is *on* their bound (a sharp edge, no floor, no model
+error) use transforms that reach the bound at a finite `z` (the sine is MINUIT's transform for
+doubly bounded parameters): a logit or log would send `z` to infinity and least squares would
+never converge when the data favour the bound. A least-squares optimum on a bound is detected
+and the parameter fixed there (an active set, `_least_squares.py`); the posterior keeps `z` in
+the prior's support.
+A fixed parameter never goes through its transform: it keeps its exact physical value (so a
+fixed floor or edge radius can be exactly 0).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike
+
+PARAM_NAMES: tuple[str, ...] = (
+    "sigma_rad",
+    "delta_n",
+    "edge_radius_um",
+    "scale",
+    "floor",
+    "model_error_frac",
+)
+"""Every physical parameter, in the order of `Params` and of the parameter vector."""
+
+PARAM_UNITS: dict[str, str] = {
+    "sigma_rad": "rad",
+    "delta_n": "1",
+    "edge_radius_um": "um",
+    "scale": "radiance units x rad",
+    "floor": "radiance units",
+    "model_error_frac": "1",
+}
+"""Units of each parameter; `scale` multiplies a density in 1/rad [conventions §4, §9]."""
+
+OPTIONAL_FEATURES: tuple[str, ...] = ("delta_n", "edge_radius_um", "floor")
+"""The parameters the model-selection ladder switches on and off (besides per-wedge sigma)."""
+
+ALWAYS_FREE: frozenset[str] = frozenset({"sigma_rad", "scale"})
+"""Free in every ladder variant: the simplest model a scene needs is sharp steps, one sigma, the
+material's index and a scale."""
+
+Z_CLIP = 60.0
+"""`exp` and `logistic` arguments are clipped to +-Z_CLIP: a guard against overflow when a
+solver step wanders far (exp(60) ~ 1e26); it is never active at a sensible optimum."""
+
+N_MIN = 1.0001
+"""The real part of the refractive index is held at or above this value [conventions §6]."""
+
+
+class Params(NamedTuple):
+    """Physical parameters of the measurement model [conventions §5, §7, §9].
+
+    `sigma_rad` is the Gaussian broadening width in radians: a scalar, or one value per wedge
+    (shape `(n_wedges,)`, in the order of `wedge_index`). `delta_n` is the offset added to the
+    material's real index [conventions §7]. `edge_radius_um` is the radius of the rounded layer
+    edges in micrometres (0 = sharp steps). `scale` and `floor` convert the density to a relative
+    radiance: `value = scale cos(theta_i) rho / cos(theta_o) + floor cos(theta_i)`
+    [conventions §9]. `model_error_frac` is the fractional model error added in quadrature to
+    each row's standard error.
+    """
+
+    sigma_rad: float | np.ndarray = float(np.deg2rad(5.0))
+    delta_n: float = 0.0
+    edge_radius_um: float = 0.0
+    scale: float = 1.0
+    floor: float = 0.0
+    model_error_frac: float = 0.0
+
+    def sigma_per_wedge(self, n_wedges: int) -> np.ndarray:
+        """`sigma_rad` as an array of one width per wedge."""
+        sigma = np.asarray(self.sigma_rad, dtype=float)
+        if sigma.ndim == 0:
+            return np.full(n_wedges, float(sigma))
+        if sigma.shape != (n_wedges,):
+            raise ValueError(
+                f"sigma_rad has shape {sigma.shape}; give one value or one per wedge ({n_wedges})"
+            )
+        return sigma.copy()
+
+
+DEFAULTS = Params()
+"""Values used for fixed parameters unless the caller gives others: sigma 5 deg (the paper's
+Fig. 8), delta_n 0, sharp edges, scale 1, no floor, no model error."""
+
+
+# --- priors ---------------------------------------------------------------------------------
+
+
+class Normal(NamedTuple):
+    """Normal prior `N(mean, sd)` on the physical value."""
+
+    mean: float
+    sd: float
+
+    def log_pdf(self, x: ArrayLike) -> Array:
+        """Log density at the physical value `x`."""
+        u = (jnp.asarray(x) - self.mean) / self.sd
+        return -0.5 * u * u - math.log(self.sd * math.sqrt(2.0 * math.pi))
+
+    def width(self) -> tuple[str, float]:
+        """(space, standard deviation) used by the identifiability rule."""
+        return "linear", self.sd
+
+
+class HalfNormal(NamedTuple):
+    """Half-normal prior on `x >= 0` with scale `sd` (the sd of the parent normal)."""
+
+    sd: float
+
+    def log_pdf(self, x: ArrayLike) -> Array:
+        """Log density at `x` (`-inf` for `x < 0`)."""
+        x = jnp.asarray(x)
+        u = x / self.sd
+        val = -0.5 * u * u + math.log(math.sqrt(2.0 / math.pi) / self.sd)
+        return jnp.where(x >= 0.0, val, -jnp.inf)
+
+    def width(self) -> tuple[str, float]:
+        """(space, standard deviation) of the half-normal: `sd sqrt(1 - 2/pi)`."""
+        return "linear", self.sd * math.sqrt(1.0 - 2.0 / math.pi)
+
+
+class Uniform(NamedTuple):
+    """Uniform prior on `[lower, upper]`."""
+
+    lower: float
+    upper: float
+
+    def log_pdf(self, x: ArrayLike) -> Array:
+        """Log density at `x` (`-inf` outside the interval)."""
+        x = jnp.asarray(x)
+        inside = (x >= self.lower) & (x <= self.upper)
+        return jnp.where(inside, -math.log(self.upper - self.lower), -jnp.inf)
+
+    def width(self) -> tuple[str, float]:
+        """(space, standard deviation) of the uniform: `(upper - lower) / sqrt(12)`."""
+        return "linear", (self.upper - self.lower) / math.sqrt(12.0)
+
+
+class LogUniform(NamedTuple):
+    """Log-uniform (Jeffreys) prior `p(x) ~ 1/x` on `[lower, upper]`, `lower > 0`."""
+
+    lower: float
+    upper: float
+
+    def log_pdf(self, x: ArrayLike) -> Array:
+        """Log density at `x` (`-inf` outside the interval)."""
+        x = jnp.asarray(x)
+        inside = (x >= self.lower) & (x <= self.upper)
+        x_safe = jnp.where(inside, x, 1.0)
+        val = -jnp.log(x_safe) - math.log(math.log(self.upper / self.lower))
+        return jnp.where(inside, val, -jnp.inf)
+
+    def width(self) -> tuple[str, float]:
+        """(space, standard deviation of ln x): `ln(upper / lower) / sqrt(12)`."""
+        return "log", math.log(self.upper / self.lower) / math.sqrt(12.0)
+
+
+Prior = Normal | HalfNormal | Uniform | LogUniform
+
+
+class Priors(NamedTuple):
+    """Priors on the physical parameters (docs/fitting.md). `None` = derived from the data.
+
+    * `sigma_rad`: log-uniform on [1e-3, 1.5] rad (0.06 to 86 deg); applies to every per-wedge
+      width too.
+    * `delta_n`: normal, mean 0, sd 0.1 (polymers span n = 1.3 to 1.7).
+    * `edge_radius_um`: `None` = uniform on [0, r_max] of the scene.
+    * `scale`: log-uniform on [1e-12, 1e12] (scale-free; no information).
+    * `floor`: `None` = half-normal with sd = the largest used measured value.
+    * `model_error_frac`: half-normal with sd 0.1 (model errors of a few per cent).
+    """
+
+    sigma_rad: Prior = LogUniform(1e-3, 1.5)
+    delta_n: Prior = Normal(0.0, 0.1)
+    edge_radius_um: Prior | None = None
+    scale: Prior = LogUniform(1e-12, 1e12)
+    floor: Prior | None = None
+    model_error_frac: Prior = HalfNormal(0.1)
+
+    def resolved(self, r_max_um: float, value_max: float) -> Priors:
+        """Fill the data-derived priors: `edge_radius_um` and `floor`."""
+        return self._replace(
+            edge_radius_um=self.edge_radius_um or Uniform(0.0, float(r_max_um)),
+            floor=self.floor or HalfNormal(float(value_max)),
+        )
+
+
+# --- model variants -------------------------------------------------------------------------
+
+
+class Variant(NamedTuple):
+    """One model of the ladder: which parameters are free (the rest are fixed).
+
+    `free` is a set of names from `PARAM_NAMES`; `per_wedge_sigma` gives every wedge its own
+    broadening width instead of one shared `sigma_rad`. Free versus fixed is metadata here; the
+    values of fixed parameters come from a `Params` given to the fit (default `DEFAULTS`).
+    """
+
+    name: str
+    free: frozenset[str]
+    per_wedge_sigma: bool = False
+
+    @property
+    def features(self) -> tuple[str, ...]:
+        """The optional features switched on (for tables), in `OPTIONAL_FEATURES` order."""
+        out = tuple(f for f in OPTIONAL_FEATURES if f in self.free)
+        return (*out, "sigma_per_wedge") if self.per_wedge_sigma else out
+
+    def with_free(self, *names: str, model_error: bool = False) -> Variant:
+        """A copy with more free parameters (and the model-error term if asked)."""
+        extra = set(names) | ({"model_error_frac"} if model_error else set())
+        return self._replace(free=self.free | frozenset(extra))
+
+
+def variant(name: str, *features: str, per_wedge_sigma: bool = False) -> Variant:
+    """A ladder variant: `sigma_rad` and `scale` free plus the named optional `features`."""
+    unknown = set(features) - set(PARAM_NAMES)
+    if unknown:
+        raise ValueError(f"unknown parameter(s) {sorted(unknown)}; known: {PARAM_NAMES}")
+    return Variant(name, ALWAYS_FREE | frozenset(features), per_wedge_sigma)
+
+
+def _ladder() -> tuple[Variant, ...]:
+    """Every combination of the optional features, then per-wedge sigma on top of each."""
+    out = []
+    for per_wedge in (False, True):
+        for mask in range(2 ** len(OPTIONAL_FEATURES)):
+            feats = tuple(f for k, f in enumerate(OPTIONAL_FEATURES) if mask >> k & 1)
+            short = {"delta_n": "delta_n", "edge_radius_um": "edge", "floor": "floor"}
+            parts = ["sharp" if "edge_radius_um" not in feats else "rounded"]
+            parts += [short[f] for f in feats if f != "edge_radius_um"]
+            if per_wedge:
+                parts.append("sigma_per_wedge")
+            out.append(variant("+".join(parts), *feats, per_wedge_sigma=per_wedge))
+    return tuple(sorted(out, key=lambda v: (v.per_wedge_sigma, len(v.free))))
+
+
+DEFAULT_LADDER: tuple[Variant, ...] = _ladder()
+"""The default model ladder: the 8 combinations of {delta_n, edge radius, floor} with one
+shared sigma, then the same 8 with one sigma per wedge, ordered from simple to rich. Names
+look like `sharp`, `sharp+delta_n`, `rounded+floor`, `sharp+delta_n+sigma_per_wedge`."""
+
+SIMPLEST = DEFAULT_LADDER[0]
+"""`sharp`: sharp steps, one sigma, the material's index, a scale."""
+
+
+# --- the unconstrained parameter vector -----------------------------------------------------
+
+LOG, IDENTITY, SIN, ABS = "log", "identity", "sin", "abs"
+
+
+class Layout(NamedTuple):
+    """Slots of the unconstrained vector `z` for a scene with `n_wedges` wedges.
+
+    Slot 0 is the shared log-width, slots `1 .. n_wedges` the per-wedge log-widths, then
+    `delta_n`, the edge radius (sine), log scale, floor, model error (abs). A variant
+    leaves the slots it does not use fixed; their Jacobian columns are zero.
+    """
+
+    n_wedges: int
+
+    @property
+    def size(self) -> int:
+        """Length of `z`."""
+        return self.n_wedges + 6
+
+    def slot(self, name: str) -> int:
+        """Slot of a scalar parameter (`sigma_rad` = the shared width)."""
+        if name == "sigma_rad":
+            return 0
+        return self.n_wedges + PARAM_NAMES.index(name)
+
+    def sigma_slot(self, wedge: int) -> int:
+        """Slot of wedge `wedge`'s own width."""
+        return 1 + wedge
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        """Transform of each slot."""
+        return (LOG,) * (1 + self.n_wedges) + (IDENTITY, SIN, LOG, IDENTITY, ABS)
+
+    def param_of_slot(self, k: int) -> str:
+        """Physical parameter a slot belongs to (`sigma_rad` for every width slot)."""
+        if k <= self.n_wedges:
+            return "sigma_rad"
+        return PARAM_NAMES[k - self.n_wedges]
+
+    def label(self, k: int, wedge_deg: np.ndarray | None = None) -> str:
+        """Human-readable name of slot `k`: `sigma_rad`, `sigma_rad[2]` (wedge 2), ..."""
+        if k == 0:
+            return "sigma_rad"
+        if k <= self.n_wedges:
+            w = k - 1
+            if wedge_deg is not None:
+                return f"sigma_rad[{w}: {wedge_deg[w]:g} deg]"
+            return f"sigma_rad[{w}]"
+        return PARAM_NAMES[k - self.n_wedges]
+
+
+def to_physical(z: Array, kinds: tuple[str, ...], r_max_um: ArrayLike) -> Array:
+    """Map the unconstrained vector to physical values slot by slot (see the module table)."""
+    out = []
+    for k, kind in enumerate(kinds):
+        if kind == LOG:
+            out.append(jnp.exp(jnp.clip(z[k], -Z_CLIP, Z_CLIP)))
+        elif kind == SIN:
+            out.append(jnp.asarray(r_max_um) * 0.5 * (1.0 + jnp.sin(z[k])))
+        elif kind == ABS:
+            out.append(jnp.abs(z[k]))
+        else:
+            out.append(z[k])
+    return jnp.stack(out)
+
+
+def in_support(z: Array, kinds: tuple[str, ...]) -> Array:
+    """False where a sine slot leaves its principal branch `[-pi/2, pi/2]` (posterior only)."""
+    ok = jnp.asarray(True)
+    for k, kind in enumerate(kinds):
+        if kind == SIN:
+            ok = ok & (jnp.abs(z[k]) <= 0.5 * jnp.pi)
+    return ok
+
+
+def log_abs_jacobian(z: Array, kinds: tuple[str, ...], r_max_um: ArrayLike) -> Array:
+    """`log |dx/dz|` of each slot's transform (the prior's change of variables).
+
+    For `abs` the map is two-to-one; the density of `z` is `p(|z|) / 2`, hence `-log 2`.
+    """
+    out = []
+    for k, kind in enumerate(kinds):
+        if kind == LOG:
+            out.append(z[k])
+        elif kind == SIN:
+            c = jnp.cos(z[k])
+            pos = c > 0
+            out.append(
+                jnp.where(
+                    pos, jnp.log(0.5 * jnp.asarray(r_max_um) * jnp.where(pos, c, 1.0)), -jnp.inf
+                )
+            )
+        elif kind == ABS:
+            out.append(jnp.full_like(z[k], -math.log(2.0)))
+        else:
+            out.append(jnp.zeros_like(z[k]))
+    return jnp.stack(out)
+
+
+def from_physical(x: float, kind: str, r_max_um: float) -> float:
+    """Inverse transform for one value (used for starting points)."""
+    if kind == LOG:
+        return float(np.clip(np.log(max(x, np.exp(-Z_CLIP))), -Z_CLIP, Z_CLIP))
+    if kind == SIN:
+        return float(np.arcsin(np.clip(2.0 * x / r_max_um - 1.0, -1.0, 1.0)))
+    if kind == ABS:
+        return float(abs(x))
+    return float(x)
+
+
+def dx_dz(z: np.ndarray, kinds: tuple[str, ...], r_max_um: float) -> np.ndarray:
+    """Derivative of each transform at `z` (for the delta method)."""
+    out = np.ones(len(kinds))
+    for k, kind in enumerate(kinds):
+        if kind == LOG:
+            out[k] = np.exp(np.clip(z[k], -Z_CLIP, Z_CLIP))
+        elif kind == SIN:
+            out[k] = 0.5 * r_max_um * np.cos(z[k])
+        elif kind == ABS:
+            out[k] = 1.0 if z[k] >= 0 else -1.0
+    return out

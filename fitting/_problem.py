@@ -1,0 +1,281 @@
+"""A prepared fit problem: observations + spectral setup turned into static, traced arrays.
+
+Preparation runs once per scene; every variant and every start reuses it, and every variant of
+the sharp model shares one compilation (see `_forward`).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+from stairfit import model
+
+from ._errors import FitInputError
+from ._forward import Data, Static
+from ._observations import Observations, Spectral, check_compatible
+from ._params import DEFAULTS, PARAM_NAMES, Layout, Params, Priors, Variant
+
+
+def rounded_model_available() -> bool:
+    """True when `stairfit.model` provides the rounded-edge model `brdf_rounded`."""
+    return hasattr(model, "brdf_rounded")
+
+
+def max_edge_radius_um(obs: Observations) -> float:
+    """Largest edge radius (um) every used wedge can hold: `min over wedges of min(l1, l2)`.
+
+    A circular arc tangent to both facets of a 90-degree convex tip takes a length `r` from each
+    facet [conventions §2], so `r <= min(l1, l2)` with `l2 = l1 cot(beta2)`; the finest wedge
+    sets the bound shared by all. If `stairfit.model` provides `max_edge_radius(beta2,
+    layer_um)` (the rounded model's definition), that is used instead.
+    """
+    used = obs.use
+    beta2 = obs.beta2_rad[used]
+    layer = obs.layer_um[used]
+    fn = getattr(model, "max_edge_radius", None)
+    if fn is not None:
+        return float(np.min(np.asarray(fn(beta2, layer))))
+    return float(np.min(np.minimum(layer, layer / np.tan(beta2))))
+
+
+class FreeSpec(NamedTuple):
+    """Which slots are free: parameter names, the wedges that have their own (free) width,
+    fixed values that override `Problem.fixed` (a parameter fixed on its bound), and per-wedge
+    widths fixed at a value (a wedge whose own width the data do not constrain)."""
+
+    free: frozenset[str]
+    own_sigma: frozenset[int] = frozenset()
+    overrides: tuple[tuple[str, float], ...] = ()
+    fixed_sigma: tuple[tuple[int, float], ...] = ()
+
+
+class Problem(NamedTuple):
+    """Everything a fit needs, prepared once per scene (observations, spectral setup, options).
+
+    `data` holds the traced arrays (its `free`, `x_fixed` and `sigma_source` are filled per
+    variant by `arrays_for`); `fixed` gives the values of fixed parameters; `priors` are
+    resolved against the data; `wedge_deg` is for labels only.
+    """
+
+    observations: Observations
+    spectral: Spectral
+    layout: Layout
+    data: Data
+    fixed: Params
+    priors: Priors
+    r_max_um: float
+    aperture: model.Aperture
+    resolution: int | None
+    wedge_deg: np.ndarray
+
+    def static_for(self, spec: FreeSpec) -> Static:
+        """The hashable configuration for a variant (which forward, model-error term)."""
+        fixed = self.fixed._replace(**dict(spec.overrides))
+        rounded = "edge_radius_um" in spec.free or float(fixed.edge_radius_um) > 0.0
+        model_error = "model_error_frac" in spec.free or float(fixed.model_error_frac) > 0.0
+        return Static(
+            kinds=self.layout.kinds,
+            rounded=rounded,
+            model_error=model_error,
+            aperture=self.aperture,
+            resolution=self.resolution,
+        )
+
+    def arrays_for(self, spec: FreeSpec) -> Data:
+        """The traced arrays for a variant: free mask, fixed values, width tying."""
+        lay = self.layout
+        free = np.zeros(lay.size, dtype=bool)
+        x_fixed = np.zeros(lay.size)
+        sigma_w = self.fixed.sigma_per_wedge(lay.n_wedges)
+        x_fixed[0] = float(np.exp(np.mean(np.log(sigma_w))))
+        x_fixed[1 : 1 + lay.n_wedges] = sigma_w
+        for name in PARAM_NAMES[1:]:
+            x_fixed[lay.slot(name)] = float(getattr(self.fixed, name))
+        for name, value in spec.overrides:
+            x_fixed[lay.slot(name)] = value
+        pinned = dict(spec.fixed_sigma)
+        for w, value in pinned.items():
+            x_fixed[lay.sigma_slot(w)] = value
+        own = spec.own_sigma - set(pinned)
+        source = np.array(
+            [lay.sigma_slot(w) if (w in own or w in pinned) else 0 for w in range(lay.n_wedges)]
+        )
+        if "sigma_rad" in spec.free:
+            for w in own:
+                free[lay.sigma_slot(w)] = True
+            free[0] = bool(np.any(source == 0))
+        else:  # fixed widths: each wedge keeps its own given value
+            source = np.array([lay.sigma_slot(w) for w in range(lay.n_wedges)])
+        for name in PARAM_NAMES[1:]:
+            free[lay.slot(name)] = name in spec.free
+        return self.data._replace(
+            **jax.device_put({"free": free, "x_fixed": x_fixed, "sigma_source": source}),
+        )
+
+
+def check_float64() -> None:
+    """Fits need float64 [conventions §10]; the library never flips the global flag itself."""
+    if not jax.config.read("jax_enable_x64"):
+        raise FitInputError(
+            "stairfit.fitting needs float64: call jax.config.update('jax_enable_x64', True) "
+            "at the start of your program [conventions §10]"
+        )
+
+
+def prepare(
+    obs: Observations,
+    spectral: Spectral,
+    *,
+    fixed: Params = DEFAULTS,
+    priors: Priors | None = None,
+    aperture: model.Aperture | None = None,
+    resolution: int | None = None,
+) -> Problem:
+    """Validate the combination and build the traced arrays (see `Problem`)."""
+    check_float64()
+    if not isinstance(obs, Observations):
+        raise FitInputError(
+            "observations must be an Observations table; build it with "
+            "Observations.from_arrays or Observations.from_rows"
+        )
+    check_compatible(obs, spectral)
+    lay = Layout(obs.n_wedges)
+    try:
+        fixed.sigma_per_wedge(lay.n_wedges)
+    except ValueError as exc:
+        raise FitInputError(f"fixed parameters: {exc}") from None
+    _check_fixed(fixed)
+    r_max = max_edge_radius_um(obs)
+    if not 0.0 <= float(fixed.edge_radius_um) <= r_max:
+        raise FitInputError(
+            f"fixed edge_radius_um = {fixed.edge_radius_um} is outside [0, r_max = {r_max:.4g}] "
+            "um (r_max = the finest wedge's min(l1, l2)); choose a smaller radius"
+        )
+    used = obs.use
+    value_max = float(np.max(np.abs(obs.value[used])))
+    resolved = (priors or Priors()).resolved(r_max, value_max if value_max > 0 else 1.0)
+    # Distinct (theta_i, beta2, channel) combinations: the Fresnel factors depend on nothing
+    # else, so they are evaluated once per combination.
+    combo = np.stack([obs.theta_i_rad, obs.beta2_rad, obs.channel_index.astype(float)], axis=1)
+    uniq, key = np.unique(combo, axis=0, return_inverse=True)
+    chan_u = uniq[:, 2].astype(int)
+    n_base = np.asarray(spectral.n_base)
+    weights = np.asarray(spectral.weights, float)
+    chan_u = np.minimum(chan_u, spectral.n_channels - 1)  # unused rows may name any channel
+    rgrid = rounded_grid(obs, n_base, weights)
+    data = Data(
+        theta_i=np.asarray(obs.theta_i_rad, float),
+        theta_o=np.asarray(obs.theta_o_rad, float),
+        beta2=np.asarray(obs.beta2_rad, float),
+        layer_um=np.asarray(obs.layer_um, float),
+        wedge=np.asarray(obs.wedge_index),
+        key=np.asarray(key.ravel()),
+        value=np.asarray(obs.value, float),
+        stderr=np.asarray(obs.stderr, float),
+        use=np.asarray(used.astype(float)),
+        ti_u=np.asarray(uniq[:, 0]),
+        b2_u=np.asarray(uniq[:, 1]),
+        n_u=np.asarray(n_base[chan_u]),
+        w_u=np.asarray(weights[chan_u]),
+        **{k: np.asarray(v) for k, v in rgrid.items()},
+        free=np.zeros(lay.size, dtype=bool),
+        x_fixed=np.zeros(lay.size),
+        sigma_source=np.zeros(lay.n_wedges, dtype=int),
+        r_max_um=np.asarray(r_max if r_max > 0 else 1.0),
+    )
+    data = jax.device_put(data)  # one batched transfer instead of one per array
+    return Problem(
+        observations=obs,
+        spectral=spectral,
+        layout=lay,
+        data=data,
+        fixed=fixed,
+        priors=resolved,
+        r_max_um=r_max,
+        aperture=aperture or model.Aperture(),
+        resolution=resolution,
+        wedge_deg=np.rad2deg(obs.wedge_beta2_rad),
+    )
+
+
+def rounded_grid(obs: Observations, n_base: np.ndarray, weights: np.ndarray) -> dict:
+    """Where the rounded model is evaluated: its geometry depends on (theta_i, wedge) only.
+
+    Keys are the distinct (theta_i, wedge, channel) combinations (R). If `R x T` (T distinct
+    viewing angles) is at most twice the number of rows, the model is evaluated on the full
+    key x view grid (geometry once per key); otherwise once per row (`r_to` per key).
+    """
+    channel = np.minimum(np.where(obs.use, obs.channel_index, 0), n_base.shape[0] - 1)
+    combo = np.stack([obs.theta_i_rad, obs.wedge_index, channel], axis=1).astype(float)
+    uniq, key = np.unique(combo, axis=0, return_inverse=True)
+    key = key.ravel()
+    views, t_idx = np.unique(obs.theta_o_rad, return_inverse=True)
+    wedge = uniq[:, 1].astype(int)
+    chan = uniq[:, 2].astype(int)
+    b2_w, layer_w = np.zeros(obs.n_wedges), np.ones(obs.n_wedges)
+    b2_w[obs.wedge_index] = obs.beta2_rad
+    layer_w[obs.wedge_index] = obs.layer_um
+    grid = {
+        "r_ti": uniq[:, 0],
+        "r_b2": b2_w[wedge],
+        "r_layer": layer_w[wedge],
+        "r_wedge": wedge,
+        "r_n": n_base[chan],
+        "r_w": weights[chan],
+    }
+    if uniq.shape[0] * views.size <= 2 * obs.n_rows:
+        return {**grid, "r_key": key, "r_t": t_idx.ravel(), "r_to": views[None, :]}
+    rows = np.arange(obs.n_rows)
+    return {
+        **grid,
+        "r_ti": obs.theta_i_rad,
+        "r_b2": obs.beta2_rad,
+        "r_layer": obs.layer_um,
+        "r_wedge": obs.wedge_index,
+        "r_n": n_base[channel],
+        "r_w": weights[channel],
+        "r_key": rows,
+        "r_t": np.zeros(obs.n_rows, dtype=int),
+        "r_to": obs.theta_o_rad[:, None],
+    }
+
+
+def _check_fixed(fixed: Params) -> None:
+    """Fixed values must be physical: positive widths and scale, non-negative floor/error."""
+    sigma = np.asarray(fixed.sigma_rad, float)
+    checks = (
+        ("sigma_rad", np.all(np.isfinite(sigma)) and np.all(sigma > 0), "> 0 rad"),
+        ("scale", np.isfinite(fixed.scale) and fixed.scale > 0, "> 0"),
+        ("floor", np.isfinite(fixed.floor) and fixed.floor >= 0, ">= 0"),
+        (
+            "model_error_frac",
+            np.isfinite(fixed.model_error_frac) and fixed.model_error_frac >= 0,
+            ">= 0",
+        ),
+        ("delta_n", np.isfinite(fixed.delta_n), "finite"),
+        ("edge_radius_um", np.isfinite(fixed.edge_radius_um), "finite"),
+    )
+    for name, ok, need in checks:
+        if not ok:
+            raise FitInputError(
+                f"fixed parameter {name} = {getattr(fixed, name)!r} must be {need}; pass a "
+                "valid value in Params"
+            )
+
+
+def spec_for(variant: Variant, problem: Problem) -> FreeSpec:
+    """The free set of a variant on this scene (per-wedge widths only for wedges with data)."""
+    unknown = variant.free - set(PARAM_NAMES)
+    if unknown:
+        raise FitInputError(
+            f"variant {variant.name!r} frees unknown parameter(s) {sorted(unknown)}; known: "
+            f"{', '.join(PARAM_NAMES)}"
+        )
+    own: frozenset[int] = frozenset()
+    if variant.per_wedge_sigma and "sigma_rad" in variant.free:
+        obs = problem.observations
+        own = frozenset(int(w) for w in np.unique(obs.wedge_index[obs.use]))
+    return FreeSpec(free=frozenset(variant.free), own_sigma=own)

@@ -1,0 +1,128 @@
+"""emcee posteriors: explicit seeds, reproducible chains, resumable chain files, calibration.
+
+[conventions §9, §10]; the settings and the chain file format are in docs/fitting.md.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from stairfit import fitting
+
+DEG = np.pi / 180
+TRUTH = fitting.Params(sigma_rad=8 * DEG, delta_n=0.02, scale=1.0, floor=0.003)
+VARIANT = fitting.variant("dn_floor", "delta_n", "floor")
+
+
+def _small(seed: int) -> tuple[fitting.Observations, fitting.Spectral]:
+    spec = fitting.spectral_setup("pla", sampling="effective", channels=(1,))
+    design = fitting.Design((20.0, 45.0), (20.0,) * 9, tuple(np.linspace(-80, 80, 9)),
+                            channels=(0,))  # fmt: skip
+    return fitting.simulate_observations(TRUTH, design, spec, fitting.Noise(0.02), seed), spec
+
+
+@pytest.fixture(scope="module")
+def fit() -> fitting.FitResult:
+    obs, spec = _small(21)
+    return fitting.fit_least_squares(obs, spec, VARIANT)
+
+
+def _short(fit: fitting.FitResult, **kw) -> fitting.PosteriorResult:
+    """A fixed-length chain (tau_factor so large that it never counts as converged)."""
+    with pytest.warns(fitting.ConvergenceWarning, match="max_steps"):
+        return fitting.sample_posterior(fit, chunk_steps=100, tau_factor=1e9, **kw)
+
+
+def test_posterior_seed_is_recorded_and_reproducible(fit):
+    a = _short(fit, seed=7, max_steps=200)
+    b = _short(fit, seed=7, max_steps=200)
+    c = _short(fit, seed=8, max_steps=200)
+    assert a.seed == 7 and c.seed == 8
+    np.testing.assert_array_equal(a.samples, b.samples)
+    assert not np.array_equal(a.samples, c.samples)
+    assert not a.converged and a.warnings[0].code == "chain_too_short"
+
+
+def test_chain_file_reloads_and_resume_continues_exactly(fit, tmp_path):
+    path = tmp_path / "chain.npz"
+    first = _short(fit, seed=3, max_steps=200, chain_path=path)
+    saved = fitting.load_chain(path)
+    assert saved["chain_z"].shape == (200, first.n_walkers, 4)
+    assert saved["chain"].shape == (200, first.n_walkers, 4)
+    assert saved["log_prob"].shape == (200, first.n_walkers)
+    assert tuple(saved["names"]) == fit.names and int(saved["seed"]) == 3
+    assert int(saved["format_version"]) == fitting.CHAIN_FORMAT_VERSION
+    assert not list(tmp_path.glob("*.tmp"))  # atomic write: no temporary file left behind
+    # resuming to 400 steps gives exactly the chain of one uninterrupted 400-step run
+    resumed = _short(fit, seed=999, max_steps=400, chain_path=path, resume=True)
+    assert resumed.seed == 3 and resumed.n_steps == 400
+    straight = _short(fit, seed=3, max_steps=400, chain_path=tmp_path / "straight.npz")
+    np.testing.assert_array_equal(
+        fitting.load_chain(path)["chain_z"],
+        fitting.load_chain(tmp_path / "straight.npz")["chain_z"],
+    )
+    np.testing.assert_array_equal(resumed.acceptance_per_walker, straight.acceptance_per_walker)
+
+
+def test_resume_refuses_a_different_fit_or_missing_file(fit, tmp_path):
+    path = tmp_path / "chain.npz"
+    _short(fit, seed=1, max_steps=100, chain_path=path)
+    obs, spec = _small(22)
+    other = fitting.fit_least_squares(obs, spec, VARIANT)
+    with pytest.raises(fitting.FitInputError, match="belongs to a different fit"):
+        fitting.sample_posterior(other, chain_path=path, resume=True)
+    with pytest.raises(fitting.FitInputError, match="does not exist"):
+        fitting.sample_posterior(fit, chain_path=tmp_path / "none.npz", resume=True)
+
+
+def test_posterior_converges_and_agrees_with_least_squares(fit):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", fitting.ConvergenceWarning)
+        post = fitting.sample_posterior(fit, seed=5)
+    assert post.converged and post.n_steps > 50 * post.tau_max
+    assert post.n_independent > 1000
+    assert 0.2 < post.acceptance_fraction < 0.7
+    assert post.burn_in >= 3 * post.tau_max and post.thin >= 1
+    # a well-determined, nearly linear problem: the posterior is the LS Gaussian
+    assert np.all(np.abs(post.median - fit.values) < 0.25 * fit.stderrs)
+    assert np.all((post.width_ratio > 0.85) & (post.width_ratio < 1.15)), post.width_ratio
+    assert np.all(post.p2_5 < post.p16) and np.all(post.p84 < post.p97_5)
+    assert "converged" in post.report()
+
+
+def _posterior_coverage(n_sets: int, seed0: int, **kw) -> tuple[float, float, float]:
+    """(68% coverage, 95% coverage, largest |posterior median - LS| / LS stderr)."""
+    inside68, inside95, shift = [], [], []
+    t = np.array([TRUTH.sigma_rad, TRUTH.delta_n, TRUTH.scale, TRUTH.floor])
+    for k in range(n_sets):
+        obs, spec = _small(seed0 + k)
+        f = fitting.fit_least_squares(obs, spec, VARIANT, emit_warnings=False)
+        post = fitting.sample_posterior(f, seed=k, emit_warnings=False, **kw)
+        inside68.append((post.p16 <= t) & (t <= post.p84))
+        inside95.append((post.p2_5 <= t) & (t <= post.p97_5))
+        shift.append(np.max(np.abs(post.median - f.values) / f.stderrs))
+    return float(np.mean(inside68)), float(np.mean(inside95)), float(np.max(shift))
+
+
+def test_posterior_intervals_are_calibrated_short():
+    # 8 datasets x 4 parameters = 32 intervals, chains of about 20 tau (not 50: speed).
+    # delta_n and scale are correlated (-0.98), so the intervals of one dataset miss together:
+    # with a design effect of 2 (16 effective intervals) the binomial sd of a 68% coverage is
+    # 12% and of a 95% coverage 5.4%; the bounds are about 3 sd: 35-97% and >= 78%. The long
+    # version below (`-m slow`, or `benchmarks/bench_fit.py --calibration`) uses the issue's
+    # bounds. The posterior must also agree with the (calibrated) least-squares estimate.
+    c68, c95, shift = _posterior_coverage(8, seed0=700, tau_factor=20.0, chunk_steps=250)
+    assert 0.35 <= c68 <= 0.97, c68
+    assert c95 >= 0.78, c95
+    assert shift < 0.3, shift
+
+
+@pytest.mark.slow
+def test_posterior_intervals_are_calibrated_long():
+    # 100 datasets x 4 parameters, default convergence (50 tau): 68% in 60-76%, 95% in 90-99%.
+    c68, c95, _ = _posterior_coverage(100, seed0=3000)
+    assert 0.60 <= c68 <= 0.76, c68
+    assert 0.90 <= c95 <= 0.99, c95
