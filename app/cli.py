@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from . import __version__, demo, fit, predict, simulate
+from ._jaxcache import enable_persistent_cache
 from .errors import UserError
 
 
@@ -45,21 +46,59 @@ def _join_negative_values(argv: list[str]) -> list[str]:
     return out
 
 
+EXIT_USER_ERROR = 2
+"""Exit status for a mistake in the input (scene file, photos, options), as argparse uses."""
+EXIT_OS_ERROR = 1
+"""Exit status for a file the system would not read or write (permissions, a full disk)."""
+
+
+def one_line(message: str) -> str:
+    """A message on one line: line breaks and runs of spaces become single spaces."""
+    return " ".join(str(message).split())
+
+
+def _is_imaging_error(e: BaseException) -> bool:
+    """Whether `e` is a `stairfit.imaging.ImagingError` (without importing imaging for it)."""
+    imaging = sys.modules.get("stairfit.imaging")
+    return imaging is not None and isinstance(e, imaging.ImagingError)
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point: float64 on, one-line errors for user mistakes, non-zero exit on failure."""
+    """Entry point: float64 on, one-line errors for user mistakes, non-zero exit on failure.
+
+    A `UserError` (or an `ImagingError` that reached this far) is printed as one line,
+    `stairfit COMMAND: error: FILE: FIELD: what is wrong; the fix`, with exit status 2; an
+    `OSError` (a folder that cannot be written, a full disk) as one line with status 1. Anything
+    else is a bug and keeps its traceback.
+    """
     parser = build_parser()
-    args = parser.parse_args(_join_negative_values(sys.argv[1:] if argv is None else argv))
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv:  # no command: say what the commands are, not only that one is required
+        parser.print_help(sys.stderr)
+        return EXIT_USER_ERROR
+    args = parser.parse_args(_join_negative_values(argv))
     import jax
 
     jax.config.update("jax_enable_x64", True)  # [conventions §10]
+    enable_persistent_cache()  # compiled programs kept across runs (app/_jaxcache.py)
     try:
         return int(args.func(args) or 0)
     except UserError as e:
-        print(f"stairfit {args.command}: error: {e}", file=sys.stderr)
-        return 2
+        print(f"stairfit {args.command}: error: {one_line(str(e))}", file=sys.stderr)
+        return EXIT_USER_ERROR
     except KeyboardInterrupt:
         print(f"stairfit {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as e:
+        where = f"{e.filename}: " if e.filename else ""
+        what = e.strerror or str(e)
+        print(f"stairfit {args.command}: error: {one_line(where + what)}", file=sys.stderr)
+        return EXIT_OS_ERROR
+    except Exception as e:
+        if not _is_imaging_error(e):
+            raise
+        print(f"stairfit {args.command}: error: {one_line(str(e))}", file=sys.stderr)
+        return EXIT_USER_ERROR
 
 
 if __name__ == "__main__":

@@ -73,11 +73,16 @@ def run(args: argparse.Namespace) -> int:
 
 
 def compare_table(outcome: fit.FitOutcome, truth: dict[str, float]) -> str:
-    """Recovered against true values, with the interval each truth falls in."""
+    """Recovered against true values, the 95% interval, and the deviation in standard deviations.
+
+    A truth outside its 95% interval happens for about 1 parameter in 20 by chance; the last
+    column says how far off it is (|pull| > 3 would point to a bias, not to chance).
+    """
     from .report import parameter_records
 
     lines = [
-        f"  {'parameter':<16} {'true':>12} {'recovered':>12} {'95% interval':>26}  truth inside?"
+        f"  {'parameter':<16} {'true':>12} {'recovered':>12} {'95% interval':>26}  "
+        f"{'inside?':>7}  {'(rec - true) / sd':>17}"
     ]
     for rec in parameter_records(outcome):
         name = rec["name"]
@@ -96,8 +101,11 @@ def compare_table(outcome: fit.FitOutcome, truth: dict[str, float]) -> str:
         else:
             val, lo, hi = ls["value"], np.nan, np.nan
         inside = "yes" if lo <= true <= hi else "NO"
+        sd = 0.25 * (hi - lo)  # the interval spans about +-2 standard deviations
+        pull = f"{(val - true) / sd:+.2f}" if sd > 0 else "-"
+        interval = f"[{lo:.6g}, {hi:.6g}]"
         lines.append(
-            f"  {name:<16} {true:>12.5g} {val:>12.5g} {f'[{lo:.5g}, {hi:.5g}]':>26}  {inside}"
+            f"  {name:<16} {true:>12.6g} {val:>12.6g} {interval:>26}  {inside:>7}  {pull:>17}"
         )
     fixed = [k for k in truth if k not in {r["name"] for r in parameter_records(outcome)}]
     for k in fixed:

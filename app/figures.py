@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -17,6 +18,15 @@ import numpy as np
 from matplotlib.figure import Figure
 
 DEG = np.pi / 180
+
+
+def _brdf_jit(*args: Any) -> Any:
+    """`model.brdf`, compiled once per call shape (eager evaluation is ~10x slower here)."""
+    import jax
+
+    from stairfit import model
+
+    return jax.jit(model.brdf)(*args)
 
 
 def brdf_map(
@@ -37,7 +47,7 @@ def brdf_map(
     for ax, b in zip(axes[0], beta2_deg, strict=True):
         if sigma_deg > 0:
             ti, to = np.meshgrid(grid * DEG, grid * DEG, indexing="ij")
-            img = np.asarray(model.brdf(ti, to, b * DEG, n, sigma_deg * DEG))
+            img = np.asarray(_brdf_jit(ti, to, b * DEG, n, sigma_deg * DEG))
             im = ax.imshow(
                 img.T, origin="lower", extent=(-90, 90, -90, 90), cmap="magma", norm=PowerNorm(0.5)
             )
@@ -104,6 +114,8 @@ def reflected_colours(
     Each swatch is the sRGB colour of the reflected light; one common exposure per illuminant
     maps the brightest swatch to display white, so brightness differences remain visible.
     """
+    import jax
+
     from stairfit import model
     from stairfit.model import spectral
 
@@ -117,13 +129,13 @@ def reflected_colours(
         figsize=(0.45 * len(to) * len(illuminants) + 1.5, 0.5 * len(rows) + 1.2),
         squeeze=False,
     )
+    # one compiled evaluation for all wedges (the spectra do not depend on the illuminant)
+    diffuse = jax.jit(jax.vmap(model.diffuse_broadened, in_axes=(None, 0, None, None)))
+    b2 = np.asarray(beta2_deg, float) * DEG
+    spectra = list(np.asarray(diffuse(to[:, None], b2, n[None, :], sigma_deg * DEG)))
+    spectra.append(np.asarray(model.flat_reflectance(to[:, None], n[None, :])))
     for ax, ill in zip(axes[0], illuminants, strict=True):
         w = spectral.xyz_weights(ill, lam)
-        spectra = [
-            np.asarray(model.diffuse_broadened(to[:, None], b * DEG, n[None, :], sigma_deg * DEG))
-            for b in beta2_deg
-        ]
-        spectra.append(np.asarray(model.flat_reflectance(to[:, None], n[None, :])))
         xyz = np.stack([s @ w.T for s in spectra])  # (rows, angles, 3)
         exposure = 0.9 / max(float(xyz[..., 1].max()), 1e-12)
         ax.imshow(spectral.xyz_to_srgb(xyz, exposure), aspect="auto")

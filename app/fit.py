@@ -97,6 +97,10 @@ def options_from_args(args: argparse.Namespace) -> FitOptions:
     """Validated options (user mistakes raise UserError)."""
     if args.workers < 1:
         raise UserError("--workers: must be >= 1")
+    if args.seed < 0:
+        raise UserError(f"--seed: {args.seed} is negative; give an integer >= 0")
+    if args.model is not None:
+        check_model_name(args.model)
     return FitOptions(
         preset=get_preset(args.preset),
         posterior=not args.no_posterior,
@@ -107,6 +111,19 @@ def options_from_args(args: argparse.Namespace) -> FitOptions:
         cache=not args.no_cache,
         progress=not args.quiet,
     )
+
+
+def check_model_name(name: str) -> None:
+    """A `--model` that is not a ladder variant is a user error, caught before any work."""
+    from stairfit import fitting
+
+    names = [v.name for v in fitting.DEFAULT_LADDER]
+    if name not in names:
+        import difflib
+
+        near = difflib.get_close_matches(name, names, n=1)
+        hint = f"did you mean {near[0]!r}?" if near else f"variants: {', '.join(names)}"
+        raise UserError(f"--model: unknown variant {name!r}; {hint}")
 
 
 def default_output(folder: Path) -> Path:
@@ -295,6 +312,7 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
     rows, info = [], []
     n_flagged = n_saturated = 0
     reference = scene.reference.name if scene.reference is not None else None
+    inflation = channel_inflation(table)
     for r in table:
         if r.wedge == reference:
             continue
@@ -316,7 +334,7 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
                 "wedge_index": k,
                 "channel_index": channels[r.channel],
                 "value": r.value if finite else 0.0,
-                "stderr": r.stderr if finite else 1.0,
+                "stderr": r.stderr * inflation[(r.photo, r.wedge)] if finite else 1.0,
                 "use": use,
                 "photo_index": p,
                 "saturated": saturated,
@@ -332,6 +350,7 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
                 "theta_i_deg": ti,
                 "theta_o_deg": to,
                 "use": use,
+                "stderr_inflation": inflation[(r.photo, r.wedge)],
             }
         )
     if not rows or not any(r["use"] for r in rows):
@@ -352,6 +371,32 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
     if n_saturated:
         notes.append(f"{n_saturated} measurements with some saturated pixels were not fitted")
     return obs, info, notes
+
+
+def channel_inflation(table: Any) -> dict[tuple[str, str], float]:
+    """Per ROI, the factor `sqrt(1 + (m - 1) rho)` applied to its channels' standard errors.
+
+    The R, G and B means of one ROI share its texture, so their errors are correlated (imaging
+    measures the mean correlation `rho` as `channel_corr`). The fit treats each row as
+    independent; for the `m` usable channels of an ROI with equicorrelated errors, inflating
+    each standard error by this factor gives the channel-common component (which carries
+    sigma, scale and floor) exactly its true weight, and is conservative for the differences
+    between channels (which carry delta_n). docs/fitting.md §Correlated channels.
+    """
+    groups: dict[tuple[str, str], list[Any]] = {}
+    for r in table:
+        groups.setdefault((r.photo, r.wedge), []).append(r)
+    out = {}
+    for key, rows in groups.items():
+        usable = [
+            r for r in rows
+            if not r.flag and np.isfinite(r.value) and np.isfinite(r.stderr) and r.stderr > 0
+        ]  # fmt: skip
+        rho = rows[0].channel_corr
+        m = len(usable)
+        ok = m > 1 and np.isfinite(rho)
+        out[key] = float(np.sqrt(1.0 + (m - 1) * min(max(rho, 0.0), 1.0))) if ok else 1.0
+    return out
 
 
 def fit_setup(scene: Scene, preset: Preset) -> tuple[Any, Any]:
@@ -389,13 +434,7 @@ def select(observations: Any, spectral: Any, aperture: Any, options: FitOptions)
 
     ladder = ladder_for(options.preset)
     if options.model is not None:
-        names = [v.name for v in fitting.DEFAULT_LADDER]
-        if options.model not in names:
-            import difflib
-
-            near = difflib.get_close_matches(options.model, names, n=1)
-            hint = f"did you mean {near[0]!r}?" if near else f"variants: {', '.join(names)}"
-            raise UserError(f"--model: unknown variant {options.model!r}; {hint}")
+        check_model_name(options.model)
         ladder = fitting.DEFAULT_LADDER
     if not fitting.rounded_model_available():
         ladder = tuple(v for v in ladder if "edge_radius_um" not in v.free)

@@ -8,16 +8,22 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TextIO
+from typing import Protocol, TextIO
 
 import numpy as np
 
 from . import _ranges
 from .errors import UserError
 from .outputs import atomic_text
+
+
+class _RowWriter(Protocol):
+    """What `csv.writer` returns, as far as this module uses it."""
+
+    def writerow(self, row: Iterable[object], /) -> object: ...
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -30,7 +36,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "write CSV with a header. Angles in degrees (docs/conventions.md §1: theta_o = "
             "theta_i is mirror reflection, theta_o = -theta_i retroreflection). By default the "
             "table holds the broadened in-plane reflectance density rho (1/rad, §4); --lobes "
-            "gives the sharp lobes and --diffuse the diffuse-lighting integral."
+            "gives the sharp lobes and --diffuse the diffuse-lighting integral. "
+            "--edge-radius-um > 0 rounds the layer edges (docs/rounded.md)."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
@@ -42,11 +49,24 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--delta-n", type=float, default=0.0, help="offset added to n")
     p.add_argument("--sigma-deg", type=float, default=5.0, help="Gaussian broadening (deg)")
-    p.add_argument("--edge-radius-um", type=float, default=0.0, help="edge radius r (um)")
+    p.add_argument(
+        "--edge-radius-um",
+        type=float,
+        default=0.0,
+        help=(
+            "radius r (um) of the rounded layer edges, 0 = sharp; 0 <= r <= min(l1, l2) for "
+            "every wedge (docs/rounded.md). With r > 0 the density uses the rounded model and "
+            "--lobes lists its ten paths"
+        ),
+    )
     p.add_argument("--wavelength-nm", default="550", help="wavelengths (nm)")
     p.add_argument("--theta-i-deg", default="0", help="angles of incidence (deg)")
     p.add_argument("--theta-o-deg", default="-90:90:1", help="angles of observation (deg)")
-    p.add_argument("--lobes", action="store_true", help="write the sharp lobes instead")
+    p.add_argument(
+        "--lobes",
+        action="store_true",
+        help="write the sharp lobes instead (with --edge-radius-um > 0: the ten paths)",
+    )
     p.add_argument("--diffuse", action="store_true", help="write the diffuse-lighting integral")
     p.add_argument(
         "--cosine-weighted", action="store_true", help="diffuse integral with cos(theta_i) weight"
@@ -82,20 +102,28 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--sigma-deg: must be >= 0 (0 means the sharp model)")
     if args.layer_um <= 0:
         raise UserError("--layer-um: the layer thickness must be > 0 um")
-    if args.edge_radius_um != 0.0:
-        raise UserError("--edge-radius-um: the rounded-edge model is not available yet (issue 5)")
+    radius = _edge_radius(args.edge_radius_um, wedges, args.layer_um)
+    rounded = radius > 0.0
+    if rounded and args.diffuse:
+        raise UserError(
+            "--edge-radius-um with --diffuse: the diffuse integral is only available for the "
+            "sharp model; drop --diffuse (density or --lobes) or use --edge-radius-um 0"
+        )
     n_lam = _index(args, lam)
     sharp = args.sigma_deg == 0.0
     if sharp and not (args.lobes or args.diffuse):
         raise UserError(
-            "--sigma-deg 0: the sharp model has no density; add --lobes (delta lobes) or "
-            "--diffuse (exact diffuse integral), or give a broadening > 0"
+            "--sigma-deg 0: the model without broadening has no finite density; add --lobes "
+            "(delta lobes, or the rounded model's paths) or --diffuse (exact diffuse integral), "
+            "or give a broadening > 0"
         )
     sigma = np.deg2rad(args.sigma_deg)
     b2 = np.deg2rad(wedges)
     with _open_output(args.output, args.force) as out:
         w = csv.writer(out, lineterminator="\n")
-        if args.lobes:
+        if args.lobes and rounded:
+            _write_rounded_paths(w, b2, lam, n_lam, np.deg2rad(theta_i), args.layer_um, radius)
+        elif args.lobes:
             w.writerow(
                 [
                     "wedge_deg",
@@ -166,13 +194,17 @@ def run(args: argparse.Namespace) -> int:
                     "theta_i_deg",
                     "theta_o_deg",
                     "sigma_deg",
+                    "edge_radius_um",
                     "rho_per_rad",
                 ]
             )
             B, N, T, Th_o = np.meshgrid(
                 b2, n_lam, np.deg2rad(theta_i), np.deg2rad(theta_o), indexing="ij"
             )
-            R = model.brdf(T, Th_o, B, N, sigma)
+            if rounded:
+                R = _rounded_density(b2, n_lam, np.deg2rad(theta_i), np.deg2rad(theta_o), args)
+            else:
+                R = model.brdf(T, Th_o, B, N, sigma)
             L = np.broadcast_to(lam[None, :, None, None], B.shape)
             for idx in np.ndindex(B.shape):
                 w.writerow(
@@ -183,10 +215,127 @@ def run(args: argparse.Namespace) -> int:
                         _f(np.rad2deg(T[idx])),
                         _f(np.rad2deg(Th_o[idx])),
                         _f(args.sigma_deg),
+                        _f(radius),
                         _f(R[idx]),
                     ]
                 )
     return 0
+
+
+def _edge_radius(radius_um: float, wedges_deg: np.ndarray, layer_um: float) -> float:
+    """The edge radius (um) if it fits every requested wedge, else a one-line UserError.
+
+    The arc is tangent to both facets, so it fits when `0 <= r <= min(l1, l2)`,
+    `l2 = l1 cot beta2` [conventions §2] (`model.max_edge_radius`, docs/rounded.md).
+    """
+    from stairfit import model
+
+    r_max = np.asarray(model.max_edge_radius(np.deg2rad(wedges_deg), layer_um), dtype=float)
+    limit = int(np.argmin(r_max))
+    valid = f"[0, {r_max[limit]:.6g}] um"
+    # the same relative slack as model.check_edge_radius, so r = r_max itself is accepted
+    if not (np.isfinite(radius_um) and radius_um >= 0.0):
+        raise UserError(
+            f"--edge-radius-um: {radius_um:g} um is outside the valid range {valid}: the radius "
+            "must be >= 0 (0 = sharp edges)"
+        )
+    if radius_um > r_max[limit] * (1 + 1e-12):
+        raise UserError(
+            f"--edge-radius-um: {radius_um:g} um is outside the valid range {valid}: the arc "
+            f"must fit the layer edge, r <= min(l1, l2) = {r_max[limit]:.6g} um for --wedge-deg "
+            f"{wedges_deg[limit]:g} with --layer-um {layer_um:g}; choose r in {valid}"
+        )
+    return float(radius_um)
+
+
+def _rounded_density(
+    b2: np.ndarray,
+    n_lam: np.ndarray,
+    theta_i: np.ndarray,
+    theta_o: np.ndarray,
+    args: argparse.Namespace,
+) -> np.ndarray:
+    """`model.brdf_rounded` on the (wedge, wavelength, theta_i, theta_o) grid (radians).
+
+    Each quantity on its own axis: the geometry is computed once per (wedge, theta_i) and the
+    Fresnel factors once per wavelength (see `brdf_rounded`) [conventions §1, §4].
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from stairfit import model
+
+    fn = jax.jit(model.brdf_rounded)
+    rho = fn(
+        jnp.asarray(theta_i[None, None, :, None]),
+        jnp.asarray(theta_o[None, None, None, :]),
+        jnp.asarray(b2[:, None, None, None]),
+        jnp.asarray(n_lam[None, :, None, None]),
+        np.deg2rad(args.sigma_deg),
+        args.layer_um,
+        args.edge_radius_um,
+    )
+    shape = (b2.size, n_lam.size, theta_i.size, theta_o.size)
+    return np.broadcast_to(np.asarray(rho), shape)
+
+
+def _write_rounded_paths(
+    w: _RowWriter,
+    b2: np.ndarray,
+    lam: np.ndarray,
+    n_lam: np.ndarray,
+    theta_i: np.ndarray,
+    layer_um: float,
+    radius_um: float,
+) -> None:
+    """The ten paths of the rounded model (`model.PATH_NAMES`), one row each.
+
+    The three delta lobes keep their sharp directions; the seven continuous lobes spread over a
+    range of directions and get an empty `theta_o_deg`. `fresnel = ratio / weight` (the mean
+    unpolarised factor of the path; empty where the weight is 0) [conventions §3, §4].
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from stairfit import model
+
+    w.writerow(
+        [
+            "wedge_deg",
+            "wavelength_nm",
+            "n",
+            "theta_i_deg",
+            "edge_radius_um",
+            "lobe",
+            "theta_o_deg",
+            "weight",
+            "fresnel",
+            "ratio",
+        ]
+    )
+    B, N, T = np.meshgrid(b2, n_lam, theta_i, indexing="ij")
+    paths = jax.jit(model.rounded_paths)
+    p = paths(jnp.asarray(T), jnp.asarray(B), jnp.asarray(N), layer_um, radius_um)
+    weight, ratio = np.asarray(p.weight), np.asarray(p.ratio)
+    direction = np.asarray(model.lobe_directions(jnp.asarray(T), jnp.asarray(B)))
+    L = np.broadcast_to(lam[None, :, None], B.shape)
+    for idx in np.ndindex(B.shape):
+        for k, name in enumerate(model.PATH_NAMES):
+            wk, rk = float(weight[idx][k]), float(ratio[idx][k])
+            w.writerow(
+                [
+                    _f(np.rad2deg(B[idx])),
+                    _f(L[idx]),
+                    _fn(N[idx]),
+                    _f(np.rad2deg(T[idx])),
+                    _f(radius_um),
+                    name,
+                    _f(np.rad2deg(direction[idx][k])) if k < 3 else "",
+                    _f(wk),
+                    _f(rk / wk) if wk > 0 else "",
+                    _f(rk),
+                ]
+            )
 
 
 def _index(args: argparse.Namespace, lam: np.ndarray) -> np.ndarray:
@@ -213,7 +362,7 @@ def _index(args: argparse.Namespace, lam: np.ndarray) -> np.ndarray:
 
 
 def _f(x: float) -> str:
-    return f"{float(x):.10g}"
+    return f"{float(x) + 0.0:.10g}"  # + 0.0: no "-0"
 
 
 def _fn(x: complex) -> str:

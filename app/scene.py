@@ -177,9 +177,13 @@ class Scene:
 def load_scene(path: Path) -> Scene:
     """Read and validate a scene file (or the `scene.toml` inside a folder)."""
     path = Path(path)
+    if not path.exists():
+        raise UserError(
+            f"{path}: no such folder or file; give the photo folder that holds {SCENE_FILE}"
+        )
     if path.is_dir():
         path = path / SCENE_FILE
-    if not path.exists():
+    if not path.is_file():
         raise UserError(
             f"{path}: no scene file; write one (annotated example: docs/scene.md, or run "
             "'stairfit simulate OUT' to see a complete one)"
@@ -190,6 +194,10 @@ def load_scene(path: Path) -> Scene:
         raise UserError(f"{path}: not valid TOML ({e}); fix the syntax at that line") from None
     except UnicodeDecodeError:
         raise UserError(f"{path}: not a UTF-8 text file; save it as UTF-8 TOML") from None
+    except OSError as e:
+        raise UserError(
+            f"{path}: cannot read the scene file ({e.strerror or e}); check its permissions"
+        ) from None
     return parse_scene(raw, path)
 
 
@@ -272,7 +280,7 @@ class _Reader:
         name = _join(where, key)
         if key not in d:
             if default is ...:
-                self.fail(name, "missing; add it")
+                self.fail(name, f"missing; add {key} = ... (see docs/scene.md)")
             return default
         v = d[key]
         if kind is float and isinstance(v, int) and not isinstance(v, bool):

@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import secrets
 import shutil
-import tempfile
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
@@ -76,6 +77,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("out", type=Path, help="the folder to create")
     add_truth_options(p)
     p.add_argument("--force", action="store_true", help="replace an existing folder")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
@@ -102,6 +104,10 @@ def add_truth_options(p: argparse.ArgumentParser, seed_and_workers: bool = True)
 
 def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
     """Validated settings from command-line options (user mistakes raise UserError)."""
+    for option in ("sigma_deg", "delta_n", "edge_radius_um", "floor", "megapixels"):
+        value = getattr(args, option)
+        if not math.isfinite(value):
+            raise UserError(f"--{option.replace('_', '-')}: must be a finite number, not {value}")
     if not 0.0 < args.sigma_deg <= 45.0:
         raise UserError(f"--sigma-deg: {args.sigma_deg} is outside (0, 45] deg")
     if not -0.3 <= args.delta_n <= 0.5:
@@ -114,6 +120,8 @@ def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
         raise UserError(f"--views: {args.views} is outside [3, 200]")
     if args.workers < 1:
         raise UserError("--workers: must be >= 1")
+    if args.seed < 0:
+        raise UserError(f"--seed: {args.seed} is negative; give an integer >= 0")
     base = SimulationSettings()
     truth = Truth(args.sigma_deg, args.delta_n, args.edge_radius_um, base.truth.scale, args.floor)
     views = tuple(float(v) for v in np.linspace(-80.0, 20.0, args.views))
@@ -149,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
     """`stairfit simulate OUT`."""
     settings = settings_from_args(args)
     with staged_folder(args.out, args.force) as tmp:
-        simulate(tmp, settings, progress=True)
+        simulate(tmp, settings, progress=not args.quiet)
     print(f"wrote {len(settings.views_deg)} photos, {SCENE_FILE} and {TRUTH_FILE} to {args.out}")
     return 0
 
@@ -166,7 +174,7 @@ def staged_folder(out: Path, force: bool) -> Iterator[Path]:
             f"{out}: already exists; choose another folder or add --force to replace it"
         )
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    tmp = _fresh_partial_folder(out)
     try:
         yield tmp
         if out.exists():
@@ -179,6 +187,22 @@ def staged_folder(out: Path, force: bool) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _fresh_partial_folder(out: Path) -> Path:
+    """A new, empty hidden folder `.NAME.XXXXXXXX.partial` next to `out`.
+
+    Made with `mkdir`, so it gets the user's umask like any folder they create (tempfile.mkdtemp
+    would make it private, 0700, and the finished results would stay that way).
+    """
+    for _ in range(100):
+        tmp = out.with_name(f".{out.name}.{secrets.token_hex(4)}.partial")
+        try:
+            tmp.mkdir()
+        except FileExistsError:
+            continue
+        return tmp
+    raise FileExistsError(f"{out.parent}: cannot find a free name for a temporary folder")
 
 
 def image_size(megapixels: float) -> tuple[int, int]:

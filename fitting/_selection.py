@@ -172,7 +172,11 @@ def select_model(
         if "edge_radius_um" in v.free and not rounded_model_available():
             skipped[v.name] = "skipped: rounded-edge model not available"
             continue
-        fit = fit_least_squares(problem, variant=v_run, **options)
+        try:
+            fit = fit_least_squares(problem, variant=v_run, **options)
+        except FitError as err:  # e.g. a variant whose width the data cannot constrain
+            skipped[v.name] = f"failed: {err}"
+            continue
         if fit.success:
             fits[v.name] = fit
         else:

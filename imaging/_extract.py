@@ -25,6 +25,7 @@ docs/imaging.md §Standard errors for the checks and for what it does not cover.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -88,6 +89,8 @@ class ChannelStats:
         n_blocks: non-empty blocks.
         n_in_roi: the channel's pixels inside the ROI, saturated or not.
         saturated_fraction: saturated / n_in_roi (NaN if n_in_roi is 0).
+        channel_corr: mean correlation of the R, G, B errors of the mean in this ROI
+            (`channel_correlation`; the same for the three channels; NaN if undefined).
     """
 
     mean_dn: float
@@ -96,6 +99,7 @@ class ChannelStats:
     n_blocks: int
     n_in_roi: int
     saturated_fraction: float
+    channel_corr: float = math.nan
 
 
 def block_size(frame: RawFrame, block_px: int) -> int:
@@ -142,7 +146,8 @@ def roi_channel_stats(
                     data[sub], mask[sub], float(frame.black[dy, dx]), level, white, b, ph, dy, dx
                 )
     out = [a.stats() for a in acc]
-    return out[0], out[1], out[2]
+    corr = channel_correlation([a.residuals() for a in acc])
+    return tuple(dataclasses.replace(o, channel_corr=corr) for o in out)  # type: ignore[return-value]
 
 
 class _Accumulator:
@@ -199,18 +204,28 @@ class _Accumulator:
         stderr = _block_stderr(self.counts, self.sums, self.sum_y, self.sum_x, ok)
         return ChannelStats(mean, stderr, n_good, k, n_in, sat_frac)
 
+    def residuals(self) -> np.ndarray | None:
+        """Block residual grid `e_b / N` of `_block_residuals` (None when it is undefined)."""
+        ok = self.counts > 0
+        if not np.any(ok):
+            return None
+        res = _block_residuals(self.counts, self.sums, self.sum_y, self.sum_x, ok)
+        if res is None:
+            return None
+        grid_e, n_total, _k, _rank = res
+        return grid_e / n_total
+
 
 _LAG_WEIGHTS = ((0, 1, 0.5), (1, 0, 0.5), (1, 1, 0.25), (1, -1, 0.25))
 """Bartlett weights w(dy) w(dx) of the neighbouring-block covariances (one of each +- pair)."""
 
 
-def _block_stderr(
+def _block_residuals(
     counts: np.ndarray, sums: np.ndarray, sum_y: np.ndarray, sum_x: np.ndarray, ok: np.ndarray
-) -> float:
-    """Standard error of the mean from block means about a fitted plane (module docstring).
+) -> tuple[np.ndarray, float, int, int] | None:
+    """Block residuals `e_b = n_b (m_b - plane_b)` on the grid, N, K and the plane's rank.
 
-    All arrays are on the block grid; `sum_y`, `sum_x` are the sums of the pixels' coordinates
-    (any common origin) in each block, `ok` marks the non-empty blocks.
+    None when there are no more blocks than the plane has parameters (module docstring).
     """
     n = counts[ok]
     k = n.size
@@ -224,14 +239,59 @@ def _block_stderr(
     sw = np.sqrt(n)
     coef, _res, rank, _sv = np.linalg.lstsq((design * sw).T, m * sw, rcond=None)
     if k <= rank:
-        return math.nan
+        return None
     grid_e = np.zeros(counts.shape)
     grid_e[ok] = n * (m - coef @ design)
-    total = float(np.sum(grid_e * grid_e))
-    h, w = grid_e.shape
+    return grid_e, n_total, k, int(rank)
+
+
+def _bartlett(a_grid: np.ndarray, b_grid: np.ndarray) -> float:
+    """`sum_b sum_b' w(b - b') a_b b_b'` with the Bartlett weights (symmetrised in a, b)."""
+    total = float(np.sum(a_grid * b_grid))
+    h, w = a_grid.shape
     for dy, dx, wgt in _LAG_WEIGHTS:
-        a = grid_e[0 : h - dy, max(0, -dx) : w - max(0, dx)]
-        b = grid_e[dy:h, max(0, dx) : w - max(0, -dx)]
-        total += 2.0 * wgt * float(np.sum(a * b))
-    var = k / (k - rank) * max(total, 0.0) / n_total**2
+        sl_a = (slice(0, h - dy), slice(max(0, -dx), w - max(0, dx)))
+        sl_b = (slice(dy, h), slice(max(0, dx), w - max(0, -dx)))
+        total += wgt * float(np.sum(a_grid[sl_a] * b_grid[sl_b]))
+        total += wgt * float(np.sum(b_grid[sl_a] * a_grid[sl_b]))
+    return total
+
+
+def _block_stderr(
+    counts: np.ndarray, sums: np.ndarray, sum_y: np.ndarray, sum_x: np.ndarray, ok: np.ndarray
+) -> float:
+    """Standard error of the mean from block means about a fitted plane (module docstring).
+
+    All arrays are on the block grid; `sum_y`, `sum_x` are the sums of the pixels' coordinates
+    (any common origin) in each block, `ok` marks the non-empty blocks.
+    """
+    res = _block_residuals(counts, sums, sum_y, sum_x, ok)
+    if res is None:
+        return math.nan
+    grid_e, n_total, k, rank = res
+    var = k / (k - rank) * max(_bartlett(grid_e, grid_e), 0.0) / n_total**2
     return math.sqrt(var)
+
+
+def channel_correlation(residuals: list[np.ndarray | None]) -> float:
+    """Mean pairwise correlation of the channels' errors of the mean within one ROI.
+
+    The same Bartlett (HAC) estimate as the standard error, applied to the cross-covariance of
+    two channels' block residuals: texture multiplies every channel alike, so the R, G and B
+    means of one ROI err together (correlation near 1 when texture dominates, near 0 when
+    pixel noise does). The mean of the defined pairs, clipped to [0, 1]; NaN when no pair is
+    defined. See docs/imaging.md §Channel correlation.
+    """
+    corr = []
+    for a in range(len(residuals)):
+        for b in range(a + 1, len(residuals)):
+            ea, eb = residuals[a], residuals[b]
+            if ea is None or eb is None or ea.shape != eb.shape:
+                continue
+            vab = _bartlett(ea, eb)
+            va, vb = _bartlett(ea, ea), _bartlett(eb, eb)
+            if va > 0 and vb > 0:
+                corr.append(vab / math.sqrt(va * vb))
+    if not corr:
+        return math.nan
+    return float(np.clip(np.mean(corr), 0.0, 1.0))

@@ -31,7 +31,7 @@ from ._preview import write_preview
 from ._roi import Polygon, RoiMask, as_polygon, roi_mask
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 1
+TABLE_VERSION = 2
 """Part of every cache key: bump it when a change to the code changes measured values."""
 
 
@@ -244,6 +244,7 @@ def measure_frame(
                     n_pixels=s.n_pixels,
                     n_blocks=s.n_blocks,
                     saturated_fraction=float(s.saturated_fraction),
+                    channel_corr=float(s.channel_corr),
                     flag=";".join(flags),
                     normalised_by=normalised_by,
                     exposure_time_s=exposure.exposure_time_s,
@@ -352,8 +353,9 @@ def measure_photos(
         The table, rows in the order of `specs`.
 
     Raises:
-        ImagingError: one or more photos failed; the message lists each (photo, wedge, fix).
-            Rows of the photos that succeeded are written to the cache first.
+        ImagingError: one or more photos failed; the message, one line, lists each (photo,
+            wedge, fix), photos that failed alike together. Rows of the photos that succeeded
+            are written to the cache first.
     """
     settings = settings or ExtractionSettings()
     names = [s.name for s in specs]
@@ -415,8 +417,30 @@ def measure_photos(
     if cache_path is not None:
         table.write_csv(cache_path)
     if errors:
-        listing = "\n  ".join(errors[n] for n in names if n in errors)
         raise ImagingError(
-            f"{len(errors)} of {len(specs)} photos could not be measured:\n  {listing}"
+            f"{len(errors)} of {len(specs)} photos could not be measured: "
+            + _summarise_failures([(n, errors[n]) for n in names if n in errors])
         )
     return table
+
+
+def _summarise_failures(failures: Sequence[tuple[str, str]]) -> str:
+    """The failures of several photos on one line, photos that failed alike named together.
+
+    Each message starts with `photo '<name>'` (the convention of every ImagingError about one
+    photo); messages that are the same apart from that prefix are merged, e.g. three photos
+    without EXIF give `photos 'a.dng', 'b.dng', 'c.dng': EXIF has no usable ...`. Groups are
+    separated by " | ". Any line breaks inside a message are flattened, so the command line can
+    print the whole error as one line.
+    """
+    groups: dict[str, list[str]] = {}
+    for name, message in failures:
+        text = " ".join(message.split())
+        prefix = f"photo {name!r}"
+        rest = text[len(prefix) :] if text.startswith(prefix) else f": {text}"
+        groups.setdefault(rest, []).append(name)
+    parts = []
+    for rest, group in groups.items():
+        who = f"photo {group[0]!r}" if len(group) == 1 else "photos " + ", ".join(map(repr, group))
+        parts.append(who + rest)
+    return " | ".join(parts)

@@ -98,8 +98,8 @@ def roi_mask(
     fix = (
         "check the face's face_mm and the marker layout"
         if source == "markers"
-        else "fix the polygon: pixel coordinates of the visible raw image, origin at the centre "
-        "of the top-left pixel (see docs/imaging.md)"
+        else "fix its roi_px polygon: pixel coordinates of the visible raw image, origin at the "
+        "centre of the top-left pixel (see docs/imaging.md)"
     )
     outside = (
         (pts[:, 0] < -0.5)

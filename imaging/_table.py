@@ -34,6 +34,9 @@ class MeasurementRow:
         n_pixels: unsaturated pixels averaged.
         n_blocks: non-empty blocks behind the standard error.
         saturated_fraction: fraction of the channel's ROI pixels that were saturated.
+        channel_corr: mean correlation of the errors of this ROI's R, G and B values, from the
+            cross-covariance of their block residuals (docs/imaging.md §Channel correlation);
+            the same on the ROI's three rows; NaN when undefined.
         flag: "" when usable, else ";"-separated reasons ("saturated", "few_blocks",
             "below_black", "no_pixels", "reference-..."). Flagged rows must not be fitted.
         normalised_by: the reference patch `value` is divided by ("" if none).
@@ -56,6 +59,7 @@ class MeasurementRow:
     n_pixels: int
     n_blocks: int
     saturated_fraction: float
+    channel_corr: float
     flag: str
     normalised_by: str
     exposure_time_s: float

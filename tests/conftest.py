@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+# CLI tests call stairfit.cli.main() in-process; it would point the whole test session at the
+# user's persistent JAX cache (app/_jaxcache.py). Tests run without it unless asked to.
+os.environ.setdefault("STAIRFIT_JAX_CACHE", "off")
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
