@@ -1,7 +1,33 @@
 """Quality presets: named settings of every knob that trades accuracy for time.
 
-The knobs and their measured effect are in the README's "Speed and accuracy" section, which the
-benchmark `python benchmarks/bench_tradeoff.py` regenerates. `fit` uses `balanced` by default.
+The knobs and their measured effect are in the README's "Speed and accuracy" section; the numbers
+come from `python benchmarks/bench_tradeoff.py`, which measures every knob setting (model error
+against a converged reference, fit bias in standard errors on synthetic data with known truth,
+wall time with compilation apart) and then each preset as a whole, writing
+`benchmarks/results/tradeoff.{csv,md}` and the Pareto plot `tradeoff_pareto.png`. The three
+presets are points on that measured front (case: dispersive PLA, a 5-deg light seen over a 3-deg
+face, sigma 6 deg, 2% noise; run of 2026-12-01 on a shared 2-core machine):
+
+* aperture nodes: 1 node ignores a finite light (3% model error, 6x the noise; fitted
+  parameters biased by up to 23 standard errors); 2 nodes cut it to 0.29% (0.23 x noise,
+  bias 0.16 stderr) for 1.5x the fit time, so every preset uses at least 2 (scenes without
+  an angular size always use 1: nothing to integrate);
+* spectral sampling: one effective wavelength leaves 0.28% (0.22 x noise) of dispersion error;
+  5 nm sampling removes it for 2-3x the fit time and 6x the posterior time (accurate only);
+* starts: on the standard scene 1 to 4 starts find the same optimum; the extra starts guard
+  against the local minima of broad, overlapping lobes (docs/fitting.md §3);
+* posterior: with the sampler's 500-step chunks, tau_factor 10-50 all stop at 2000 steps
+  (the tau-stability rule binds first); `posterior_max_steps` is what shortens the chain
+  (1500 steps: Monte Carlo error 0.027 sd instead of 0.024, and the result says "not
+  converged"); 100 tau takes 4000 steps (0.017 sd);
+* float32 figures: half the time of float64 at full sampling, error unchanged at 3e-3;
+* diffuse nodes 3 / 6 / 8: error 1e-4 / 3e-9 / 3e-12 of the maximum;
+* rounded resolution 2 / 4 / 8: error 1e-4 / 2e-5 / 2e-6 (model/_rounded.py as of that run).
+
+Measured presets (least-squares fit of the standard scene after compilation; compilation about
+8 s; posterior of 32 walkers): fast 15 ms + 19 s, balanced 44 ms + 30 s, accurate 116 ms +
+184 s; fit bias 0.16 / 0.16 / 0.0004 standard errors. `fit` uses `balanced` by default. The
+`ladder` field (model choice, not numerical accuracy) is not measured by the benchmark.
 """
 
 from __future__ import annotations
@@ -24,6 +50,10 @@ class Preset:
     * `diffuse_nodes`: nodes per piece of the broadened diffuse integral (figures).
     * `sigma_starts_deg`: multi-start widths of the least-squares fit.
     * `ladder`: "shared" (one sigma; 8 variants) or "full" (also one sigma per wedge; 16).
+    * `rounded_rungs`: "always" fits the rounded-edge variants of the ladder; "when_needed"
+      fits them only when the best sharp variant does not describe the data (it needs a
+      model-error term, or its chi^2 tail probability is below 1e-3; `stairfit.fit.
+      rounding_needed`). A rounded fit costs minutes (compilation), a sharp one seconds.
     * `posterior_tau_factor`: the chain must be this many autocorrelation times long;
       `posterior_max_steps`: the step limit (then a warning).
     * `float32_figures`: evaluate figures in float32 (fits are always float64).
@@ -36,6 +66,7 @@ class Preset:
     diffuse_nodes: int
     sigma_starts_deg: tuple[float, ...]
     ladder: str
+    rounded_rungs: str
     posterior_tau_factor: float
     posterior_max_steps: int
     float32_figures: bool
@@ -49,23 +80,25 @@ PRESETS: dict[str, Preset] = {
     "fast": Preset(
         name="fast",
         spectral="effective",
-        aperture_nodes=1,
-        rounded_resolution=4,
-        diffuse_nodes=4,
+        aperture_nodes=2,
+        rounded_resolution=2,
+        diffuse_nodes=3,
         sigma_starts_deg=(2.0, 8.0),
         ladder="shared",
+        rounded_rungs="when_needed",
         posterior_tau_factor=20.0,
-        posterior_max_steps=4_000,
+        posterior_max_steps=1_500,
         float32_figures=True,
     ),
     "balanced": Preset(
         name="balanced",
         spectral="effective",
         aperture_nodes=2,
-        rounded_resolution=8,
+        rounded_resolution=4,
         diffuse_nodes=6,
         sigma_starts_deg=(1.0, 4.0, 12.0),
         ladder="shared",
+        rounded_rungs="when_needed",
         posterior_tau_factor=50.0,
         posterior_max_steps=20_000,
         float32_figures=False,
@@ -73,11 +106,12 @@ PRESETS: dict[str, Preset] = {
     "accurate": Preset(
         name="accurate",
         spectral="full",
-        aperture_nodes=4,
-        rounded_resolution=16,
+        aperture_nodes=3,
+        rounded_resolution=8,
         diffuse_nodes=8,
-        sigma_starts_deg=(0.5, 2.0, 6.0, 18.0),
+        sigma_starts_deg=(1.0, 3.0, 10.0, 30.0),
         ladder="full",
+        rounded_rungs="always",
         posterior_tau_factor=100.0,
         posterior_max_steps=50_000,
         float32_figures=False,

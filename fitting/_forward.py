@@ -22,6 +22,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from stairfit import model
+from stairfit.model import _rounded
 
 from ._params import N_MIN, to_physical
 
@@ -51,9 +52,11 @@ class Data(NamedTuple):
     Per row (N): angles (rad), `beta2`, `layer_um`, `wedge`, `key` (index of the row's distinct
     (theta_i, beta2, channel) combination), `value`, `stderr`, `use` (1.0 or 0.0). Per distinct
     key (U): `ti_u`, `b2_u`, `n_u` and `w_u` `(U, K)`. For the rounded model, whose geometry
-    does not depend on `theta_o`: per distinct (theta_i, wedge, channel) key (R) `r_ti`, `r_b2`,
-    `r_layer`, `r_wedge`, `r_n`, `r_w`, and the viewing angles `r_to` either as a grid shared
-    by all keys `(1, T)` or one per key `(R, 1)`; each row reads `[r_key, r_t]`. Per slot of `z`
+    does not depend on `theta_o` or the channel: per key (R; distinct (theta_i, wedge), or
+    (theta_i, wedge, theta_o), see `_problem.rounded_grid`) `r_ti`, `r_b2`, `r_layer`,
+    `r_wedge`, and the viewing angles `r_to` either as a grid shared by all keys `(1, T)` or
+    one per key `(R, 1)`; every key is evaluated for all channels, `r_n` and `r_w` `(C, K)`;
+    each row reads `[r_key, r_t, r_c]`. Per slot of `z`
     (P): `free`, `x_fixed` (physical values of fixed slots). Per wedge (W): `sigma_source`
     (slot holding that wedge's width). `r_max_um`: upper bound of the edge radius.
     """
@@ -73,13 +76,18 @@ class Data(NamedTuple):
     w_u: Float[Array, "U K"]
     r_key: Int[Array, " N"]
     r_t: Int[Array, " N"]
+    r_c: Int[Array, " N"]
     r_ti: Float[Array, " R"]
     r_b2: Float[Array, " R"]
     r_layer: Float[Array, " R"]
     r_wedge: Int[Array, " R"]
     r_n: Array
-    r_w: Float[Array, "R K"]
+    r_w: Float[Array, "C K"]
     r_to: Float[Array, "R1 T"]
+    r_geo: Int[Array, "R M"]
+    g_ti: Float[Array, " G"]
+    g_b2: Float[Array, " G"]
+    g_layer: Float[Array, " G"]
     free: Bool[Array, " P"]
     x_fixed: Float[Array, " P"]
     sigma_source: Int[Array, " W"]
@@ -157,29 +165,35 @@ class RoundedGrid(NamedTuple):
     r_n: Array
     r_w: Array
     r_to: Array
+    r_geo: Array
+    g_ti: Array
+    g_b2: Array
+    g_layer: Array
 
 
 def _rounded_impl(sigma_k: Array, dn: Array, radius_um: Array, cfg: tuple, g: RoundedGrid) -> Array:
-    """Band- and aperture-averaged rounded density on the (key, view) grid, `(R, T)`."""
+    """Band- and aperture-averaged rounded density on the (key, view, channel) grid,
+    `(R, T, C)`."""
     aperture, resolution = cfg
-    brdf_rounded = model.brdf_rounded  # type: ignore[attr-defined]
     di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
     ti = jnp.clip(g.r_ti[:, None] + di, -HALF_PI, HALF_PI)  # (R, M)
     to = jnp.clip(g.r_to[:, None, :] + do[None, :, None], -HALF_PI, HALF_PI)  # (R|1, M, T)
-    n = _clamp_index(g.r_n + dn)  # (R, K)
-    kwargs = {} if resolution is None else {"resolution": resolution}
-    rho = brdf_rounded(
+    n = _clamp_index(g.r_n + dn).reshape(-1)  # (C K): every channel's samples on one axis
+    res = _rounded.ROUNDED_RESOLUTION if resolution is None else resolution
+    # geometry once per distinct (theta_i, beta2, layer) (G of them), then gathered to the keys
+    geo = _rounded.rounded_geometry(g.g_ti, g.g_b2, g.g_layer, radius_um, resolution=res)
+    geo = jax.tree_util.tree_map(lambda a: a[g.r_geo][:, :, None, None], geo)  # (R, M, 1, 1, ..)
+    rho = _rounded.brdf_rounded_from_geometry(
+        geo,
         ti[:, :, None, None],
         to[..., None],
         g.r_b2[:, None, None, None],
-        n[:, None, None, :],
+        n,
         sigma_k[:, None, None, None],
-        g.r_layer[:, None, None, None],
-        radius_um,
-        **kwargs,
-    )  # (R, M, T, K)
-    band = jnp.einsum("rk,rmtk->rmt", g.r_w, rho)
-    return jnp.einsum("rmt,m->rt", band, dw)
+    )  # (R, M, T, C K)
+    rho = rho.reshape(*rho.shape[:-1], *g.r_w.shape)
+    band = jnp.einsum("ck,rmtck->rmtc", g.r_w, rho)
+    return jnp.einsum("rmtc,m->rtc", band, dw)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
@@ -207,7 +221,7 @@ def _rounded_grid_jvp(cfg: tuple, primals: tuple, tangents: tuple) -> tuple[Arra
     eps0 = jnp.zeros(3, dtype=sigma_k.dtype)
     value, jac = _value_and_jac(f, eps0)
     d_sigma, d_dn, d_r = jac[..., 0], jac[..., 1], jac[..., 2]
-    return value, d_sigma * t_sigma[:, None] + d_dn * t_dn + d_r * t_r
+    return value, d_sigma * t_sigma[:, None, None] + d_dn * t_dn + d_r * t_r
 
 
 def _value_and_jac(f, eps0: Array) -> tuple[Array, Array]:  # noqa: ANN001
@@ -249,13 +263,16 @@ def rounded_density(
 
     `stairfit.model.brdf_rounded` at every wavelength sample of the channel, contracted with
     the channel weights [conventions §8]; the aperture is averaged as in `band_density`.
-    Evaluated once per (theta_i, wedge, channel) key and viewing angle, then gathered.
+    Evaluated once per (theta_i, wedge) key and viewing angle for all channels, then gathered.
     """
-    grid = RoundedGrid(data.r_ti, data.r_b2, data.r_layer, data.r_n, data.r_w, data.r_to)
+    grid = RoundedGrid(
+        data.r_ti, data.r_b2, data.r_layer, data.r_n, data.r_w, data.r_to,
+        data.r_geo, data.g_ti, data.g_b2, data.g_layer,
+    )  # fmt: skip
     dens = rounded_grid_density(
         sigma_w[data.r_wedge], dn, radius_um, (static.aperture, static.resolution), grid
     )
-    return dens[data.r_key, data.r_t]
+    return dens[data.r_key, data.r_t, data.r_c]
 
 
 def model_values(z: Array, static: Static, data: Data) -> tuple[Array, Array]:

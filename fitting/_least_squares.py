@@ -416,6 +416,7 @@ def fit_least_squares(
         raise FitInputError(f"max_steps = {max_steps}; give at least 1")
     if len(sigma_starts_rad) == 0 or not all(s > 0 for s in sigma_starts_rad):
         raise FitInputError("sigma_starts_rad must hold at least one positive width (rad)")
+    _check_signal(problem)
     opt = _solver(solver, rtol, atol)
     spec = spec_for(variant, problem)
     records: list[FitWarning] = []
@@ -468,6 +469,27 @@ def fit_least_squares(
     if emit_warnings:
         emit(result.warnings)
     return result
+
+
+def _check_signal(problem: Problem) -> None:
+    """Refuse data that are consistent with no signal at all: nothing can be fitted to them.
+
+    Under a zero model the whitened sum of squares of the used rows is chi^2 with N degrees of
+    freedom; below `N + 3 sqrt(2 N)` (3 standard deviations above its mean) the data do not
+    show any signal above their own errors.
+    """
+    d = problem.data
+    use = np.asarray(d.use) > 0
+    n = int(use.sum())
+    if n == 0:
+        return
+    chi2_zero = float(np.sum((np.asarray(d.value)[use] / np.asarray(d.stderr)[use]) ** 2))
+    if chi2_zero < n + 3.0 * math.sqrt(2.0 * n):
+        raise FitError(
+            f"the observations hold no usable signal: they are consistent with zero (chi^2 of "
+            f"a zero model = {chi2_zero:.4g} for {n} rows); nothing to fit: check the "
+            "exposures, the ROIs and the angles"
+        )
 
 
 def _start_vectors(problem: Problem, spec: FreeSpec, sigmas: tuple[float, ...]) -> np.ndarray:

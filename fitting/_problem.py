@@ -165,7 +165,8 @@ def prepare(
     n_base = np.asarray(spectral.n_base)
     weights = np.asarray(spectral.weights, float)
     chan_u = np.minimum(chan_u, spectral.n_channels - 1)  # unused rows may name any channel
-    rgrid = rounded_grid(obs, n_base, weights)
+    aperture = aperture or model.Aperture()
+    rgrid = rounded_grid(obs, n_base, weights, aperture)
     data = Data(
         theta_i=np.asarray(obs.theta_i_rad, float),
         theta_o=np.asarray(obs.theta_o_rad, float),
@@ -195,51 +196,71 @@ def prepare(
         fixed=fixed,
         priors=resolved,
         r_max_um=r_max,
-        aperture=aperture or model.Aperture(),
+        aperture=aperture,
         resolution=resolution,
         wedge_deg=np.rad2deg(obs.wedge_beta2_rad),
     )
 
 
-def rounded_grid(obs: Observations, n_base: np.ndarray, weights: np.ndarray) -> dict:
-    """Where the rounded model is evaluated: its geometry depends on (theta_i, wedge) only.
+def rounded_grid(
+    obs: Observations, n_base: np.ndarray, weights: np.ndarray, aperture: model.Aperture
+) -> dict:
+    """Where the rounded model is evaluated: its geometry depends on (theta_i, wedge) only,
+    its broadening also on `theta_o`, and only its Fresnel factors on the channel.
 
-    Keys are the distinct (theta_i, wedge, channel) combinations (R). If `R x T` (T distinct
-    viewing angles) is at most twice the number of rows, the model is evaluated on the full
-    key x view grid (geometry once per key); otherwise once per row (`r_to` per key).
+    Keys (R) are the distinct (theta_i, wedge) combinations if the full key x view grid (T
+    distinct viewing angles) is at most twice as large as the number of distinct (theta_i,
+    wedge, theta_o); otherwise those triples, each with its own view (`r_to` per key). Every
+    key is evaluated for all channels at once (`r_n`, `r_w`: `(C, K)`), so the broadening is
+    shared by the channels; a row reads `[r_key, r_t, r_c]`. The geometry is computed once per
+    distinct (theta_i + aperture offset, beta2, layer_um): `g_ti`, `g_b2`, `g_layer`, indexed
+    by `r_geo` (key, aperture node).
     """
     channel = np.minimum(np.where(obs.use, obs.channel_index, 0), n_base.shape[0] - 1)
-    combo = np.stack([obs.theta_i_rad, obs.wedge_index, channel], axis=1).astype(float)
-    uniq, key = np.unique(combo, axis=0, return_inverse=True)
-    key = key.ravel()
+    pair = np.stack([obs.theta_i_rad, obs.wedge_index.astype(float)], axis=1)
+    uniq, key = np.unique(pair, axis=0, return_inverse=True)
     views, t_idx = np.unique(obs.theta_o_rad, return_inverse=True)
-    wedge = uniq[:, 1].astype(int)
-    chan = uniq[:, 2].astype(int)
+    triple = np.stack([obs.theta_i_rad, obs.wedge_index.astype(float), obs.theta_o_rad], axis=1)
+    uniq_v, key_v = np.unique(triple, axis=0, return_inverse=True)
+    if uniq.shape[0] * views.size <= 2 * uniq_v.shape[0]:
+        keys, r_key, r_t, r_to = uniq, key.ravel(), t_idx.ravel(), views[None, :]
+    else:
+        keys, r_key = uniq_v, key_v.ravel()
+        r_t, r_to = np.zeros(obs.n_rows, dtype=int), uniq_v[:, 2:3]
+    wedge = keys[:, 1].astype(int)
     b2_w, layer_w = np.zeros(obs.n_wedges), np.ones(obs.n_wedges)
     b2_w[obs.wedge_index] = obs.beta2_rad
     layer_w[obs.wedge_index] = obs.layer_um
     grid = {
-        "r_ti": uniq[:, 0],
+        "r_key": r_key,
+        "r_t": r_t,
+        "r_c": channel,
+        "r_ti": keys[:, 0],
         "r_b2": b2_w[wedge],
         "r_layer": layer_w[wedge],
         "r_wedge": wedge,
-        "r_n": n_base[chan],
-        "r_w": weights[chan],
+        "r_n": n_base,
+        "r_w": weights,
+        "r_to": r_to,
     }
-    if uniq.shape[0] * views.size <= 2 * obs.n_rows:
-        return {**grid, "r_key": key, "r_t": t_idx.ravel(), "r_to": views[None, :]}
-    rows = np.arange(obs.n_rows)
+    return {**grid, **_geometry_keys(grid, aperture)}
+
+
+def _geometry_keys(grid: dict, aperture: model.Aperture) -> dict:
+    """Distinct (theta_i at each aperture node, beta2, layer_um) of the rounded keys: the
+    rounded geometry depends on nothing else, so a fit computes it once per entry."""
+    di = aperture.nodes()[0]
+    ti = np.clip(np.asarray(grid["r_ti"], float)[:, None] + di, -np.pi / 2, np.pi / 2)  # (R, M)
+    shape = ti.shape
+    b2 = np.broadcast_to(np.asarray(grid["r_b2"], float)[:, None], shape)
+    layer = np.broadcast_to(np.asarray(grid["r_layer"], float)[:, None], shape)
+    combo = np.stack([ti.ravel(), b2.ravel(), layer.ravel()], axis=1)
+    uniq, idx = np.unique(combo, axis=0, return_inverse=True)
     return {
-        **grid,
-        "r_ti": obs.theta_i_rad,
-        "r_b2": obs.beta2_rad,
-        "r_layer": obs.layer_um,
-        "r_wedge": obs.wedge_index,
-        "r_n": n_base[channel],
-        "r_w": weights[channel],
-        "r_key": rows,
-        "r_t": np.zeros(obs.n_rows, dtype=int),
-        "r_to": obs.theta_o_rad[:, None],
+        "r_geo": idx.reshape(shape),
+        "g_ti": uniq[:, 0],
+        "g_b2": uniq[:, 1],
+        "g_layer": uniq[:, 2],
     }
 
 

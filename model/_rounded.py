@@ -554,7 +554,9 @@ def _panel_fractions(resolution: int) -> tuple[np.ndarray, np.ndarray]:
     return stretch(tau_e), stretch(tau_n)
 
 
-class _Geometry(NamedTuple):
+class RoundedGeometry(NamedTuple):
+    """What `rounded_geometry` returns (see there); arrays in radians and 1/rad."""
+
     delta_weight: Array  # (..., 3)
     slot_lo: Array  # (..., 7): parameter interval of each continuous lobe (arc angle)
     slot_hi: Array
@@ -565,7 +567,7 @@ class _Geometry(NamedTuple):
 
 def _geometry(
     theta_i: Array, beta2: Array, layer_um: Array, r: Array, resolution: int
-) -> _Geometry:
+) -> RoundedGeometry:
     k = _cell(theta_i, beta2, layer_um)
     r_tiny = k.L * float(np.sqrt(np.finfo(np.dtype(theta_i.dtype)).eps))
     rg = jnp.where(r > r_tiny, r, r_tiny)  # arc angles are evaluated at rg > 0 (r -> 0+ limit)
@@ -597,7 +599,7 @@ def _geometry(
         )
         / k.Lc[..., None]
     )
-    return _Geometry(delta_weight, lo, hi, lo_th, hi_th, nodes)
+    return RoundedGeometry(delta_weight, lo, hi, lo_th, hi_th, nodes)
 
 
 def _fresnel_product(nodes: _Nodes, n: Array) -> Array:
@@ -822,12 +824,52 @@ def brdf_rounded(
     """
     check_edge_radius(beta2, layer_um, edge_radius_um)
     ti, b, l1, r = _geom_args(theta_i, beta2, layer_um, edge_radius_um)
+    # The barrier keeps XLA from fusing (and so repeating) the geometry into every wavelength
+    # and every viewing angle.
+    geo = jax.lax.optimization_barrier(_geometry(ti, b, l1, r, resolution))
+    return brdf_rounded_from_geometry(geo, ti, theta_o, b, n, sigma)
+
+
+def rounded_geometry(
+    theta_i: ArrayLike,
+    beta2: ArrayLike,
+    layer_um: ArrayLike,
+    edge_radius_um: ArrayLike,
+    *,
+    resolution: int = ROUNDED_RESOLUTION,
+) -> RoundedGeometry:
+    """The part of `brdf_rounded` that depends on the geometry only (not on `theta_o`, `n`,
+    `sigma`): delta-lobe weights, panels and node densities, one set per broadcast element of
+    the arguments [conventions §1, §2].
+
+    For callers that evaluate many viewing angles, wavelengths or widths at few distinct
+    (theta_i, beta2, layer_um) (a fit): compute it once per distinct geometry, gather it to the
+    rows (`jax.tree_util.tree_map(lambda a: a[idx], geo)`) and finish with
+    `brdf_rounded_from_geometry`. Traced radii are not range-checked (see `check_edge_radius`).
+    """
+    check_edge_radius(beta2, layer_um, edge_radius_um)
+    ti, b, l1, r = _geom_args(theta_i, beta2, layer_um, edge_radius_um)
+    return _geometry(ti, b, l1, r, resolution)
+
+
+def brdf_rounded_from_geometry(
+    geo: RoundedGeometry,
+    theta_i: ArrayLike,
+    theta_o: ArrayLike,
+    beta2: ArrayLike,
+    n: ArrayLike,
+    sigma: ArrayLike,
+) -> Float[Array, "..."]:
+    """`brdf_rounded` from a precomputed `rounded_geometry` (1/rad) [conventions §4, §5, §6].
+
+    `geo`'s leading axes must broadcast with `theta_i` and `beta2` (the angles it was computed
+    at, radians) and those with `theta_o`, `n` and `sigma`, as in `brdf_rounded`.
+    """
+    ti = jnp.asarray(theta_i, geo.panel_lo.dtype)
+    b = jnp.asarray(beta2, ti.dtype)
     n = jnp.asarray(n)
     theta_o = jnp.asarray(theta_o, ti.dtype)
     sigma = jnp.asarray(sigma, ti.dtype)
-    # The barriers keep XLA from fusing (and so repeating) the geometry into every wavelength
-    # and every viewing angle, and the Fresnel factors into the final reduction.
-    geo = jax.lax.optimization_barrier(_geometry(ti, b, l1, r, resolution))
     # delta lobes, exactly as the sharp model broadens them
     kernel = hemisphere_gaussian(theta_o[..., None], lobe_directions(ti, b), sigma[..., None])
     ratio = geo.delta_weight * lobe_fresnel(ti, b, n)
