@@ -427,6 +427,18 @@ def fit_least_squares(
         if core is None or core["spec"] != spec:
             core = _fit_core(problem, spec, opt, max_steps, sigma_starts_rad)
         if not core["success"]:
+            # A model-error term running to 0 (its bound) can keep Levenberg-Marquardt from
+            # meeting its tolerance (the variance term is singular there); fixing it on the
+            # bound and refitting is what a converged fit would have led to anyway.
+            bound = _on_bound(problem, spec, core)
+            if (
+                bound is not None
+                and bound[1] is not None
+                and "model_error_frac" in (bound[1].parameter or "")
+            ):
+                spec = bound[0]
+                records.append(bound[1])
+                continue
             break
         bound = _on_bound(problem, spec, core) if spec not in checked else None
         if bound is not None:
