@@ -26,7 +26,7 @@ from jaxtyping import Array
 from ._errors import FitError, FitInputError, FitWarning, emit
 from ._forward import Data, Static, log_likelihood_z, physical
 from ._least_squares import FitResult
-from ._params import Prior, in_support, log_abs_jacobian, to_physical
+from ._params import SIN, Prior, in_support, log_abs_jacobian, to_physical
 
 CHAIN_FORMAT_VERSION = 1
 """Version of the chain file layout (docs/fitting.md, "Chain file")."""
@@ -247,12 +247,19 @@ def sample_posterior(
     priors: PriorSpec = tuple(
         (int(k), getattr(problem.priors, lay.param_of_slot(int(k)))) for k in slots
     )
-    base_z = jnp.asarray(fit.z)
+    # The least-squares solver may end a sine slot (the edge radius) outside the principal
+    # branch that the posterior's support is defined on; the same physical value inside it is
+    # arcsin(sin z).
+    z_fit = np.asarray(fit.z, dtype=float).copy()
+    for k, kind in enumerate(static.kinds):
+        if kind == SIN:
+            z_fit[k] = float(np.arcsin(np.sin(z_fit[k])))
+    base_z = jnp.asarray(z_fit)
     slots_j = jnp.asarray(slots)
 
     def log_prob_batch(theta: np.ndarray) -> np.ndarray:
         out = _batched_log_probability(jnp.asarray(theta), static, priors, data, base_z, slots_j)
-        return np.asarray(out)
+        return np.array(out)  # a writable copy: walkers outside the support are re-drawn
 
     fingerprint = _fingerprint(fit, data)
     path = None if chain_path is None else Path(chain_path)
@@ -288,7 +295,7 @@ def sample_posterior(
     else:
         ball_rng, rs = _seeds(seed)
         se = np.sqrt(np.diag(fit.covariance_z))
-        centre = fit.z[slots]
+        centre = z_fit[slots]
         start = centre + ball_scale * se * ball_rng.standard_normal((walkers, p))
         lp0 = log_prob_batch(start)
         for _ in range(100):
