@@ -35,6 +35,22 @@ def median_seconds(fn: Callable[[], Any], repeats: int, min_time: float = 0.0) -
     return statistics.median(times)
 
 
+def interleaved_medians(fns: dict[str, Callable[[], Any]], repeats: int) -> dict[str, float]:
+    """Median wall time of each function, timed in interleaved rounds.
+
+    Every round calls each function once (the order rotates from round to round), so a
+    slow phase of the machine affects all of them alike and their ratios stay meaningful.
+    """
+    names = list(fns)
+    times: dict[str, list[float]] = {k: [] for k in names}
+    for r in range(repeats):
+        for k in names[r % len(names) :] + names[: r % len(names)]:
+            t0 = time.perf_counter()
+            block(fns[k]())
+            times[k].append(time.perf_counter() - t0)
+    return {k: statistics.median(v) for k, v in times.items()}
+
+
 def fmt_ms(seconds: float) -> str:
     """Milliseconds with three significant figures."""
     return f"{seconds * 1e3:.3g} ms"

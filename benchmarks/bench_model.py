@@ -2,9 +2,12 @@
 
 The case: 6 wedges (10-60 deg) x 181 viewing angles x 31 wavelengths (400-700 nm, the Bodurov
 PLA dispersion), theta_i = 20 deg; the radiance model of conventions §9; the Jacobian with
-respect to (sigma, delta_n, scale). JAX uses forward-mode AD (`jax.jacfwd`), NumPy uses forward
-finite differences (one extra evaluation per parameter). Both are timed in the same run; the
-table reports medians, and JAX compilation separately.
+respect to (sigma, delta_n, scale). JAX uses forward-mode AD three ways: `jax.jacfwd` of the
+whole function, one `jax.jvp` per parameter, and `model.band_density_derivatives` (one jvp per
+factor of the density, combined by the product rule); NumPy uses forward finite differences
+(one extra evaluation per parameter). Both are timed in the same run; the
+table reports medians of interleaved rounds (each round times every variant once), and JAX
+compilation separately.
 
     python benchmarks/bench_model.py [--repeats 50] [--out results.md]
 """
@@ -21,7 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy_staircase as nps
-from _timing import first_call_seconds, fmt_ms, median_seconds
+from _timing import first_call_seconds, fmt_ms, interleaved_medians
 
 from stairfit import model
 
@@ -66,6 +69,20 @@ def jax_value_and_jacobian_by_jvp(p: jax.Array, c: dict[str, jax.Array]) -> tupl
     return v, jnp.stack([d_sigma, d_dn, v / sc], axis=-1)
 
 
+def jax_value_and_jacobian_by_factors(p: jax.Array, c: dict[str, jax.Array]) -> tuple:
+    """Value and Jacobian from `model.band_density_derivatives` (one jvp per factor).
+
+    The Fresnel factors (the index-dependent factor) are evaluated once with their derivative;
+    the broadening kernel (the sigma-dependent factor) once with its derivative; the product
+    rule combines them. The radiance conversion is linear in the density.
+    """
+    d = model.band_density_derivatives(
+        c["theta_i"], c["theta_o"], c["beta2"], c["n_base"] + p[1], c["weight"], p[0]
+    )
+    rad = [model.radiance(x, c["theta_i"], c["theta_o"], p[2]) for x in d]
+    return rad[0], jnp.stack([rad[1], rad[2], rad[0] / p[2]], axis=-1)
+
+
 def numpy_value(p: np.ndarray, c: dict[str, np.ndarray]) -> np.ndarray:
     """The same radiance with plain NumPy."""
     return nps.band_radiance(
@@ -95,15 +112,25 @@ def run(repeats: int) -> list[tuple[str, str, str]]:
     value = jax.jit(jax_value)
     both = jax.jit(lambda q, c: (jax_value(q, c), jax.jacfwd(jax_value)(q, c)))
     by_jvp = jax.jit(jax_value_and_jacobian_by_jvp)
+    by_factors = jax.jit(jax_value_and_jacobian_by_factors)
 
     compile_value = first_call_seconds(lambda: value(jp, jcase))
     compile_both = first_call_seconds(lambda: both(jp, jcase))
     compile_jvp = first_call_seconds(lambda: by_jvp(jp, jcase))
-    t_value = median_seconds(lambda: value(jp, jcase), repeats)
-    t_both = median_seconds(lambda: both(jp, jcase), repeats)
-    t_jvp = median_seconds(lambda: by_jvp(jp, jcase), repeats)
-    t_np_value = median_seconds(lambda: numpy_value(p, case), repeats)
-    t_np_both = median_seconds(lambda: numpy_jacobian(p, case), repeats)
+    compile_factors = first_call_seconds(lambda: by_factors(jp, jcase))
+    t = interleaved_medians(
+        {
+            "value": lambda: value(jp, jcase),
+            "both": lambda: both(jp, jcase),
+            "jvp": lambda: by_jvp(jp, jcase),
+            "factors": lambda: by_factors(jp, jcase),
+            "np_value": lambda: numpy_value(p, case),
+            "np_both": lambda: numpy_jacobian(p, case),
+        },
+        repeats,
+    )
+    t_value, t_both, t_jvp, t_factors = t["value"], t["both"], t["jvp"], t["factors"]
+    t_np_value, t_np_both = t["np_value"], t["np_both"]
 
     # the two implementations agree (values and derivatives) before any time is compared
     v_j, jac_j = (np.asarray(a) for a in both(jp, jcase))
@@ -112,6 +139,9 @@ def run(repeats: int) -> list[tuple[str, str, str]]:
     scale = np.abs(jac_j).max(axis=0)
     assert np.all(np.abs(jac_np - jac_j) <= 1e-4 * scale), "FD and AD Jacobians disagree"
     np.testing.assert_allclose(np.asarray(by_jvp(jp, jcase)[1]), jac_j, rtol=1e-10, atol=1e-12)
+    v_f, jac_f = (np.asarray(a) for a in by_factors(jp, jcase))
+    np.testing.assert_allclose(v_f, v_j, rtol=1e-12, atol=1e-14)
+    assert np.all(np.abs(jac_f - jac_j) <= 1e-10 * scale), "band_density_derivatives disagrees"
 
     n_obs = case["theta_o"].size * case["n_base"].shape[1]
     return [
@@ -119,6 +149,7 @@ def run(repeats: int) -> list[tuple[str, str, str]]:
         ("JAX compile: value", fmt_ms(compile_value), "first call, once per shape"),
         ("JAX compile: value + Jacobian (jacfwd)", fmt_ms(compile_both), "first call"),
         ("JAX compile: value + Jacobian (jvp per parameter)", fmt_ms(compile_jvp), "first call"),
+        ("JAX compile: value + Jacobian (jvp per factor)", fmt_ms(compile_factors), "first call"),
         ("JAX value", fmt_ms(t_value), "median"),
         ("NumPy value", fmt_ms(t_np_value), f"median; JAX is {t_np_value / t_value:.1f}x faster"),
         ("JAX value + Jacobian (jacfwd)", fmt_ms(t_both), f"median; {t_np_both / t_both:.1f}x"),
@@ -126,6 +157,11 @@ def run(repeats: int) -> list[tuple[str, str, str]]:
             "JAX value + Jacobian (jvp per parameter)",
             fmt_ms(t_jvp),
             f"median; {t_np_both / t_jvp:.1f}x faster than NumPy + FD",
+        ),
+        (
+            "JAX value + Jacobian (jvp per factor, `band_density_derivatives`)",
+            fmt_ms(t_factors),
+            f"median; {t_np_both / t_factors:.1f}x faster than NumPy + FD",
         ),
         ("NumPy value + Jacobian (forward FD)", fmt_ms(t_np_both), "median; the baseline"),
     ]

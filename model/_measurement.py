@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -47,6 +48,53 @@ class Aperture(NamedTuple):
         )
 
 
+def _aperture_angles(
+    theta_i: ArrayLike, theta_o: ArrayLike, aperture: Aperture | None
+) -> tuple[Array, Array, Array]:
+    """Angles of incidence and viewing at the aperture nodes (clipped to the hemisphere)."""
+    dtype = jnp.result_type(jnp.asarray(theta_i), jnp.asarray(theta_o))
+    di, do, dw = (jnp.asarray(a, dtype) for a in (aperture or Aperture()).nodes())
+    half = jnp.pi / 2
+    ti = jnp.clip(jnp.asarray(theta_i)[..., None] + di, -half, half)  # (n_obs, n_nodes)
+    to = jnp.clip(jnp.asarray(theta_o)[..., None] + do, -half, half)
+    return ti, to, dw
+
+
+def band_ratio(
+    theta_i: ArrayLike,
+    beta2: ArrayLike,
+    n: ArrayLike,
+    spectral_weight: ArrayLike,
+    aperture: Aperture | None = None,
+) -> Float[Array, "n_obs n_nodes 3"]:
+    """Reflectance ratio of each lobe, band-averaged, at each aperture node [conventions §4, §8].
+
+    Geometry does not depend on wavelength and the ratio is linear in the Fresnel factors, so
+    the Fresnel factors are averaged over the band first. Shapes as in `band_density`.
+    """
+    ti, _, _ = _aperture_angles(theta_i, theta_i, aperture)
+    dtype = ti.dtype
+    b2 = jnp.asarray(beta2)[..., None]
+    fresnel = lobe_fresnel(ti[..., None], b2[..., None], jnp.asarray(n)[..., None, :])
+    band_fresnel = jnp.einsum("ok,onkl->onl", jnp.asarray(spectral_weight, dtype), fresnel)
+    return lobe_weights(ti, b2) * band_fresnel
+
+
+def band_kernel(
+    theta_i: ArrayLike,
+    theta_o: ArrayLike,
+    beta2: ArrayLike,
+    sigma: ArrayLike,
+    aperture: Aperture | None = None,
+) -> Float[Array, "n_obs n_nodes 3"]:
+    """Broadening density (1/rad) of each lobe at each aperture node [conventions §5]."""
+    ti, to, _ = _aperture_angles(theta_i, theta_o, aperture)
+    b2 = jnp.asarray(beta2)[..., None]
+    return hemisphere_gaussian(
+        to[..., None], lobe_directions(ti, b2), jnp.asarray(sigma)[..., None, None]
+    )
+
+
 def band_density(
     theta_i: ArrayLike,
     theta_o: ArrayLike,
@@ -65,22 +113,61 @@ def band_density(
     approximation) [conventions §4, §8]. `aperture` (default: a point) averages over the finite
     sizes of light and patch. Angles in radians [conventions §1].
     """
-    dtype = jnp.result_type(jnp.asarray(theta_i), jnp.asarray(theta_o))
-    di, do, dw = (jnp.asarray(a, dtype) for a in (aperture or Aperture()).nodes())
-    half = jnp.pi / 2
-    ti = jnp.clip(jnp.asarray(theta_i)[..., None] + di, -half, half)  # (n_obs, n_nodes)
-    to = jnp.clip(jnp.asarray(theta_o)[..., None] + do, -half, half)
-    b2 = jnp.asarray(beta2)[..., None]
-    # Geometry and broadening do not depend on wavelength, and rho is linear in the Fresnel
-    # factors: average the Fresnel factors over the band first, then combine once.
-    weight = lobe_weights(ti, b2)  # (n_obs, n_nodes, 3)
-    kernel = hemisphere_gaussian(
-        to[..., None], lobe_directions(ti, b2), jnp.asarray(sigma)[..., None, None]
+    ratio = band_ratio(theta_i, beta2, n, spectral_weight, aperture)
+    kernel = band_kernel(theta_i, theta_o, beta2, sigma, aperture)
+    _, _, dw = _aperture_angles(theta_i, theta_o, aperture)
+    return jnp.sum(ratio * kernel, axis=-1) @ dw
+
+
+class BandDerivatives(NamedTuple):
+    """`band_density` and its derivatives for each observation [conventions §4, §5, §8].
+
+    `d_sigma` is per radian of a uniform change of `sigma`; `d_delta_n` is with respect to a
+    uniform offset added to every entry of `n` (the fitted index offset, conventions §7).
+    """
+
+    density: Float[Array, " n_obs"]
+    d_sigma: Float[Array, " n_obs"]
+    d_delta_n: Float[Array, " n_obs"]
+
+
+def band_density_derivatives(
+    theta_i: ArrayLike,
+    theta_o: ArrayLike,
+    beta2: ArrayLike,
+    n: ArrayLike,
+    spectral_weight: ArrayLike,
+    sigma: ArrayLike,
+    aperture: Aperture | None = None,
+) -> BandDerivatives:
+    """`band_density` with its derivatives in `sigma` and a uniform index offset, in one pass.
+
+    The density is `sum(ratio * kernel) @ node_weight` over lobes and aperture nodes, where
+    only `band_ratio` depends on the index and only `band_kernel` on `sigma`. Each factor is
+    differentiated by one forward-mode `jax.jvp` and the product rule combines them, so the
+    Fresnel factors, by far the largest part of the work, are evaluated once with their
+    derivative instead of once per parameter.
+    Arguments as in `band_density`; the result equals `jax.jacfwd` of `band_density` to
+    rounding (tests/test_band_derivatives.py).
+    """
+    n = jnp.asarray(n)
+    sigma = jnp.asarray(sigma)
+    ratio, d_ratio = jax.jvp(
+        lambda nn: band_ratio(theta_i, beta2, nn, spectral_weight, aperture),
+        (n,),
+        (jnp.ones_like(n),),
     )
-    fresnel = lobe_fresnel(ti[..., None], b2[..., None], jnp.asarray(n)[..., None, :])
-    band_fresnel = jnp.einsum("ok,onkl->onl", jnp.asarray(spectral_weight, dtype), fresnel)
-    rho = jnp.sum(weight * band_fresnel * kernel, axis=-1)  # (n_obs, n_nodes)
-    return rho @ dw
+    kernel, d_kernel = jax.jvp(
+        lambda s: band_kernel(theta_i, theta_o, beta2, s, aperture),
+        (sigma,),
+        (jnp.ones_like(sigma),),
+    )
+    _, _, dw = _aperture_angles(theta_i, theta_o, aperture)
+    return BandDerivatives(
+        density=jnp.sum(ratio * kernel, axis=-1) @ dw,
+        d_sigma=jnp.sum(ratio * d_kernel, axis=-1) @ dw,
+        d_delta_n=jnp.sum(d_ratio * kernel, axis=-1) @ dw,
+    )
 
 
 def radiance(

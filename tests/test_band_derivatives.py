@@ -1,0 +1,150 @@
+"""`model.band_density_derivatives` against plain autodiff and finite differences.
+
+The function differentiates the index-dependent factor and the sigma-dependent factor of the
+band density separately and combines them by the product rule [conventions §4, §5, §8]. Here
+it must equal `jax.jacfwd` of `model.band_density` (which differentiates the whole expression)
+to rounding, agree with central finite differences, and stay finite at the extremes of
+conventions §10 (grazing angles, regime boundaries, tiny sigma, n -> 1, complex n).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from stairfit import model
+
+DEG = np.pi / 180
+
+
+def _case(n_lambda: int = 5, extreme: bool = False) -> dict[str, np.ndarray]:
+    """Observations over wedges, viewing angles and two angles of incidence."""
+    if extreme:
+        ti = np.array([90, -90, 90 - 1e-7, -30, 60, 0.0]) * DEG
+        to = np.array([-90, 90, 89.9999999, 30, -60, 0.0]) * DEG
+        b2 = np.array([0.5, 89.5, 45, 30, 30, 30]) * DEG
+    else:
+        b2g, tog, tig = np.meshgrid(
+            [10, 30, 60], np.linspace(-85, 85, 35), [20, -40], indexing="ij"
+        )
+        ti, to, b2 = tig.ravel() * DEG, tog.ravel() * DEG, b2g.ravel() * DEG
+    lam = np.linspace(420, 680, n_lambda)
+    n_base = np.asarray(model.materials.PLA_BODUROV_2016(lam))
+    w = np.linspace(1.0, 2.0, n_lambda)
+    return {
+        "theta_i": ti,
+        "theta_o": to,
+        "beta2": b2,
+        "n_base": np.broadcast_to(n_base, (ti.size, n_lambda)).copy(),
+        "weight": np.broadcast_to(w / w.sum(), (ti.size, n_lambda)).copy(),
+    }
+
+
+def _density(x: jax.Array, c: dict, aperture: model.Aperture | None, n_base=None) -> jax.Array:
+    """band_density as a function of x = (sigma, delta_n)."""
+    nb = c["n_base"] if n_base is None else n_base
+    return model.band_density(
+        c["theta_i"], c["theta_o"], c["beta2"], nb + x[1], c["weight"], x[0], aperture
+    )
+
+
+@pytest.mark.parametrize("aperture", [None, model.Aperture(0.02, 0.03, 3)])
+@pytest.mark.parametrize("sigma_deg", [0.5, 4.0, 20.0])
+def test_equals_jacfwd_of_band_density(aperture, sigma_deg):
+    c = _case()
+    x = jnp.array([sigma_deg * DEG, 0.02])
+    n = c["n_base"] + x[1]
+    got = model.band_density_derivatives(
+        c["theta_i"], c["theta_o"], c["beta2"], n, c["weight"], x[0], aperture
+    )
+    want_v = np.asarray(_density(x, c, aperture))
+    want_j = np.asarray(jax.jacfwd(_density)(x, c, aperture))
+    scale = np.abs(want_v).max()
+    assert scale > 1e-2  # the case has visible lobes: the comparison is not between zeros
+    np.testing.assert_allclose(got.density, want_v, rtol=1e-12, atol=1e-12 * scale)
+    for k, col in enumerate((got.d_sigma, got.d_delta_n)):
+        js = np.abs(want_j[:, k]).max()
+        assert js > 0
+        np.testing.assert_allclose(col, want_j[:, k], rtol=1e-10, atol=1e-10 * js)
+
+
+def test_agrees_with_central_finite_differences():
+    c = _case(n_lambda=3)
+    x = np.array([3.0 * DEG, 0.01])
+    got = model.band_density_derivatives(
+        c["theta_i"], c["theta_o"], c["beta2"], c["n_base"] + x[1], c["weight"], x[0]
+    )
+    for k, col in enumerate((got.d_sigma, got.d_delta_n)):
+        h = 1e-6
+        up, dn = x.copy(), x.copy()
+        up[k] += h
+        dn[k] -= h
+        fd = (np.asarray(_density(up, c, None)) - np.asarray(_density(dn, c, None))) / (2 * h)
+        js = np.abs(fd).max()
+        assert js > 0
+        np.testing.assert_allclose(col, fd, rtol=1e-5, atol=1e-6 * js)
+
+
+@pytest.mark.parametrize(
+    ("sigma", "n_const"),
+    [(1e-6, None), (0.3, None), (0.05, 1.0001), (0.05, 1.5 + 0.02j)],
+    ids=["tiny-sigma", "wide-sigma", "n-near-1", "complex-n"],
+)
+def test_finite_at_the_extremes(sigma, n_const):
+    c = _case(n_lambda=3, extreme=True)
+    n = c["n_base"] if n_const is None else np.full(c["n_base"].shape, n_const)
+    got = model.band_density_derivatives(
+        c["theta_i"], c["theta_o"], c["beta2"], n, c["weight"], sigma
+    )
+    for name, col in got._asdict().items():
+        assert np.all(np.isfinite(np.asarray(col))), name
+
+
+def _plain_fresnel(c: jax.Array, n: jax.Array) -> jax.Array:
+    """Textbook Fresnel power reflectances via the angle of refraction (Snell's law), stacked
+    (s, p): an independent formula for plain autodiff to differentiate."""
+    sin_t = jnp.sqrt(1.0 - c**2) / n
+    cos_t = jnp.sqrt(1.0 - sin_t**2)
+    r_s = (c - n * cos_t) / (c + n * cos_t)
+    r_p = (n * c - cos_t) / (n * c + cos_t)
+    return jnp.stack([jnp.abs(r_s) ** 2, jnp.abs(r_p) ** 2])
+
+
+@pytest.mark.parametrize(
+    "n", [1.46, 1.0001, 2.4, 1.5 + 0.05j], ids=["pla", "n-near-1", "high", "absorbing"]
+)
+def test_fresnel_derivative_rule_matches_plain_autodiff(n):
+    """`model.fresnel_sp` has a hand-arranged derivative rule (model/_fresnel.py); its jvp in
+    the cosine and in the index must equal autodiff of an independent formula."""
+    c = jnp.array(
+        [0.05, 0.2, 0.5, 0.8, 0.99]
+    )  # away from c = 0, 1 where the plain form has sqrt(0)
+    n = jnp.asarray(n)
+
+    def ours(cc: jax.Array, dn: jax.Array) -> jax.Array:
+        r = model.fresnel_sp(cc, n + dn)
+        return jnp.stack([r.s, r.p])
+
+    def plain(cc: jax.Array, dn: jax.Array) -> jax.Array:
+        return _plain_fresnel(cc, n + dn)
+
+    np.testing.assert_allclose(ours(c, 0.0), plain(c, 0.0), rtol=1e-12, atol=1e-15)
+    for tangents in [(jnp.ones_like(c), 0.0), (jnp.zeros_like(c), 1.0), (c, 0.3)]:
+        _, d_ours = jax.jvp(ours, (c, 0.0), tangents)
+        _, d_plain = jax.jvp(plain, (c, 0.0), tangents)
+        assert np.abs(d_plain).max() > 1e-3
+        np.testing.assert_allclose(d_ours, d_plain, rtol=1e-9, atol=1e-12)
+    # reverse mode goes through the transposed rule
+    g_ours = jax.grad(lambda cc: ours(cc, 0.0).sum())(c)
+    g_plain = jax.grad(lambda cc: plain(cc, 0.0).sum())(c)
+    np.testing.assert_allclose(g_ours, g_plain, rtol=1e-9, atol=1e-12)
+
+
+def test_fresnel_derivatives_finite_at_normal_and_grazing_incidence():
+    c = jnp.array([0.0, 1e-9, 1.0 - 1e-12, 1.0])
+    for n in (1.0001, 1.46, 1.5 + 0.05j):
+        g = jax.jacfwd(lambda cc, nn=n: jnp.stack(model.fresnel_sp(cc, nn)))(c)
+        gn = jax.grad(lambda dn, nn=n: sum(model.fresnel_sp(c, nn + dn)).sum())(0.0)
+        assert np.all(np.isfinite(np.asarray(g))) and np.isfinite(float(gn))
