@@ -540,6 +540,7 @@ def sample(fit: Any, out: Path, options: FitOptions) -> Any:
             seed=options.seed,
             tau_factor=options.preset.posterior_tau_factor,
             max_steps=options.preset.posterior_max_steps,
+            chunk_steps=options.preset.posterior_chunk_steps,
             chain_path=out / "chain.npz",
             progress=options.progress,
             emit_warnings=False,

@@ -55,7 +55,8 @@ class Preset:
       model-error term, or its chi^2 tail probability is below 1e-3; `stairfit.fit.
       rounding_needed`). A rounded fit costs minutes (compilation), a sharp one seconds.
     * `posterior_tau_factor`: the chain must be this many autocorrelation times long;
-      `posterior_max_steps`: the step limit (then a warning).
+      `posterior_max_steps`: the step limit (then a warning); `posterior_chunk_steps`: how
+      often (in steps) the stopping rule is checked (a chain stops at a multiple of it).
     * `float32_figures`: evaluate figures in float32 (fits are always float64).
     """
 
@@ -69,6 +70,7 @@ class Preset:
     rounded_rungs: str
     posterior_tau_factor: float
     posterior_max_steps: int
+    posterior_chunk_steps: int
     float32_figures: bool
 
     def as_dict(self) -> dict[str, Any]:
@@ -86,8 +88,9 @@ PRESETS: dict[str, Preset] = {
         sigma_starts_deg=(2.0, 8.0),
         ladder="shared",
         rounded_rungs="when_needed",
-        posterior_tau_factor=20.0,
+        posterior_tau_factor=10.0,
         posterior_max_steps=1_500,
+        posterior_chunk_steps=100,
         float32_figures=True,
     ),
     "balanced": Preset(
@@ -99,8 +102,9 @@ PRESETS: dict[str, Preset] = {
         sigma_starts_deg=(1.0, 4.0, 12.0),
         ladder="shared",
         rounded_rungs="when_needed",
-        posterior_tau_factor=50.0,
+        posterior_tau_factor=20.0,
         posterior_max_steps=20_000,
+        posterior_chunk_steps=100,
         float32_figures=False,
     ),
     "accurate": Preset(
@@ -114,6 +118,7 @@ PRESETS: dict[str, Preset] = {
         rounded_rungs="always",
         posterior_tau_factor=100.0,
         posterior_max_steps=50_000,
+        posterior_chunk_steps=500,
         float32_figures=False,
     ),
 }

@@ -134,7 +134,7 @@ class Settings:
     aperture_nodes: tuple[int, ...]
     diffuse_nodes: tuple[int, ...]
     resolutions: tuple[int, ...]
-    chains: tuple[tuple[float, int], ...]  # (tau_factor, max_steps)
+    chains: tuple[tuple[float, int, int], ...]  # (tau_factor, max_steps, chunk_steps)
     post_seeds: int
     fit_spectral: tuple[str, ...]
     fit_aperture_nodes: tuple[int, ...]
@@ -151,7 +151,7 @@ def settings_for(quick: bool, seeds: int | None, repeats: int | None) -> Setting
             aperture_nodes=(1, 2),
             diffuse_nodes=(3, 6),
             resolutions=(),
-            chains=((20.0, 1000),),
+            chains=((20.0, 1000, 100),),
             post_seeds=1,
             fit_spectral=("effective", "full"),
             fit_aperture_nodes=(1,),
@@ -165,12 +165,13 @@ def settings_for(quick: bool, seeds: int | None, repeats: int | None) -> Setting
         diffuse_nodes=(2, 3, 4, 6, 8),
         resolutions=(2, 4, 8),
         chains=(
-            (20.0, 1000),
-            (20.0, 1500),
-            (10.0, 20_000),
-            (20.0, 20_000),
-            (50.0, 20_000),
-            (100.0, 50_000),
+            (10.0, 1500, 100),
+            (10.0, 20_000, 100),
+            (20.0, 20_000, 100),
+            (20.0, 20_000, 500),
+            (50.0, 20_000, 100),
+            (50.0, 20_000, 500),
+            (100.0, 50_000, 500),
         ),
         post_seeds=1,
         fit_spectral=("effective", "full"),
@@ -500,21 +501,29 @@ def posterior_compile(fit: Any) -> float:
     return time.perf_counter() - t0
 
 
-def run_posterior(fit: Any, tau_factor: float, seed: int, max_steps: int = 20_000) -> Any:
-    """One posterior with the app's chunking (500 steps); the app ignores the warning of a
-    chain cut at `max_steps` (it reports `converged`)."""
+def run_posterior(
+    fit: Any, tau_factor: float, seed: int, max_steps: int = 20_000, chunk_steps: int = 500
+) -> Any:
+    """One posterior, the stopping rule checked every `chunk_steps` steps (as the app does with
+    the preset's `posterior_chunk_steps`); the app ignores the warning of a chain cut at
+    `max_steps` (it reports `converged`)."""
     from stairfit import fitting
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", fitting.FitWarningCategory)
         return fitting.sample_posterior(
-            fit, seed=seed, tau_factor=tau_factor, max_steps=max_steps, emit_warnings=False
+            fit,
+            seed=seed,
+            tau_factor=tau_factor,
+            max_steps=max_steps,
+            chunk_steps=chunk_steps,
+            emit_warnings=False,
         )
 
 
 def posterior_rows(st: Settings, case: FitCase) -> list[Row]:
-    """Chain length (tau_factor, max_steps) on fits of `post_seeds` datasets (effective
-    spectra, 2 aperture nodes: the balanced fit). The app's chunks of 500 steps."""
+    """Chain length (tau_factor, max_steps, chunk_steps) on fits of `post_seeds` datasets
+    (effective spectra, 2 aperture nodes: the balanced fit)."""
     from stairfit import fitting
 
     spec, ap, v = spectral("effective"), aperture(2), sharp_variant()
@@ -524,15 +533,15 @@ def posterior_rows(st: Settings, case: FitCase) -> list[Row]:
     ]
     compile_s = posterior_compile(fits[0])
     rows = []
-    for tf, max_steps in st.chains:
-        posts = [run_posterior(f, tf, 7 + i, max_steps) for i, f in enumerate(fits)]
+    for tf, max_steps, chunk in st.chains:
+        posts = [run_posterior(f, tf, 7 + i, max_steps, chunk) for i, f in enumerate(fits)]
         truth = np.array([TRUTH[n] for n in fits[0].names])
         zs = np.concatenate([(p.median - truth) / (0.5 * (p.p84 - p.p16)) for p in posts])
         widths = np.concatenate([p.width_ratio for p in posts])
         rows.append(
             Row(
                 "posterior",
-                f"tau_factor {tf:g}, max {max_steps} steps",
+                f"tau_factor {tf:g}, max {max_steps} steps, checked every {chunk}",
                 "effective",
                 2,
                 "float64",
@@ -627,7 +636,9 @@ def preset_rows(st: Settings, case: FitCase, table: list[Row]) -> list[Row]:
         if frow is not None:  # compiled there already (the starts do not recompile)
             m["compile_s"] = frow.compile_s
         post_compile = posterior_compile(fit)
-        post = run_posterior(fit, p.posterior_tau_factor, seed=3, max_steps=p.posterior_max_steps)
+        post = run_posterior(
+            fit, p.posterior_tau_factor, 3, p.posterior_max_steps, p.posterior_chunk_steps
+        )
         extra = [f"posterior compile {post_compile:.1f} s, converged {post.converged}"]
         if drow is not None:
             extra.append(f"diffuse err {drow.model_err_rel:.1e}")

@@ -7,8 +7,9 @@ Data)`: `Static` holds hashable configuration (transform kinds, which forward, t
 widths are arrays in `Data`, so every variant of the sharp model on one scene shares a single
 compilation [conventions §1-§9].
 
-Only what the scene needs is evaluated: the model at the observed angles, and the Fresnel
-factors once per distinct (theta_i, beta2, channel) at the wavelengths that channel sees.
+Only what the scene needs is evaluated: the lobe geometry and broadening once per distinct
+(theta_i, wedge, theta_o) for all channels, the Fresnel factors at the wavelengths each channel
+sees.
 """
 
 from __future__ import annotations
@@ -49,14 +50,14 @@ class Static(NamedTuple):
 class Data(NamedTuple):
     """Arrays of one fit (traced; changing them never recompiles).
 
-    Per row (N): angles (rad), `beta2`, `layer_um`, `wedge`, `key` (index of the row's distinct
-    (theta_i, beta2, channel) combination), `value`, `stderr`, `use` (1.0 or 0.0). Per distinct
-    key (U): `ti_u`, `b2_u`, `n_u` and `w_u` `(U, K)`. For the rounded model, whose geometry
-    does not depend on `theta_o` or the channel: per key (R; distinct (theta_i, wedge), or
-    (theta_i, wedge, theta_o), see `_problem.rounded_grid`) `r_ti`, `r_b2`, `r_layer`,
-    `r_wedge`, and the viewing angles `r_to` either as a grid shared by all keys `(1, T)` or
-    one per key `(R, 1)`; every key is evaluated for all channels, `r_n` and `r_w` `(C, K)`;
-    each row reads `[r_key, r_t, r_c]`. Per slot of `z`
+    Per row (N): angles (rad), `beta2`, `layer_um`, `wedge`, `value`, `stderr`, `use` (1.0 or
+    0.0). Both models are evaluated on a grid whose lobe geometry and broadening do not depend
+    on the channel: per key (R; distinct (theta_i, wedge), or (theta_i, wedge, theta_o), see
+    `_problem.rounded_grid`) `r_ti`, `r_b2`, `r_layer`, `r_wedge`, and the viewing angles `r_to`
+    either as a grid shared by all keys `(1, T)` or one per key `(R, 1)`; every key is
+    evaluated for all channels, `r_n` and `r_w` `(C, K)`; each row reads `[r_key, r_t, r_c]`.
+    Distinct (theta_i at each aperture node, beta2, layer_um) (G): `g_ti`, `g_b2`, `g_layer`,
+    indexed by `r_geo` (key, node). Per slot of `z`
     (P): `free`, `x_fixed` (physical values of fixed slots). Per wedge (W): `sigma_source`
     (slot holding that wedge's width). `r_max_um`: upper bound of the edge radius.
     """
@@ -66,14 +67,9 @@ class Data(NamedTuple):
     beta2: Float[Array, " N"]
     layer_um: Float[Array, " N"]
     wedge: Int[Array, " N"]
-    key: Int[Array, " N"]
     value: Float[Array, " N"]
     stderr: Float[Array, " N"]
     use: Float[Array, " N"]
-    ti_u: Float[Array, " U"]
-    b2_u: Float[Array, " U"]
-    n_u: Array
-    w_u: Float[Array, "U K"]
     r_key: Int[Array, " N"]
     r_t: Int[Array, " N"]
     r_c: Int[Array, " N"]
@@ -106,54 +102,6 @@ def _clamp_index(n: Array) -> Array:
     if jnp.iscomplexobj(n):
         return jnp.maximum(jnp.real(n), N_MIN) + 1j * jnp.imag(n)
     return jnp.maximum(n, N_MIN)
-
-
-def _band_fresnel_impl(dn: Array, ti: Array, b2: Array, n_u: Array, w_u: Array) -> Array:
-    """Band-averaged Fresnel factor of each lobe, `(U, M, 3)` [conventions §6, §8]."""
-    n = _clamp_index(n_u + dn)
-    fresnel = model.lobe_fresnel(ti[..., None], b2[:, None, None], n[:, None, :])
-    return jnp.einsum("uk,umkl->uml", w_u, fresnel)
-
-
-@jax.custom_jvp
-def band_fresnel(dn: Array, ti: Array, b2: Array, n_u: Array, w_u: Array) -> Array:
-    """`_band_fresnel_impl` with a JVP that differentiates the Fresnel factors once.
-
-    Only `delta_n` moves the Fresnel factors, so the derivative along `dn` is computed once
-    and scaled by its tangent. A Jacobian (one tangent per slot of `z`) then costs one extra
-    Fresnel evaluation instead of one per slot. The other arguments are data and must not be
-    differentiated (their tangents are ignored).
-    """
-    return _band_fresnel_impl(dn, ti, b2, n_u, w_u)
-
-
-@band_fresnel.defjvp
-def _band_fresnel_jvp(primals: tuple, tangents: tuple) -> tuple[Array, Array]:
-    dn, ti, b2, n_u, w_u = primals
-    value, d_value = jax.jvp(
-        lambda d: _band_fresnel_impl(d, ti, b2, n_u, w_u), (dn,), (jnp.ones_like(dn),)
-    )
-    return value, d_value * tangents[0]
-
-
-def sharp_density(sigma: Array, dn: Array, data: Data, aperture: model.Aperture) -> Array:
-    """Band- and aperture-averaged density (1/rad) of the sharp model at every row.
-
-    The same quantity as `stairfit.model.band_density` [conventions §4, §5, §8, §9], computed
-    with the Fresnel factors evaluated once per distinct (theta_i, beta2, channel).
-    """
-    di, do, dw = (jnp.asarray(a, data.theta_i.dtype) for a in aperture.nodes())
-    ti = jnp.clip(data.theta_i[:, None] + di, -HALF_PI, HALF_PI)  # (N, M)
-    to = jnp.clip(data.theta_o[:, None] + do, -HALF_PI, HALF_PI)
-    b2 = data.beta2[:, None]
-    weight = model.lobe_weights(ti, b2)  # (N, M, 3)
-    kernel = model.hemisphere_gaussian(
-        to[..., None], model.lobe_directions(ti, b2), sigma[:, None, None]
-    )
-    ti_u = jnp.clip(data.ti_u[:, None] + di, -HALF_PI, HALF_PI)  # (U, M)
-    fresnel = band_fresnel(dn, ti_u, data.b2_u, data.n_u, data.w_u)[data.key]  # (N, M, 3)
-    rho = jnp.sum(weight * fresnel * kernel, axis=-1)
-    return rho @ dw
 
 
 class RoundedGrid(NamedTuple):
@@ -232,28 +180,77 @@ def _value_and_jac(f, eps0: Array) -> tuple[Array, Array]:  # noqa: ANN001
     return value, jac
 
 
+SHARP_FRESNEL_DIRECT_MAX_K = 4
+"""With at most this many wavelength samples per channel, the sharp grid evaluates the Fresnel
+factors at every (key, aperture node, channel) directly; with more, once per distinct geometry
+(`g_ti`, `g_b2`) and gathers them (a gather costs about as much as a few Fresnel evaluations)."""
+
+
+def _sharp_grid_impl(sigma_k: Array, dn: Array, aperture: model.Aperture, g: RoundedGrid) -> Array:
+    """Band- and aperture-averaged sharp density on the (key, view, channel) grid, `(R, T, C)`.
+
+    The same quantity as `stairfit.model.band_density` [conventions §4, §5, §8, §9], laid out
+    like the rounded model's grid: the lobe weights and broadening depend on (theta_i, wedge,
+    theta_o) and are shared by the channels; only the Fresnel factors depend on the channel.
+    """
+    di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
+    ti = jnp.clip(g.r_ti[:, None] + di, -HALF_PI, HALF_PI)  # (R, M)
+    to = jnp.clip(g.r_to[:, :, None] + do, -HALF_PI, HALF_PI)  # (R|1, T, M)
+    b2 = g.r_b2[:, None]
+    weight = model.lobe_weights(ti, b2)  # (R, M, 3)
+    kernel = model.hemisphere_gaussian(
+        to[..., None], model.lobe_directions(ti, b2)[:, None], sigma_k[:, None, None, None]
+    )  # (R, T, M, 3)
+    n = _clamp_index(g.r_n + dn)  # (C, K)
+    if n.shape[1] <= SHARP_FRESNEL_DIRECT_MAX_K:
+        fresnel = model.lobe_fresnel(ti[:, :, None, None], b2[:, :, None, None], n)  # (R,M,C,K,3)
+        band = jnp.einsum("ck,rmckl->rmcl", g.r_w, fresnel)
+    else:
+        fresnel = model.lobe_fresnel(g.g_ti[:, None, None], g.g_b2[:, None, None], n)  # (G,C,K,3)
+        band = jnp.einsum("ck,gckl->gcl", g.r_w, fresnel)[g.r_geo]  # (R, M, C, 3)
+    return jnp.einsum("rml,rtml,rmcl,m->rtc", weight, kernel, band, dw)
+
+
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
-def sharp_density_rows(sigma: Array, dn: Array, aperture: model.Aperture, data: Data) -> Array:
-    """`sharp_density` with a JVP that needs two directional derivatives, whatever the number
-    of parameters: each row depends on its own width only, and on `delta_n`, so one direction
-    with every width moved at once and one along `delta_n` give the whole Jacobian of the
-    density (measured: 1.5-2x faster Jacobians with the 12 slots of the standard scene).
-    `data` is not differentiated (its tangents are ignored)."""
-    return sharp_density(sigma, dn, data, aperture)
+def sharp_grid_density(
+    sigma_k: Array, dn: Array, aperture: model.Aperture, g: RoundedGrid
+) -> Array:
+    """`_sharp_grid_impl` with a JVP that needs two directional derivatives, whatever the
+    number of parameters: each element depends on its key's width only, and on `delta_n`, so
+    one direction with every width moved at once and one along `delta_n` give the whole
+    Jacobian. The grid arrays `g` are data (their tangents are ignored)."""
+    return _sharp_grid_impl(sigma_k, dn, aperture, g)
 
 
-@sharp_density_rows.defjvp
-def _sharp_density_rows_jvp(
+@sharp_grid_density.defjvp
+def _sharp_grid_jvp(
     aperture: model.Aperture, primals: tuple, tangents: tuple
 ) -> tuple[Array, Array]:
-    sigma, dn, data = primals
+    sigma_k, dn, g = primals
     t_sigma, t_dn, _ = tangents
 
     def f(eps: Array) -> Array:
-        return sharp_density(sigma + eps[0], dn + eps[1], data, aperture)
+        return _sharp_grid_impl(sigma_k + eps[0], dn + eps[1], aperture, g)
 
-    value, jac = _value_and_jac(f, jnp.zeros(2, dtype=sigma.dtype))
-    return value, jac[..., 0] * t_sigma + jac[..., 1] * t_dn
+    value, jac = _value_and_jac(f, jnp.zeros(2, dtype=sigma_k.dtype))
+    return value, jac[..., 0] * t_sigma[:, None, None] + jac[..., 1] * t_dn
+
+
+def _grid(data: Data) -> RoundedGrid:
+    return RoundedGrid(
+        data.r_ti, data.r_b2, data.r_layer, data.r_n, data.r_w, data.r_to,
+        data.r_geo, data.g_ti, data.g_b2, data.g_layer,
+    )  # fmt: skip
+
+
+def sharp_density(sigma_w: Array, dn: Array, data: Data, aperture: model.Aperture) -> Array:
+    """Band- and aperture-averaged density (1/rad) of the sharp model at every row.
+
+    Evaluated on the (key, view, channel) grid (`sharp_grid_density`), then read per row;
+    `sigma_w` holds one width per wedge.
+    """
+    dens = sharp_grid_density(sigma_w[data.r_wedge], dn, aperture, _grid(data))
+    return dens[data.r_key, data.r_t, data.r_c]
 
 
 def rounded_density(
@@ -265,12 +262,8 @@ def rounded_density(
     the channel weights [conventions §8]; the aperture is averaged as in `band_density`.
     Evaluated once per (theta_i, wedge) key and viewing angle for all channels, then gathered.
     """
-    grid = RoundedGrid(
-        data.r_ti, data.r_b2, data.r_layer, data.r_n, data.r_w, data.r_to,
-        data.r_geo, data.g_ti, data.g_b2, data.g_layer,
-    )  # fmt: skip
     dens = rounded_grid_density(
-        sigma_w[data.r_wedge], dn, radius_um, (static.aperture, static.resolution), grid
+        sigma_w[data.r_wedge], dn, radius_um, (static.aperture, static.resolution), _grid(data)
     )
     return dens[data.r_key, data.r_t, data.r_c]
 
@@ -280,12 +273,11 @@ def model_values(z: Array, static: Static, data: Data) -> tuple[Array, Array]:
     x = physical(z, static, data)
     n_wedges = data.sigma_source.shape[0]
     sigma_w = x[data.sigma_source]
-    sigma = sigma_w[data.wedge]
     dn, radius, scale, floor = (x[n_wedges + k] for k in (1, 2, 3, 4))
     if static.rounded:
         dens = rounded_density(sigma_w, dn, radius, data, static)
     else:
-        dens = sharp_density_rows(sigma, dn, static.aperture, data)
+        dens = sharp_density(sigma_w, dn, data, static.aperture)
     return model.radiance(dens, data.theta_i, data.theta_o, scale, floor), x
 
 

@@ -159,8 +159,8 @@ class PosteriorResult:
 def _fingerprint(fit: FitResult, data: Data) -> str:
     """Hash of everything the log probability depends on (to refuse resuming a different fit)."""
     h = hashlib.sha256()
-    for name in ("theta_i", "theta_o", "beta2", "layer_um", "value", "stderr", "use", "n_u",
-                 "w_u", "free", "x_fixed", "sigma_source"):  # fmt: skip
+    for name in ("theta_i", "theta_o", "beta2", "layer_um", "value", "stderr", "use", "r_n",
+                 "r_w", "free", "x_fixed", "sigma_source"):  # fmt: skip
         h.update(np.ascontiguousarray(np.asarray(getattr(data, name))).tobytes())
     h.update(repr((fit.names, fit.problem.priors, fit.problem.aperture)).encode())
     return h.hexdigest()[:32]

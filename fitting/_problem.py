@@ -157,14 +157,8 @@ def prepare(
     used = obs.use
     value_max = float(np.max(np.abs(obs.value[used])))
     resolved = (priors or Priors()).resolved(r_max, value_max if value_max > 0 else 1.0)
-    # Distinct (theta_i, beta2, channel) combinations: the Fresnel factors depend on nothing
-    # else, so they are evaluated once per combination.
-    combo = np.stack([obs.theta_i_rad, obs.beta2_rad, obs.channel_index.astype(float)], axis=1)
-    uniq, key = np.unique(combo, axis=0, return_inverse=True)
-    chan_u = uniq[:, 2].astype(int)
     n_base = np.asarray(spectral.n_base)
     weights = np.asarray(spectral.weights, float)
-    chan_u = np.minimum(chan_u, spectral.n_channels - 1)  # unused rows may name any channel
     aperture = aperture or model.Aperture()
     rgrid = rounded_grid(obs, n_base, weights, aperture)
     data = Data(
@@ -173,14 +167,9 @@ def prepare(
         beta2=np.asarray(obs.beta2_rad, float),
         layer_um=np.asarray(obs.layer_um, float),
         wedge=np.asarray(obs.wedge_index),
-        key=np.asarray(key.ravel()),
         value=np.asarray(obs.value, float),
         stderr=np.asarray(obs.stderr, float),
         use=np.asarray(used.astype(float)),
-        ti_u=np.asarray(uniq[:, 0]),
-        b2_u=np.asarray(uniq[:, 1]),
-        n_u=np.asarray(n_base[chan_u]),
-        w_u=np.asarray(weights[chan_u]),
         **{k: np.asarray(v) for k, v in rgrid.items()},
         free=np.zeros(lay.size, dtype=bool),
         x_fixed=np.zeros(lay.size),

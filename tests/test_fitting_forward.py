@@ -1,8 +1,8 @@
 """The fitting layer's forward model, transforms and priors against independent references.
 
-The fitting forward deduplicates the Fresnel factors and differentiates them with a custom JVP;
-here it is compared with `stairfit.model.band_density` (values), with plain autodiff of that
-function and with finite differences (Jacobians) [conventions §4, §8, §9].
+The fitting forward evaluates the model on a (key, view, channel) grid and differentiates it
+with a custom JVP; here it is compared with `stairfit.model.band_density` (values), with plain
+autodiff of that function and with finite differences (Jacobians) [conventions §4, §8, §9].
 """
 
 from __future__ import annotations
@@ -91,19 +91,20 @@ def test_fitting_forward_matches_model_band_density(material, sampling, aperture
         np.testing.assert_allclose(j_ours[:, k], fd, rtol=1e-5, atol=1e-7 * np.abs(fd).max())
 
 
-def test_fitting_forward_evaluates_fresnel_once_per_distinct_incidence():
-    # 4 photos x 3 wedges x 3 channels = 36 rows, but only 3 distinct theta_i (20, -35, 50)
-    # x 3 wedges x 3 channels = 27 Fresnel keys; the standard scene (one theta_i) has 18 keys
-    # for 342 rows.
+def test_fitting_forward_grid_shares_geometry_between_channels():
+    # 4 photos x 3 wedges x 3 channels = 36 rows, but only 4 x 3 = 12 distinct (theta_i, wedge,
+    # theta_o) views, each evaluated for all channels at once; the standard scene (one theta_i,
+    # 19 views, 6 wedges) has 114 views for 342 rows.
     spec, obs, _ = _scene()
-    prob = _problem.prepare(obs, spec)
+    d = _problem.prepare(obs, spec).data
     assert obs.n_rows == 36
-    assert prob.data.ti_u.shape[0] == 27
+    assert d.r_ti.shape[0] * d.r_to.shape[1] == 12
     std = fitting.simulate_observations(
         fitting.Params(), fitting.standard_design(), spec, fitting.Noise(0.02), seed=0
     )
     assert std.n_rows == 342
-    assert _problem.prepare(std, spec).data.ti_u.shape[0] == 18
+    d = _problem.prepare(std, spec).data
+    assert d.r_ti.shape[0] * d.r_to.shape[1] == 114
 
 
 def test_transforms_round_trip_and_jacobian():
