@@ -1,9 +1,9 @@
 """From photo specifications to the measurement table: ROIs, statistics, cache, parallelism.
 
 `measure_photos` is the entry point for the command line: it takes one `PhotoSpec` per photo
-(what the scene file says about it) and `ExtractionSettings`, reuses cached rows when neither the
-photo's bytes nor its ROI definition changed, measures the rest in parallel worker processes and
-returns (and caches) the `MeasurementTable`. See docs/imaging.md.
+(what the scene file says about it) and `ExtractionSettings`, reuses cached rows (and cached
+preview PNGs) when neither the photo's bytes nor its ROI definition changed, measures the rest in
+parallel worker processes and returns (and caches) the `MeasurementTable`. See docs/imaging.md.
 """
 
 from __future__ import annotations
@@ -14,10 +14,11 @@ import math
 import multiprocessing
 import os
 import warnings
-from collections.abc import Mapping, Sequence
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 
 from tqdm import tqdm
@@ -26,8 +27,9 @@ from ._decode import CHANNELS, RawFrame, decode_raw, file_sha256
 from ._errors import ImagingError
 from ._exposure import Exposure, resolve_exposure
 from ._extract import ChannelStats, ExtractionSettings, roi_channel_stats
+from ._io import atomic_write_bytes
 from ._markers import MarkerDetection, MarkerLayout, Placement, detect_markers, fit_placement
-from ._preview import write_preview
+from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import Polygon, RoiMask, as_polygon, roi_mask
 from ._table import MeasurementRow, MeasurementTable
 
@@ -262,35 +264,183 @@ def measure_frame(
 
 
 def measure_photo(
-    spec: PhotoSpec, settings: ExtractionSettings, preview: str | Path | None = None
+    spec: PhotoSpec,
+    settings: ExtractionSettings,
+    preview: str | Path | None = None,
+    *,
+    preview_cache: str | Path | None = None,
 ) -> tuple[MeasurementRow, ...]:
     """Decode one photo, measure it, and optionally write its preview PNG.
 
     When the measurement fails after decoding, the preview is still written (with the markers
     found, if a layout was given) so that the failure can be looked at; then the error is raised.
+
+    Args:
+        spec, settings: what to measure and how.
+        preview: the preview PNG to write, or None for none.
+        preview_cache: a folder (`preview_cache_dir` of a measurement cache) where a copy of
+            the preview of a successful measurement is kept under `cached_preview_name`, so
+            that `measure_photos` can reuse it with the cached rows. Only used with `preview`.
     """
     frame = decode_raw(spec.path, spec.name)
+    outcome, write = _measure_decoded(frame, spec, settings, preview, preview_cache)
+    if write is not None:
+        write()
+    if isinstance(outcome, ImagingError):
+        raise outcome
+    return outcome
+
+
+_PreviewJob = Callable[[], None]
+
+
+def _measure_decoded(
+    frame: RawFrame,
+    spec: PhotoSpec,
+    settings: ExtractionSettings,
+    preview: str | Path | None,
+    preview_cache: str | Path | None,
+) -> tuple[tuple[MeasurementRow, ...] | ImagingError, _PreviewJob | None]:
+    """`measure_photo` of a decoded photo, the preview left to the caller: (rows or error, job).
+
+    The job (None without `preview`) renders the preview and writes it (and its cached copy
+    after a success); it holds the frame until it has run.
+    """
     try:
         result = measure_frame(frame, spec, settings)
-    except ImagingError:
-        if preview is not None:
-            det = detect_markers(frame, spec.markers.dictionary) if spec.markers else None
-            write_preview(frame, {}, det, preview, saturation_level=settings.saturation_level)
-        raise
-    if preview is not None:
-        write_preview(
-            frame,
-            result.rois,
-            result.detection,
-            preview,
-            saturation_level=settings.saturation_level,
-        )
-    return result.rows
+    except ImagingError as e:
+        if preview is None:
+            raise
+        det = detect_markers(frame, spec.markers.dictionary) if spec.markers else None
+        return e, partial(_write_previews, frame, {}, det, settings, [Path(preview)])
+    if preview is None:
+        return result.rows, None
+    paths = [Path(preview)]
+    if preview_cache is not None:
+        name = cached_preview_name(frame.sha256, cache_key(spec, settings))
+        paths.append(Path(preview_cache) / name)
+    job = partial(_write_previews, frame, result.rois, result.detection, settings, paths)
+    return result.rows, job
+
+
+def _write_previews(
+    frame: RawFrame,
+    rois: dict[str, RoiMask],
+    detection: MarkerDetection | None,
+    settings: ExtractionSettings,
+    paths: Sequence[Path],
+) -> None:
+    """Render a photo's preview once and write it (atomically) to each of `paths`."""
+    level = settings.saturation_level
+    png = preview_png(frame, rois, detection, saturation_level=level, max_size=PREVIEW_MAX_SIZE)
+    for path in paths:
+        atomic_write_bytes(path, png)
+
+
+def _measure_in_process(
+    todo: Sequence[PhotoSpec],
+    settings: ExtractionSettings,
+    pdir: Path | None,
+    pcache: Path | None,
+    bar: tqdm,
+) -> tuple[dict[str, tuple[MeasurementRow, ...]], dict[str, str]]:
+    """Measure photos one after the other in this process: (rows by photo, errors by photo).
+
+    Two helper threads keep a second core busy: one decodes the next photo while this one is
+    measured, the other renders and writes the previous photo's preview (LibRaw, SHA-256,
+    OpenCV, most of NumPy and file writes release the GIL). Each keeps at most one photo, so at
+    most three photos are in memory.
+    """
+    done: dict[str, tuple[MeasurementRow, ...]] = {}
+    errors: dict[str, str] = {}
+    pending: tuple[str, Future] | None = None
+
+    def finish(item: tuple[str, Future]) -> None:
+        name, future = item
+        try:
+            future.result()
+        except ImagingError as e:  # the preview failed: so does the photo, as in measure_photo
+            done.pop(name, None)
+            errors.setdefault(name, str(e))
+
+    with (
+        ThreadPoolExecutor(max_workers=1, thread_name_prefix="stairfit-decode") as reader,
+        ThreadPoolExecutor(max_workers=1, thread_name_prefix="stairfit-preview") as writer,
+    ):
+        upcoming = [reader.submit(decode_raw, todo[0].path, todo[0].name)] if todo else []
+        for k, spec in enumerate(todo):
+            if k + 1 < len(todo):
+                upcoming.append(reader.submit(decode_raw, todo[k + 1].path, todo[k + 1].name))
+            pv = preview_path(pdir, spec) if pdir else None
+            try:
+                frame = upcoming.pop(0).result()
+                outcome, job = _measure_decoded(frame, spec, settings, pv, pcache)
+            except ImagingError as e:
+                outcome, job = e, None
+            frame = None  # the preview job holds it if it needs it
+            if isinstance(outcome, ImagingError):
+                errors[spec.name] = str(outcome)
+            else:
+                done[spec.name] = outcome
+            if pending is not None:
+                finish(pending)
+            pending = (spec.name, writer.submit(job)) if job is not None else None
+            bar.update(1)
+        if pending is not None:
+            finish(pending)
+    return done, errors
 
 
 def preview_path(preview_dir: str | Path, spec: PhotoSpec) -> Path:
     """Where `measure_photos` writes a photo's preview: `<preview_dir>/<name>.png`."""
     return Path(preview_dir) / f"{spec.name}.png"
+
+
+def preview_cache_dir(cache: str | Path) -> Path:
+    """The folder of cached previews that goes with the measurement cache `cache`.
+
+    It sits beside the cache file and is named after it: `out/measurements.csv` keeps its
+    previews in `out/measurements.previews/`.
+    """
+    cache = Path(cache)
+    return cache.with_name(f"{cache.stem}.previews")
+
+
+def cached_preview_name(photo_sha256: str, settings_key: str) -> str:
+    """The file name of a cached preview: everything the PNG depends on, in the name.
+
+    The photo's bytes (SHA-256), its `cache_key` (ROIs, marker layout, settings, including the
+    saturation level that colours pixels magenta), the preview code's `PREVIEW_VERSION` and the
+    preview size. A preview cached under another name is stale and never read.
+    """
+    return f"{photo_sha256[:32]}-{settings_key}-v{PREVIEW_VERSION}-{PREVIEW_MAX_SIZE}px.png"
+
+
+_PNG_START = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"IEND\xaeB`\x82"
+
+
+def _cached_preview(folder: Path, rows: Sequence[MeasurementRow]) -> bytes | None:
+    """The cached preview PNG of a photo's (already validated) cached rows, or None.
+
+    None when it is missing, unreadable, or not a whole PNG file (it is then made again).
+    """
+    path = folder / cached_preview_name(rows[0].photo_sha256, rows[0].settings_key)
+    try:
+        png = path.read_bytes()
+    except OSError:
+        return None
+    return png if png.startswith(_PNG_START) and png.endswith(_PNG_END) else None
+
+
+def _prune_preview_cache(folder: Path, table: MeasurementTable) -> None:
+    """Delete the cached previews of rows that are no longer in the cache file."""
+    if not folder.is_dir():
+        return
+    keep = {cached_preview_name(r.photo_sha256, r.settings_key) for r in table.rows}
+    for path in folder.glob("*.png"):
+        if path.name not in keep:
+            path.unlink(missing_ok=True)
 
 
 def _load_cache(cache: Path | None) -> dict[str, tuple[MeasurementRow, ...]]:
@@ -308,12 +458,10 @@ def _cached_rows(
     spec: PhotoSpec,
     settings: ExtractionSettings,
     cached: dict[str, tuple[MeasurementRow, ...]],
-    preview_dir: Path | None,
 ) -> tuple[MeasurementRow, ...] | None:
+    """A photo's cached rows if the photo's SHA-256 and its `cache_key` both match, else None."""
     rows = cached.get(spec.name)
     if not rows or not spec.path.is_file():
-        return None
-    if preview_dir is not None and not preview_path(preview_dir, spec).exists():
         return None
     key = cache_key(spec, settings)
     if any(r.settings_key != key for r in rows):
@@ -341,9 +489,12 @@ def measure_photos(
         cache: a CSV file. Rows found there are reused for a photo when the photo file's SHA-256
             and its `cache_key` (ROIs, marker layout, reference, exposure overrides, settings,
             table version) both match, so the photo is not decoded again. The file is then
-            rewritten (atomically) with exactly the rows returned.
-        preview_dir: if given, a preview PNG `<name>.png` is written there for every photo that
-            is decoded (a photo whose preview is missing is decoded again).
+            rewritten (atomically) with exactly the rows returned. With `preview_dir`, previews
+            are cached too, in `preview_cache_dir(cache)`; cached previews of rows no longer in
+            the file are deleted.
+        preview_dir: if given, a preview PNG `<name>.png` is written there for every photo:
+            rendered when the photo is decoded, copied from the cache when its rows are reused
+            (a photo whose cached preview is missing or stale is decoded again).
         progress: show a tqdm progress bar (on stderr).
         max_workers: worker processes; default min(2, CPU count, photos to decode). With 1,
             photos are measured in this process. Each worker holds one photo at a time, so
@@ -364,13 +515,20 @@ def measure_photos(
         raise ImagingError(f"photo names must be unique; repeated: {dup} (give each a name)")
     cache_path = Path(cache) if cache is not None else None
     pdir = Path(preview_dir) if preview_dir is not None else None
+    pcache = preview_cache_dir(cache_path) if cache_path is not None and pdir is not None else None
     cached = _load_cache(cache_path)
     done: dict[str, tuple[MeasurementRow, ...]] = {}
     errors: dict[str, str] = {}
     bar = tqdm(total=len(specs), unit="photo", desc="photos", disable=not progress)
     todo = []
     for spec in specs:
-        rows = _cached_rows(spec, settings, cached, pdir)
+        rows = _cached_rows(spec, settings, cached)
+        if rows is not None and pdir is not None:
+            png = _cached_preview(pcache, rows) if pcache is not None else None
+            if png is None:
+                rows = None  # decode again to make the preview
+            else:
+                atomic_write_bytes(preview_path(pdir, spec), png)
         if rows is None:
             todo.append(spec)
         else:
@@ -380,20 +538,20 @@ def measure_photos(
     workers = max(1, min(workers, len(todo)))
     try:
         if workers == 1:
-            for spec in todo:
-                pv = preview_path(pdir, spec) if pdir else None
-                try:
-                    done[spec.name] = measure_photo(spec, settings, pv)
-                except ImagingError as e:
-                    errors[spec.name] = str(e)
-                bar.update(1)
+            serial_done, serial_errors = _measure_in_process(todo, settings, pdir, pcache, bar)
+            done |= serial_done
+            errors |= serial_errors
         else:
             # "spawn": never fork a parent that may be running JAX threads.
             ctx = multiprocessing.get_context("spawn")
             with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
                 futures: dict[Future, PhotoSpec] = {
                     pool.submit(
-                        measure_photo, spec, settings, preview_path(pdir, spec) if pdir else None
+                        measure_photo,
+                        spec,
+                        settings,
+                        preview_path(pdir, spec) if pdir else None,
+                        preview_cache=pcache,
                     ): spec
                     for spec in todo
                 }
@@ -416,6 +574,7 @@ def measure_photos(
     table = MeasurementTable(tuple(r for s in specs if s.name in done for r in done[s.name]))
     if cache_path is not None:
         table.write_csv(cache_path)
+        _prune_preview_cache(preview_cache_dir(cache_path), table)
     if errors:
         raise ImagingError(
             f"{len(errors)} of {len(specs)} photos could not be measured: "
