@@ -2,11 +2,18 @@
 the reflected light (Fig. 7). Degrees on every axis [conventions §1]; matplotlib's Agg backend.
 
 These take physical parameters, not fits, so notebooks and the report share them.
+
+Speed (issue 6: the report is part of the user's wait): every model evaluation of a figure is
+one compiled call (eager JAX compiles each operation separately, about 25 ms apiece), and the
+figures place their axes with fixed margins in inches (`fixed_layout`) instead of
+`tight_layout`, which measures every tick label and then makes `savefig` draw the figure twice.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import functools
+import math
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -15,18 +22,202 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+from matplotlib.ticker import LogFormatterSciNotation, LogLocator
+from numpy.typing import NDArray
 
 DEG = np.pi / 180
+PNG_COMPRESS_LEVEL = 1
+"""zlib level of the PNGs: with RGB instead of RGBA, the five report figures encode in about
+0.1 s instead of 0.2-0.25 s (matplotlib's RGBA at level 6), for files about 3% larger."""
+SPECTRUM_STEP_NM = 20.0
+"""Wavelength step at which `reflected_spectra` evaluates a dispersive material before linear
+interpolation onto the 5 nm grid: the reflected spectra are smooth in wavelength (dispersive
+PLA, sigma 1-20 deg: at most 7e-4 of the peak, 0.04 of one 8-bit sRGB step;
+tests/test_figures.py)."""
 
 
-def _brdf_jit(*args: Any) -> Any:
-    """`model.brdf`, compiled once per call shape (eager evaluation is ~10x slower here)."""
+# --- layout ---------------------------------------------------------------------------------
+
+
+def fixed_layout(
+    fig: Figure,
+    nrows: int,
+    ncols: int,
+    left: float = 0.75,
+    right: float = 0.2,
+    bottom: float = 0.55,
+    top: float = 0.4,
+    wspace: float = 0.8,
+    hspace: float = 0.8,
+) -> None:
+    """Place a grid of subplots with margins and gaps in inches (room for labels and titles).
+
+    The fixed-size replacement of `tight_layout`: the same inches hold whatever the figure
+    size, and matplotlib need not lay out every tick label twice to find them.
+    """
+    w, h = fig.get_size_inches()
+    ax_w = (w - left - right - (ncols - 1) * wspace) / ncols
+    ax_h = (h - bottom - top - (nrows - 1) * hspace) / nrows
+    fig.subplots_adjust(
+        left=left / w,
+        right=1 - right / w,
+        bottom=bottom / h,
+        top=1 - top / h,
+        wspace=wspace / ax_w,
+        hspace=hspace / ax_h,
+    )
+
+
+_SUPERSCRIPT = str.maketrans(
+    "0123456789-", "\u2070\u00b9\u00b2\u00b3\u2074\u2075\u2076\u2077\u2078\u2079\u207b"
+)
+
+
+class PlainLogFormatter(LogFormatterSciNotation):
+    """Log-axis labels `10⁵`, `2×10⁴` as plain text: matplotlib's default choice of labels and
+    look, without mathtext, whose parser costs ~0.2 s to build on first use."""
+
+    def __call__(self, x: float, pos: int | None = None) -> str:
+        if not super().__call__(x, pos) or x <= 0:  # the default leaves this tick unlabelled
+            return ""
+        exponent = math.floor(math.log10(x) + 1e-9)
+        coeff = round(x / 10.0**exponent)
+        power = "10" + str(exponent).translate(_SUPERSCRIPT)
+        return power if coeff == 1 else f"{coeff}\u00d7{power}"
+
+
+def log_y(ax: Axes) -> None:
+    """Logarithmic y axis with minor ticks at 2 and 5 per decade and plain-text labels (every
+    minor tick of matplotlib's default costs a tick object: ~1/3 of a panel's drawing)."""
+    ax.set_yscale("log")
+    ax.yaxis.set_minor_locator(LogLocator(subs=(2.0, 5.0)))
+    ax.yaxis.set_major_formatter(PlainLogFormatter())
+    ax.yaxis.set_minor_formatter(PlainLogFormatter(labelOnlyBase=False))
+
+
+# --- compiled model evaluations -------------------------------------------------------------
+
+
+def _spectra_at(
+    theta_o: Any, beta2: Any, n: Any, sigma: Any, diffuse_nodes: int
+) -> Any:  # traced by `_compiled`
+    """(wedges + 1, angles, len(n)): `diffuse_broadened` per wedge, then the flat material."""
+    import jax.numpy as jnp
+
+    from stairfit import model
+
+    wedges = model.diffuse_broadened(
+        theta_o[None, :, None], beta2[:, None, None], n[None, None, :], sigma, n_nodes=diffuse_nodes
+    )
+    flat = model.flat_reflectance(theta_o[:, None], n[None, :])
+    return jnp.concatenate([wedges, flat[None].astype(wedges.dtype)])
+
+
+@functools.cache
+def _compiled(name: str) -> Callable[..., Any]:
+    """The compiled model evaluations of the figures, built once per process (eager JAX would
+    compile every operation separately)."""
     import jax
 
     from stairfit import model
 
-    return jax.jit(model.brdf)(*args)
+    if name == "spectra":
+        return jax.jit(_spectra_at, static_argnames=("diffuse_nodes",))
+    return jax.jit(getattr(model, name))
+
+
+@functools.lru_cache(maxsize=16)
+def _compiled_index(kind: type, dispersion: object) -> Callable[..., Any]:
+    """`model.refractive_index` compiled for one dispersion model (keyed by its type too:
+    NamedTuples of different types can compare equal)."""
+    import jax
+
+    from stairfit import model
+
+    return jax.jit(functools.partial(model.refractive_index, dispersion))
+
+
+def refractive_index(dispersion: object, wavelength_nm: NDArray, delta_n: float) -> NDArray:
+    """`model.refractive_index` as NumPy [conventions §7], compiled once per (hashable)
+    dispersion model."""
+    from stairfit import model
+
+    try:
+        compiled = _compiled_index(type(dispersion), dispersion)
+    except TypeError:  # unhashable: evaluate eagerly
+        return np.asarray(model.refractive_index(dispersion, wavelength_nm, delta_n))
+    return np.asarray(compiled(wavelength_nm, delta_n))
+
+
+def _grid_dtype(float32: bool) -> type:
+    return np.float32 if float32 else np.float64
+
+
+def brdf_images(
+    beta2_deg: Sequence[float],
+    n: complex | float,
+    sigma_deg: float,
+    step_deg: float = 0.5,
+    float32: bool = False,
+) -> tuple[NDArray, NDArray]:
+    """`rho(theta_i, theta_o)` (1/rad) on a `step_deg` grid over [-90, 90] deg, one image per
+    wedge, in one compiled call [conventions §4, §5]; returns (grid in deg, images (wedge,
+    theta_i, theta_o))."""
+    grid = np.arange(-90, 90 + step_deg / 2, step_deg)
+    rad = (grid * DEG).astype(_grid_dtype(float32))
+    b2 = (np.asarray(beta2_deg, float) * DEG).astype(rad.dtype)
+    img = _compiled("brdf")(
+        rad[None, :, None], rad[None, None, :], b2[:, None, None], n, sigma_deg * DEG
+    )
+    return grid, np.asarray(img, float)
+
+
+def reflected_spectra(
+    beta2_deg: Sequence[float],
+    dispersion: object,
+    delta_n: float = 0.0,
+    sigma_deg: float = 5.0,
+    theta_o_deg: Sequence[float] = tuple(range(-80, 81, 10)),
+    diffuse_nodes: int = 6,
+    float32: bool = False,
+) -> NDArray:
+    """Diffuse-lighting reflectance spectra on `spectral.VISIBLE_NM`, shape (wedges + 1,
+    angles, wavelengths): one row per wedge (broadened by `sigma_deg`), the flat material last
+    [conventions §4, §7, §8]. Dimensionless.
+
+    A wavelength-independent index is evaluated once; a dispersive one every
+    `SPECTRUM_STEP_NM` and interpolated linearly in wavelength.
+    """
+    from stairfit.model import spectral
+
+    lam = spectral.VISIBLE_NM
+    n = refractive_index(dispersion, lam, delta_n)
+    if np.all(n == n[0]):
+        idx = np.array([0])
+    else:
+        every = max(1, round(SPECTRUM_STEP_NM / float(lam[1] - lam[0])))
+        idx = np.unique(np.r_[np.arange(0, lam.size, every), lam.size - 1])
+    real = _grid_dtype(float32)
+    nodes = n[idx].astype(_narrow(n.dtype)) if float32 else n[idx]
+    to = (np.asarray(theta_o_deg, float) * DEG).astype(real)
+    b2 = (np.asarray(beta2_deg, float) * DEG).astype(real)
+    at_nodes = np.asarray(
+        _compiled("spectra")(to, b2, nodes, real(sigma_deg * DEG), diffuse_nodes=diffuse_nodes),
+        float,
+    )
+    # linear interpolation in wavelength as a matrix (a single node: a constant spectrum)
+    weights = np.stack([np.interp(lam, lam[idx], e) for e in np.eye(idx.size)])
+    return at_nodes @ weights
+
+
+def _narrow(dtype: np.dtype) -> type:
+    """The single-precision type of a real or complex dtype."""
+    return np.complex64 if np.issubdtype(dtype, np.complexfloating) else np.float32
+
+
+# --- figures --------------------------------------------------------------------------------
 
 
 def brdf_map(
@@ -35,26 +226,35 @@ def brdf_map(
     sigma_deg: float = 0.0,
     step_deg: float = 0.5,
     title: str | None = None,
+    float32: bool = False,
 ) -> Figure:
     """Paper Fig. 3 (sigma = 0: reflectance ratios on the lobe lines) or Fig. 8 (broadened
-    density, 1/rad) on a theta_i x theta_o grid, one panel per wedge [conventions §3, §4]."""
+    density, 1/rad) on a theta_i x theta_o grid, one panel per wedge [conventions §3, §4].
+    `float32` evaluates the density in single precision (a preset's `float32_figures`)."""
     from matplotlib.colors import PowerNorm
 
-    from stairfit import model
-
-    grid = np.arange(-90, 90 + step_deg / 2, step_deg)
     fig, axes = plt.subplots(1, len(beta2_deg), figsize=(4.2 * len(beta2_deg), 3.8), squeeze=False)
-    for ax, b in zip(axes[0], beta2_deg, strict=True):
+    if sigma_deg > 0:
+        _, images = brdf_images(beta2_deg, n, sigma_deg, step_deg, float32)
+    else:
+        grid = np.arange(-90, 90 + step_deg / 2, step_deg)
+        lobes = _compiled("sharp_lobes")(
+            grid[None, :] * DEG, np.asarray(beta2_deg, float)[:, None] * DEG, n
+        )
+        to_all = np.rad2deg(np.asarray(lobes.theta_o))
+        ratio_all = np.asarray(lobes.ratio)
+    for k, (ax, b) in enumerate(zip(axes[0], beta2_deg, strict=True)):
         if sigma_deg > 0:
-            ti, to = np.meshgrid(grid * DEG, grid * DEG, indexing="ij")
-            img = np.asarray(_brdf_jit(ti, to, b * DEG, n, sigma_deg * DEG))
             im = ax.imshow(
-                img.T, origin="lower", extent=(-90, 90, -90, 90), cmap="magma", norm=PowerNorm(0.5)
+                images[k].T,
+                origin="lower",
+                extent=(-90, 90, -90, 90),
+                cmap="magma",
+                norm=PowerNorm(0.5),
             )
             label = "rho (1/rad)"
         else:  # the delta lobes as coloured lines
-            lobes = model.sharp_lobes(grid * DEG, b * DEG, n)
-            to, ratio = np.rad2deg(np.asarray(lobes.theta_o)), np.asarray(lobes.ratio)
+            to, ratio = to_all[k], ratio_all[k]
             keep = ratio > 0
             ti = np.broadcast_to(grid[:, None], ratio.shape)
             ax.set_facecolor("black")
@@ -67,7 +267,8 @@ def brdf_map(
         fig.colorbar(im, ax=ax, label=label, shrink=0.85)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
+    # the colourbar labels stand right of each cell: room for them in `right` and `wspace`
+    fixed_layout(fig, 1, len(beta2_deg), top=0.75 if title else 0.4, right=0.7, wspace=1.3)
     return fig
 
 
@@ -107,48 +308,58 @@ def reflected_colours(
     sigma_deg: float = 5.0,
     theta_o_deg: Sequence[float] = tuple(range(-80, 81, 10)),
     illuminants: Sequence[str] = ("D65", "A"),
+    diffuse_nodes: int = 6,
+    float32: bool = False,
 ) -> Figure:
     """Paper Fig. 7: the colour of diffusely lit light reflected towards each viewing angle,
     per wedge and for the flat material, under each illuminant [conventions §8].
 
     Each swatch is the sRGB colour of the reflected light; one common exposure per illuminant
     maps the brightest swatch to display white, so brightness differences remain visible.
+    `diffuse_nodes` and `float32` are a preset's `diffuse_nodes` and `float32_figures`.
     """
-    import jax
-
-    from stairfit import model
     from stairfit.model import spectral
 
-    lam = spectral.VISIBLE_NM
-    n = np.asarray(model.refractive_index(dispersion, lam, delta_n))
-    to = np.asarray(theta_o_deg, float) * DEG
+    spectra = reflected_spectra(
+        beta2_deg, dispersion, delta_n, sigma_deg, theta_o_deg, diffuse_nodes, float32
+    )
     rows = [*(f"{b:g} deg" for b in beta2_deg), "material"]
+    n_to = len(theta_o_deg)
     fig, axes = plt.subplots(
         1,
         len(illuminants),
-        figsize=(0.45 * len(to) * len(illuminants) + 1.5, 0.5 * len(rows) + 1.2),
+        figsize=(0.45 * n_to * len(illuminants) + 1.5, 0.5 * len(rows) + 1.2),
         squeeze=False,
     )
-    # one compiled evaluation for all wedges (the spectra do not depend on the illuminant)
-    diffuse = jax.jit(jax.vmap(model.diffuse_broadened, in_axes=(None, 0, None, None)))
-    b2 = np.asarray(beta2_deg, float) * DEG
-    spectra = list(np.asarray(diffuse(to[:, None], b2, n[None, :], sigma_deg * DEG)))
-    spectra.append(np.asarray(model.flat_reflectance(to[:, None], n[None, :])))
     for ax, ill in zip(axes[0], illuminants, strict=True):
-        w = spectral.xyz_weights(ill, lam)
-        xyz = np.stack([s @ w.T for s in spectra])  # (rows, angles, 3)
+        xyz = spectra @ spectral.xyz_weights(ill).T  # (rows, angles, 3)
         exposure = 0.9 / max(float(xyz[..., 1].max()), 1e-12)
         ax.imshow(spectral.xyz_to_srgb(xyz, exposure), aspect="auto")
-        ax.set_xticks(range(len(to)), [f"{t:g}" for t in theta_o_deg], fontsize="x-small")
+        ax.set_xticks(range(n_to), [f"{t:g}" for t in theta_o_deg], fontsize="x-small")
         ax.set_yticks(range(len(rows)), rows, fontsize="small")
         ax.set(xlabel="theta_o (deg)", title=f"illuminant {ill}")
-    fig.tight_layout()
+    fixed_layout(fig, 1, len(illuminants), left=0.75, right=0.1, bottom=0.5, top=0.3, wspace=0.8)
     return fig
 
 
 def save(fig: Figure, path: Path, dpi: int = 120) -> Path:
-    """Save a figure as PNG and close it."""
+    """Save a figure as an opaque RGB PNG (zlib level `PNG_COMPRESS_LEVEL`) and close it.
+
+    Drawn on the Agg canvas and written by Pillow without the alpha channel: a quarter less
+    to compress than `savefig`'s RGBA, the same pixels (the figure background is opaque).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from PIL import Image
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    try:
+        fig.set_dpi(dpi)
+        canvas = FigureCanvasAgg(fig)
+        canvas.draw()
+        rgb = np.asarray(canvas.buffer_rgba())[..., :3]
+        Image.fromarray(rgb).save(
+            path, format="png", compress_level=PNG_COMPRESS_LEVEL, dpi=(dpi, dpi)
+        )
+    finally:
+        plt.close(fig)
     return path

@@ -23,7 +23,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from . import __version__
-from .figures import brdf_map, reflected_colours, save
+from .figures import brdf_map, fixed_layout, log_y, reflected_colours, refractive_index, save
 
 if TYPE_CHECKING:
     from .fit import FitOutcome
@@ -299,11 +299,16 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
 
 
 def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
-    """Every figure of the report; returns {key: relative path}."""
-    from stairfit import model
+    """Every figure of the report; returns {key: relative path}.
+
+    The model-only figures (fitted BRDF, reflected colours) follow the preset's
+    `diffuse_nodes` and `float32_figures`.
+    """
+    from stairfit.model.spectral import VISIBLE_NM
 
     fit = outcome.selection.fit
     p = fit.params
+    preset = outcome.options.preset
     figs: dict[str, str] = {}
     figs["fit"] = _rel(save(fit_per_wedge(outcome), folder / "fit_per_wedge.png"), folder)
     figs["residuals"] = _rel(save(residual_figure(outcome), folder / "residuals.png"), folder)
@@ -313,7 +318,9 @@ def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
     pick = sorted({min(wedges), max(wedges)})
     sigma_deg = float(np.mean(p.sigma_rad)) / DEG
     disp = outcome.scene.specimen.index.build()
-    n550 = complex(np.asarray(model.refractive_index(disp, np.array([550.0]), p.delta_n))[0])
+    lam = VISIBLE_NM  # the grid of reflected_colours: one compilation serves both figures
+    n_lam = refractive_index(disp, lam, float(p.delta_n))
+    n550 = complex(np.interp(550.0, lam, n_lam.real), np.interp(550.0, lam, np.imag(n_lam)))
     n550 = n550.real if n550.imag == 0 else n550
     figs["brdf_map"] = _rel(
         save(
@@ -322,6 +329,7 @@ def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
                 n=n550,
                 sigma_deg=sigma_deg,
                 title=f"fitted BRDF at 550 nm (sigma = {sigma_deg:.3g} deg)",
+                float32=preset.float32_figures,
             ),
             folder / "brdf_map.png",
         ),
@@ -329,7 +337,14 @@ def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
     )
     figs["colours"] = _rel(
         save(
-            reflected_colours(wedges, disp, delta_n=float(p.delta_n), sigma_deg=sigma_deg),
+            reflected_colours(
+                wedges,
+                disp,
+                delta_n=float(p.delta_n),
+                sigma_deg=sigma_deg,
+                diffuse_nodes=preset.diffuse_nodes,
+                float32=preset.float32_figures,
+            ),
             folder / "colours.png",
         ),
         folder,
@@ -379,14 +394,14 @@ def fit_per_wedge(outcome: FitOutcome) -> plt.Figure:
             xlabel="theta_o (deg, face)",
             ylabel="relative radiance",
         )
-        ax.set_yscale("log")
+        log_y(ax)
     for ax in axes.flat[len(wedges) :]:
         ax.axis("off")
     axes.flat[0].legend(fontsize="small", title="channel")
     fig.suptitle(
         f"measured (points, x = not fitted) and model '{outcome.selection.chosen}' (lines)"
     )
-    fig.tight_layout()
+    fixed_layout(fig, nrow, ncol, top=0.75, wspace=0.85, hspace=0.85)
     return fig
 
 
@@ -408,20 +423,42 @@ def residual_figure(outcome: FitOutcome) -> plt.Figure:
     a2.plot(x, np.exp(-0.5 * x * x) / np.sqrt(2 * np.pi), "k-", label="N(0, 1)")
     a2.set(xlabel="whitened residual", title=f"reduced chi2 = {fit.reduced_chi2:.3g}")
     a2.legend(fontsize="small")
-    fig.tight_layout()
+    fixed_layout(fig, 1, 2, top=0.35, wspace=0.6)
     return fig
 
 
 def corner_figure(outcome: FitOutcome) -> plt.Figure:
-    """Corner plot of the posterior samples (display units)."""
+    """Corner plot of the posterior samples (display units), titled with the median and the
+    16-84% interval in plain text (corner's own titles are mathtext, slow to set up)."""
     import corner
 
     post = outcome.posterior
     labels, factors = zip(*(display_name(n) for n in post.names), strict=True)
     samples = post.samples * np.asarray(factors)[None, :]
+    q16, q50, q84 = np.quantile(samples, (0.16, 0.5, 0.84), axis=0)
+    titles = [
+        f"{lab} = {value_with_errors(m, m - lo, hi - m)}"
+        for lab, lo, m, hi in zip(labels, q16, q50, q84, strict=True)
+    ]
     return corner.corner(
-        samples, labels=list(labels), quantiles=(0.16, 0.5, 0.84), show_titles=True, title_fmt=".3g"
+        samples,
+        labels=list(labels),
+        titles=titles,
+        quantiles=(0.16, 0.5, 0.84),
+        show_titles=True,
+        title_fmt=None,
+        title_kwargs={"fontsize": "medium"},
     )
+
+
+def value_with_errors(value: float, minus: float, plus: float) -> str:
+    """`value +plus -minus`, rounded to the second significant digit of the smaller error but
+    never above the units (`6.00034 +0.00011 -0.00012`, `1999778 +107 -113`)."""
+    err = min(abs(minus), abs(plus))
+    if not np.isfinite(err) or err <= 0 or not np.isfinite(value):
+        return f"{value:.6g} +{plus:.2g} -{minus:.2g}"
+    decimals = max(0, 1 - int(np.floor(np.log10(err))))
+    return f"{value:.{decimals}f} +{plus:.{decimals}f} -{minus:.{decimals}f}"
 
 
 # --- report and summary ---------------------------------------------------------------------

@@ -12,7 +12,9 @@ cached in memory) with its own `STAIRFIT_JAX_CACHE` folder:
 * `fit warm + measurement cache`: the user's second run on the same folder.
 
 Peak memory is the maximum resident set size of each `stairfit` process (`getrusage` of a
-wrapper process that runs only that command).
+wrapper process that runs only that command). The stages (measure, fits, posterior) are the
+`timings_s` each fit writes to its results.json; the rest of a fit's wall time is process
+start-up and imports, and writing the outputs.
 Repeats give the median and the range. Run:
 
     python benchmarks/bench_demo.py               # the demo scene, 3 repeats
@@ -24,6 +26,7 @@ Writes benchmarks/results/demo.md (a table) unless --no-write.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import shutil
@@ -66,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     exe = shutil.which("stairfit") or "stairfit"
     rows: dict[str, list[tuple[float, float]]] = {}
+    stages: dict[str, list[dict[str, float]]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
         for k in range(args.repeats):
@@ -83,21 +87,32 @@ def main(argv: list[str] | None = None) -> int:
             for j, (label, extra) in enumerate(cases):
                 out = tmp_path / f"fit{k}_{j}"
                 rows.setdefault(label, []).append(peak_of([*base, *extra, "-o", str(out)], env))
+                result = json.loads((out / "results.json").read_text())
+                stages.setdefault(label, []).append(result["diagnostics"]["timings_s"])
             print(f"repeat {k + 1}/{args.repeats} done", file=sys.stderr)
     lines = [
         f"Demo scene: {args.views} photos of {args.megapixels:g} MP, 6 wedges, preset "
         f"{args.preset}; {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
         f"median of {args.repeats} (range).",
         "",
-        "| stage | wall time (s) | peak memory (MB) |",
-        "|---|---|---|",
+        "| stage | wall time (s) | peak memory (MB) | measure / fits / posterior (s) |",
+        "|---|---|---|---|",
     ]
     for label, vals in rows.items():
         walls = [w for w, _ in vals]
         mbs = [m for _, m in vals]
+        parts = stages.get(label)
+        split = (
+            " / ".join(
+                f"{statistics.median(t.get(k, 0.0) for t in parts):.1f}"
+                for k in ("measure_s", "fit_s", "posterior_s")
+            )
+            if parts
+            else ""
+        )
         lines.append(
             f"| {label} | {statistics.median(walls):.1f} ({min(walls):.1f}-{max(walls):.1f}) "
-            f"| {max(mbs):.0f} |"
+            f"| {max(mbs):.0f} | {split} |"
         )
     text = "\n".join(lines) + "\n"
     print(text)

@@ -26,6 +26,9 @@ def _run(tmp_path: Path, *sim_args: str, fit_args: tuple[str, ...] = ()) -> tupl
     assert main(sim) == 0
     out = tmp_path / "fit"
     assert main(["fit", str(photos), "-o", str(out), "--quiet", *fit_args]) == 0
+    for name in ("fit_per_wedge", "residuals", "corner", "brdf_map", "colours"):
+        assert (out / "figures" / f"{name}.png").is_file(), name
+    assert (out / "report.html").is_file()
     truth = json.loads((photos / "truth.json").read_text())["parameters"]
     return truth, json.loads((out / "results.json").read_text())
 
