@@ -6,7 +6,7 @@ against a converged reference, fit bias in standard errors on synthetic data wit
 wall time with compilation apart) and then each preset as a whole, writing
 `benchmarks/results/tradeoff.{csv,md}` and the Pareto plot `tradeoff_pareto.png`. The three
 presets are points on that measured front (case: dispersive PLA, a 5-deg light seen over a 3-deg
-face, sigma 6 deg, 2% noise; run of 2026-12-01 on a shared 2-core machine):
+face, sigma 6 deg, 2% noise):
 
 * aperture nodes: 1 node ignores a finite light (3% model error, 6x the noise; fitted
   parameters biased by up to 23 standard errors); 2 nodes cut it to 0.29% (0.23 x noise,
@@ -16,18 +16,19 @@ face, sigma 6 deg, 2% noise; run of 2026-12-01 on a shared 2-core machine):
   5 nm sampling removes it for 2-3x the fit time and 6x the posterior time (accurate only);
 * starts: on the standard scene 1 to 4 starts find the same optimum; the extra starts guard
   against the local minima of broad, overlapping lobes (docs/fitting.md §3);
-* posterior: with the sampler's 500-step chunks, tau_factor 10-50 all stop at 2000 steps
-  (the tau-stability rule binds first); `posterior_max_steps` is what shortens the chain
-  (1500 steps: Monte Carlo error 0.027 sd instead of 0.024, and the result says "not
-  converged"); 100 tau takes 4000 steps (0.017 sd);
+* posterior: the stopping rule (longer than tau_factor autocorrelation times, tau settled) is
+  checked every `posterior_chunk_steps`; every 100 steps, tau_factor 10 and 20 both stop at
+  700-800 steps (Monte Carlo error of a mean 0.04 sd); every 500 steps, tau_factor 20 and 50
+  ran 2500 steps (0.022 sd) for 3x the time; 100 tau takes 4000 steps (0.018 sd);
 * float32 figures: half the time of float64 at full sampling, error unchanged at 3e-3;
 * diffuse nodes 3 / 6 / 8: error 1e-4 / 3e-9 / 3e-12 of the maximum;
 * rounded resolution 2 / 4 / 8: error 1e-4 / 2e-5 / 2e-6 (model/_rounded.py as of that run).
 
 Measured presets (least-squares fit of the standard scene after compilation; compilation about
-8 s; posterior of 32 walkers): fast 15 ms + 19 s, balanced 44 ms + 30 s, accurate 116 ms +
-184 s; fit bias 0.16 / 0.16 / 0.0004 standard errors. `fit` uses `balanced` by default. The
-`ladder` field (model choice, not numerical accuracy) is not measured by the benchmark.
+4-6 s; posterior of 32 walkers; run of 2026-12-01 on the idle 2-core machine): fast 11 ms +
+2.1 s, balanced 12 ms + 2.3 s, accurate 35 ms + 17 s; fit bias 0.16 / 0.16 / 0.0004 standard
+errors. `fit` uses `balanced` by default. The `ladder` field (model choice, not numerical
+accuracy) is not measured by the benchmark.
 """
 
 from __future__ import annotations

@@ -708,8 +708,8 @@ def markdown(rows: list[Row], st: Settings, ref_note: str, elapsed: float) -> st
         + f"` in {elapsed / 60:.1f} min; medians of {st.repeats}+ repeats after compilation, "
         "compilation apart. Cases, references and columns: the script's docstring and "
         "`tradeoff.csv`. Material `pla-bodurov2016`, light 5 deg and face 3 deg wide, truth "
-        "sigma 6 deg, delta_n 0.05, scale 2, 2% noise. The machine (2 cores) was shared with "
-        "other jobs: times are upper bounds, ratios within one table are comparable. "
+        "sigma 6 deg, delta_n 0.05, scale 2, 2% noise. Times depend on the machine's load (2 "
+        "cores here); ratios within one table are comparable. "
         f"Model {ref_note}.",
         "",
     ]
