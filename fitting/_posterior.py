@@ -257,16 +257,16 @@ def sample_posterior(
     base_z = jnp.asarray(z_fit)
     slots_j = jnp.asarray(slots)
 
-    def log_prob_batch(theta: np.ndarray) -> np.ndarray:
-        out = _batched_log_probability(jnp.asarray(theta), static, priors, data, base_z, slots_j)
-        return np.array(out)  # a writable copy: walkers outside the support are re-drawn
-
     fingerprint = _fingerprint(fit, data)
     path = None if chain_path is None else Path(chain_path)
     walkers = n_walkers or max(32, 4 * p)
     walkers += walkers % 2
     if walkers < 2 * p:
         raise FitInputError(f"n_walkers = {walkers}; emcee needs at least 2 x {p} walkers")
+
+    def log_prob_batch(theta: np.ndarray) -> np.ndarray:
+        out = _batched_log_probability(jnp.asarray(theta), static, priors, data, base_z, slots_j)
+        return np.array(out)  # a writable copy: walkers outside the support are re-drawn
 
     prev_z = np.zeros((0, walkers, p))
     prev_lp = np.zeros((0, walkers))
@@ -404,15 +404,27 @@ def sample_posterior(
     return result
 
 
+PHYSICAL_BLOCK = 2048
+"""Samples are converted to physical values in blocks of this many rows (the last one padded),
+so that one compiled program serves chains of every length (a chain file is written after every
+chunk; converting the growing chain in one call recompiled for every new length)."""
+
+
 def _to_physical_samples(
     kept_z: np.ndarray, static: Static, data: Data, base_z: Array, slots: np.ndarray
 ) -> np.ndarray:
     """Physical values of the free slots for unconstrained samples `(n, p)`."""
-    if kept_z.shape[0] == 0:
+    n = kept_z.shape[0]
+    if n == 0:
         return np.zeros((0, slots.size))
-    full = jnp.broadcast_to(base_z, (kept_z.shape[0], base_z.shape[0]))
-    full = full.at[:, jnp.asarray(slots)].set(jnp.asarray(kept_z))
-    return np.asarray(_batched_physical(full, static, data))[:, slots]
+    n_pad = -n % PHYSICAL_BLOCK
+    padded = np.concatenate([kept_z, np.repeat(kept_z[-1:], n_pad, axis=0)], axis=0)
+    out = []
+    for block in padded.reshape(-1, PHYSICAL_BLOCK, kept_z.shape[1]):
+        full = jnp.broadcast_to(base_z, (PHYSICAL_BLOCK, base_z.shape[0]))
+        full = full.at[:, jnp.asarray(slots)].set(jnp.asarray(block))
+        out.append(np.asarray(_batched_physical(full, static, data))[:, slots])
+    return np.concatenate(out, axis=0)[:n]
 
 
 def _payload(
