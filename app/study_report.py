@@ -142,9 +142,7 @@ def csv_text(rows: Sequence[dict[str, Any]]) -> str:
 def _cell(v: Any) -> Any:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return ""
-    if isinstance(v, float):
-        return f"{v:.10g}"
-    return v
+    return v  # floats as repr: the shortest text that reads back exactly
 
 
 # --- files ----------------------------------------------------------------------------------
@@ -193,7 +191,7 @@ def write_figures(rows: Sequence[dict[str, Any]], folder: Path) -> list[tuple[st
     params = parameters_of(done)
     if not done or not params:
         return []
-    labels = [Path(r["folder"]).name for r in done]
+    labels = [r["output"] for r in done]  # unique, unlike the folders' names
     figures = [("every parameter per specimen", "by_specimen.png")]
     save(parameter_figure(done, params, list(range(len(done))), labels, "specimen"),
          folder / figures[0][1])  # fmt: skip
@@ -227,7 +225,9 @@ def parameter_figure(
 
     ncol = min(3, len(params))
     nrow = math.ceil(len(params) / ncol)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 3.3 * nrow), squeeze=False)
+    bottom = 1.4 if ticks is not None else 0.55  # inches: room for slanted labels
+    size = (4.2 * ncol, 2.6 * nrow + bottom + 0.2)
+    fig, axes = plt.subplots(nrow, ncol, figsize=size, squeeze=False)
     xs = np.asarray(x, float)
     for ax, name in zip(axes.flat, params, strict=False):
         y = np.array([_num(r.get(name)) for r in rows])
@@ -243,7 +243,6 @@ def parameter_figure(
     for ax in axes.flat[len(params) :]:
         ax.axis("off")
     fig.suptitle("value and 95% interval per specimen (hollow grey: fixed by the chosen model)")
-    bottom = 1.3 if ticks is not None else 0.55
     fixed_layout(fig, nrow, ncol, bottom=bottom, top=0.7, wspace=0.9, hspace=1.2)
     return fig
 
