@@ -48,11 +48,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "'stairfit fit' does, one Dask task per folder, into OUT/NAME; skip folders whose "
             "result is up to date; write OUT/study.csv and OUT/study.html (docs/study.md)."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=_HelpFormatter,
     )
     for action in p._actions:  # the shared options, said for a study
         if action.dest == "output":
-            action.help, action.metavar = "study folder (required)", "OUT"
+            action.help, action.metavar, action.required = "study folder", "OUT", True
         elif action.dest == "force":
             action.help = "fit every folder again, even when its result is up to date"
         elif action.dest == "workers":
@@ -80,6 +80,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "$STAIRFIT_JAX_CACHE or ~/.cache/stairfit/jax)",
     )
     p.set_defaults(func=run)
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Defaults shown as `fit` shows them, except None (the help says it in words)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None:
+            return action.help
+        return super()._get_help_string(action)
 
 
 @dataclass(frozen=True)

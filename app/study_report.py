@@ -9,6 +9,7 @@ a posterior, the least-squares value +- 1.96 standard errors.
 from __future__ import annotations
 
 import csv
+import datetime
 import html
 import io
 import math
@@ -45,6 +46,7 @@ RUN_COLUMNS = (
     "measure_s",
     "fit_s",
     "posterior_s",
+    "started_utc",
     "elapsed_s",
     "host",
     "pid",
@@ -112,6 +114,9 @@ def study_row(report: FolderReport) -> dict[str, Any]:
             row[f"{name}{suffix}"] = cell[suffix.lstrip("_") or "value"]
     row |= {k: timings.get(k) for k in RUN_COLUMNS[:3]}
     row |= {k: run.get(k) for k in RUN_COLUMNS[3:]}
+    if run.get("started") is not None:
+        when = datetime.datetime.fromtimestamp(run["started"], datetime.UTC)
+        row["started_utc"] = when.isoformat(timespec="milliseconds")
     return row
 
 
