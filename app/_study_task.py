@@ -79,17 +79,21 @@ def run_task(task: FolderTask) -> FolderReport:
         "scene": None,
         "results": None,
     }
+    cache = None
     try:
-        prepare_worker(task)
+        cache = prepare_worker(task)
         report.update(fit_or_skip(task))
     except Exception as err:  # a failed folder must not stop the others
         report["error"] = describe_error(err, task)
-    report["run"] = run_info(started)
+    report["run"] = run_info(started) | {"jax_cache": cache}
     return report
 
 
-def prepare_worker(task: FolderTask) -> None:
-    """float64 and the shared JAX cache in this worker process (idempotent), version check."""
+def prepare_worker(task: FolderTask) -> str | None:
+    """float64 and the shared JAX cache in this worker process (idempotent), version check.
+
+    Returns the cache folder in use, None when it is off or cannot be created on this worker.
+    """
     if task.version != __version__:
         raise UserError(
             f"this worker ({socket.gethostname()}) runs stairfit {__version__}, the study "
@@ -100,7 +104,8 @@ def prepare_worker(task: FolderTask) -> None:
     from ._jaxcache import ENV_VAR, enable_persistent_cache
 
     jax.config.update("jax_enable_x64", True)  # [conventions §10]
-    enable_persistent_cache({ENV_VAR: task.jax_cache or "off"})
+    folder = enable_persistent_cache({ENV_VAR: task.jax_cache or "off"})
+    return None if folder is None else str(folder)
 
 
 def fit_or_skip(task: FolderTask) -> FolderReport:

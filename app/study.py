@@ -108,10 +108,10 @@ def run(args: argparse.Namespace) -> int:
     from .study_report import print_summary, write_study
 
     plan = plan_study(args)
-    prepare_output(plan.out)
     reports: list[FolderReport] = []
     try:
         with connect(plan) as client:
+            prepare_output(plan.out)  # only once a cluster is there: a failed start leaves none
             run_tasks(client, plan, reports)
     except KeyboardInterrupt:
         sweep_partial_folders(plan)
@@ -144,6 +144,7 @@ def plan_study(args: argparse.Namespace) -> StudyPlan:
             f"'dask scheduler --scheduler-file {args.scheduler_file}' first or fix the path"
         )
     out = args.output.expanduser().resolve()
+    check_output(out)
     folders = find_folders(args.paths, exclude=out)
     cache = jax_cache_folder(args.jax_cache)
     names = output_names(folders)
@@ -235,8 +236,8 @@ def output_names(folders: Sequence[Path]) -> dict[Path, str]:
     return names
 
 
-def prepare_output(out: Path) -> None:
-    """Create OUT; refuse an existing non-empty folder that is not a study (never overwrite)."""
+def check_output(out: Path) -> None:
+    """Refuse an OUT that is a file, or a non-empty folder that is not a study (never overwrite)."""
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: exists and is not a folder; choose another -o")
     if out.is_dir() and any(out.iterdir()) and not (out / LEDGER_DIR).is_dir():
@@ -244,6 +245,11 @@ def prepare_output(out: Path) -> None:
             f"{out}: exists and is not a stairfit study folder (no {LEDGER_DIR}/); choose "
             "another -o, or an empty folder"
         )
+
+
+def prepare_output(out: Path) -> None:
+    """`check_output`, then create OUT and its ledger folder."""
+    check_output(out)
     (out / LEDGER_DIR).mkdir(parents=True, exist_ok=True)
 
 

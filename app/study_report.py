@@ -51,6 +51,7 @@ RUN_COLUMNS = (
     "host",
     "pid",
     "peak_rss_mb",
+    "jax_cache",
 )
 PARAMETER_FIELDS = ("", "_lo95", "_hi95", "_stderr", "_from")
 """Per parameter P: P (posterior median, least-squares value, or the fixed value), P_lo95 and

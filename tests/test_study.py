@@ -98,6 +98,7 @@ def test_local_cluster_fits_records_failures_and_resumes(
         scene_sha = hashlib.sha256((folder / "scene.toml").read_bytes()).hexdigest()
         assert results["inputs"]["scene"]["sha256"] == scene_sha
         assert float(row["sigma_deg"]) == results["parameters"][0]["least_squares"]["value"]
+        assert row["jax_cache"] == str(jax_cache.resolve())
         outputs.append(row["output"])
     assert len(set(outputs)) == 3  # lab1/photos and lab2/photos do not collide
     assert table[str(two.resolve())]["meta.nozzle_c"] == "220"
