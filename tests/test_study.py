@@ -238,3 +238,22 @@ def test_ctrl_c_keeps_finished_folders_and_leaves_no_partial_ones(
     assert len(table) == len(folders)
     assert {row["status"] for row in table.values()} <= {"fitted", "interrupted"}
     assert any(row["status"] == "interrupted" for row in table.values())
+
+
+@pytest.mark.slow  # an extra fit in this process (its compilation is not cached here)
+def test_a_study_folder_holds_what_stairfit_fit_writes(
+    simulated: Path, jax_cache: Path, tmp_path: Path
+) -> None:
+    folder = specimen(simulated, tmp_path / "a", printer="MK4")
+    out = tmp_path / "out"
+    cache = ("--jax-cache", str(jax_cache))
+    assert main(["study", str(folder), "-o", str(out), "--local-workers", "1", *cache, *FAST]) == 0
+    direct = tmp_path / "direct"
+    assert main(["fit", str(folder), "-o", str(direct), *FAST]) == 0
+    (row,) = read_table(out).values()
+    in_study = out / row["output"]
+    files = {p.relative_to(in_study) for p in in_study.rglob("*")}
+    assert files == {p.relative_to(direct) for p in direct.rglob("*")}
+    a, b = (json.loads((d / "results.json").read_text()) for d in (in_study, direct))
+    for key in ("parameters", "fixed_parameters", "model_selection", "inputs", "settings"):
+        assert a[key] == b[key], key
