@@ -363,13 +363,18 @@ def with_interrupted(plan: StudyPlan, reports: Sequence[FolderReport]) -> list[F
     rows = list(reports)
     for task in plan.tasks:
         if task.name not in done:
+            ledger = plan.out / LEDGER_DIR / f"{task.name}.json"
+            finished = ledger.is_file() and (plan.out / task.name / "results.json").is_file()
             rows.append(
                 {
                     "folder": str(task.folder),
                     "output": task.name,
                     "status": INTERRUPTED,
-                    "error": "the study was interrupted before this folder finished",
-                    "note": None,
+                    "error": "the study was interrupted before this folder's task reported",
+                    "note": f"a result is in {task.name}/; the next run skips it if it is up "
+                    "to date"
+                    if finished
+                    else None,
                     "scene": None,
                     "results": None,
                     "run": None,
