@@ -21,6 +21,7 @@ from .errors import UserError
 SCENE_FILE = "scene.toml"
 SCENE_VERSION = 1
 Polygon = tuple[tuple[float, float], ...]
+MetadataValue = str | int | float
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,8 @@ class Specimen:
     layer_um: float
     index: IndexSpec
     wedges: tuple[Wedge, ...]
+    metadata: tuple[tuple[str, MetadataValue], ...] = ()
+    """Free `[specimen.metadata]` (printer, nozzle temperature, ...): key = string or number."""
 
 
 @dataclass(frozen=True)
@@ -169,6 +172,10 @@ class Scene:
         if self.angles_relative_to == "face":
             return photo.light_deg, photo.view_deg
         return photo.light_deg - wedge.angle_deg, photo.view_deg + wedge.angle_deg
+
+    def input_files(self) -> tuple[Path, ...]:
+        """Every file this scene reads besides the scene file itself (absolute, resolved)."""
+        return tuple((self.folder / p.file).resolve() for p in self.photos)
 
 
 # --- loading and validation -----------------------------------------------------------------
@@ -314,7 +321,7 @@ class _Reader:
 
 def _specimen(r: _Reader, d: dict[str, Any]) -> Specimen:
     w = "specimen"
-    r.table(d, w, ["layer_um", "material", "index", "wedges"])
+    r.table(d, w, ["layer_um", "material", "index", "wedges", "metadata"])
     layer = r.get(d, "layer_um", float, w, lo=1.0, hi=10_000.0)
     if "index" in d and "material" in d:
         r.fail(f"{w}.index", "give either 'material' (a name) or an 'index' table, not both")
@@ -353,7 +360,28 @@ def _specimen(r: _Reader, d: dict[str, Any]) -> Specimen:
     dup = {x for x in names if names.count(x) > 1}
     if dup:
         r.fail(f"{w}.wedges", f"duplicate wedge name(s) {sorted(dup)}; names must be unique")
-    return Specimen(layer, index, tuple(wedges))
+    metadata = _metadata(r, d.get("metadata", {}), f"{w}.metadata")
+    return Specimen(layer, index, tuple(wedges), metadata)
+
+
+def _metadata(r: _Reader, d: Any, w: str) -> tuple[tuple[str, MetadataValue], ...]:
+    """`[specimen.metadata]`: free key = value pairs, each a string or a finite number."""
+    if not isinstance(d, dict):
+        r.fail(w, 'must be a table of key = value, e.g. printer = "MK4", nozzle_c = 215')
+    items = []
+    for key, v in d.items():
+        if isinstance(v, float) and not math.isfinite(v):
+            r.fail(f"{w}.{key}", f"must be a finite number, not {v!r}")
+        if isinstance(v, dict | list):
+            r.fail(
+                f"{w}.{key}",
+                f"is a {'table' if isinstance(v, dict) else 'list'}; metadata values are single "
+                f'strings or numbers, e.g. {key} = "..."',
+            )
+        if isinstance(v, bool) or not isinstance(v, str | int | float):
+            r.fail(f"{w}.{key}", f'must be a string or a number, not {v!r}; quote it: "{v}"')
+        items.append((str(key), v))
+    return tuple(items)
 
 
 def _index(r: _Reader, d: dict[str, Any], w: str) -> IndexSpec:

@@ -67,8 +67,29 @@ EXPECTED_OPTIONS = {
         "--force",
         "--quiet",
     ],
+    "study": [
+        "--output",
+        "--scheduler",
+        "--scheduler-file",
+        "--local-workers",
+        "--jax-cache",
+        "--preset",
+        "--no-posterior",
+        "--model",
+        "--no-model-error",
+        "--seed",
+        "--no-cache",
+        "--force",
+        "--quiet",
+    ],
 }
-POSITIONAL = {"predict": None, "simulate": "out", "fit": "DIR", "demo": "out"}
+POSITIONAL = {
+    "predict": None,
+    "simulate": "out",
+    "fit": "DIR",
+    "demo": "out",
+    "study": "ROOT_OR_FOLDER",
+}
 
 
 @pytest.fixture(autouse=True)
