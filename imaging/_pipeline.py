@@ -33,7 +33,7 @@ from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import Polygon, RoiMask, as_polygon, roi_mask
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 2
+TABLE_VERSION = 3
 """Part of every cache key: bump it when a change to the code changes measured values."""
 
 
@@ -252,6 +252,7 @@ def measure_frame(
                     exposure_time_s=exposure.exposure_time_s,
                     f_number=exposure.f_number,
                     iso=exposure.iso,
+                    exposure_source=exposure.source,
                     black_level=black[c],
                     white_level=frame.white_level,
                     roi_source=roi.source,

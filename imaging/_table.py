@@ -41,6 +41,9 @@ class MeasurementRow:
             "below_black", "no_pixels", "reference-..."). Flagged rows must not be fitted.
         normalised_by: the reference patch `value` is divided by ("" if none).
         exposure_time_s, f_number, iso: the exposure used (EXIF or override).
+        exposure_source: where it came from: "exif" (EXIF IFD), "ifd0" (IFD0), "scene"
+            (scene-file override), or per value "exposure_time_s=scene;f_number=exif;..." when
+            the three differ (`imaging.Exposure.source`).
         black_level: mean black level of the channel (DN).
         white_level: the white (saturation) level (DN).
         roi_source: "polygon" (pixel polygon given) or "markers" (placed from ArUco markers).
@@ -65,6 +68,7 @@ class MeasurementRow:
     exposure_time_s: float
     f_number: float
     iso: float
+    exposure_source: str
     black_level: float
     white_level: float
     roi_source: str

@@ -38,6 +38,9 @@ _XYZ_TO_CAMERA = (
 )
 _SHIFT = 8
 
+EXPOSURE_TAG_PLACES: tuple[str, ...] = ("exif", "ifd0", "both", "none")
+"""Where `SyntheticPhoto.write_dng` can put the exposure tags."""
+
 
 @dataclass(frozen=True)
 class SensorModel:
@@ -111,17 +114,28 @@ class SyntheticPhoto:
         path: str | Path,
         *,
         exif: bool = True,
+        exposure_tags: str = "exif",
         make: str = "stairfit",
         model: str = "synthetic",
     ) -> Path:
-        """Write the photo as a DNG (see `write_dng`); `exif=False` leaves the exposure out."""
+        """Write the photo as a DNG (see `write_dng`); `exif=False` leaves the exposure out.
+
+        `exposure_tags` says where the exposure goes: one of `EXPOSURE_TAG_PLACES`, "exif" (the
+        EXIF sub-IFD), "ifd0" (IFD0, as TIFF/EP puts it), "both", or "none".
+        """
+        if exposure_tags not in EXPOSURE_TAG_PLACES:
+            raise ImagingError(
+                f"write_dng: exposure_tags {exposure_tags!r}; use one of {EXPOSURE_TAG_PLACES}"
+            )
+        where = exposure_tags if exif else "none"
         return write_dng(
             path,
             self.mosaic,
             cfa=self.sensor.cfa,
             black_level=self.sensor.black_level,
             white_level=self.sensor.white,
-            exposure=self.exposure if exif else None,
+            exposure=self.exposure if where in ("exif", "both") else None,
+            ifd0_exposure=self.exposure if where in ("ifd0", "both") else None,
             make=make,
             model=model,
         )
@@ -343,6 +357,7 @@ def write_dng(
     black_level: int = 1024,
     white_level: int = 16383,
     exposure: Exposure | None = None,
+    ifd0_exposure: Exposure | None = None,
     make: str = "stairfit",
     model: str = "synthetic",
 ) -> Path:
@@ -351,14 +366,16 @@ def write_dng(
     The file has PhotometricInterpretation 32803 (CFA), CFARepeatPatternDim 2 x 2, CFAPattern,
     BlackLevel, WhiteLevel, a colour matrix (linear sRGB camera, D65) and, when `exposure` is
     given, an EXIF sub-IFD with ExposureTime, FNumber and ISOSpeedRatings (rawpy reports ISO only
-    from there). Data are stored unpacked as uint16, so rawpy reads them back bit-exactly.
+    from there); `ifd0_exposure` puts the same three tags in IFD0 instead (or as well), where
+    TIFF/EP puts them. Data are stored unpacked as uint16, so rawpy reads them back bit-exactly.
 
     Args:
         path: the .dng file to write.
         mosaic: (H, W) uint16 raw values.
         cfa: the 2 x 2 CFA tile, e.g. "RGGB".
         black_level, white_level: in DN.
-        exposure: exposure tags to write; None writes no EXIF exposure.
+        exposure: exposure tags to write to the EXIF IFD; None writes no EXIF exposure.
+        ifd0_exposure: exposure tags to write to IFD0; None writes none there.
         make, model: camera make and model tags.
     """
     mosaic = np.asarray(mosaic)
@@ -386,6 +403,7 @@ def write_dng(
         (50721, "2i", 9, tuple(cm), True),  # ColorMatrix1
         (50728, "2I", 3, (1, 1, 1, 1, 1, 1), True),  # AsShotNeutral
         (50778, "H", 1, 21, True),  # CalibrationIlluminant1: D65
+        *_ifd0_exposure_tags(ifd0_exposure),
     ]
     path = Path(path)
     tmp = temporary_sibling(path)
@@ -409,6 +427,26 @@ def write_dng(
     return path
 
 
+def _ifd0_exposure_tags(exposure: Exposure | None) -> list[tuple]:
+    """tifffile extratags for ExposureTime, FNumber and ISOSpeedRatings in IFD0 (TIFF/EP)."""
+    if exposure is None:
+        return []
+    iso = _iso_short(exposure)
+    return [
+        (33434, "2I", 1, _rational(exposure.exposure_time_s, 1_000_000), True),  # ExposureTime
+        (33437, "2I", 1, _rational(exposure.f_number, 1000), True),  # FNumber
+        (34855, "H", 1, iso, True),  # ISOSpeedRatings
+    ]
+
+
+def _iso_short(exposure: Exposure) -> int:
+    """The ISO as an EXIF SHORT (an ImagingError when it does not fit)."""
+    iso = round(exposure.iso)
+    if not 1 <= iso <= 65535:
+        raise ImagingError(f"write_dng: ISO {exposure.iso} does not fit the EXIF SHORT tag")
+    return iso
+
+
 def _append_exif_ifd(path: Path, exposure: Exposure) -> None:
     """Add an EXIF sub-IFD to a little-endian classic TIFF written by tifffile.
 
@@ -429,9 +467,7 @@ def _append_exif_ifd(path: Path, exposure: Exposure) -> None:
         values_at = exif_at + 2 + 12 * n_exif + 4
         t_num, t_den = _rational(exposure.exposure_time_s, 1_000_000)
         f_num, f_den = _rational(exposure.f_number, 1000)
-        iso = round(exposure.iso)
-        if not 1 <= iso <= 65535:
-            raise ImagingError(f"write_dng: ISO {exposure.iso} does not fit the EXIF SHORT tag")
+        iso = _iso_short(exposure)
         payload = struct.pack("<IIII", t_num, t_den, f_num, f_den)
         exif_entries = [
             struct.pack("<HHII", 33434, 5, 1, values_at),  # ExposureTime, RATIONAL
