@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from ._decode import RawFrame
 from ._errors import ImagingError
 
-
 EXPOSURE_FIELDS: tuple[str, str, str] = ("exposure_time_s", "f_number", "iso")
 """The three exposure values, in the order used by `RawFrame.exposure_sources`."""
 
