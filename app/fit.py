@@ -224,13 +224,9 @@ def photo_specs(scene: Scene) -> list[Any]:
     """One `imaging.PhotoSpec` per photo: the ROIs of the wedges it can see."""
     from stairfit import imaging
 
-    layout = None
-    if scene.markers is not None:
-        layout = imaging.MarkerLayout(
-            {m.id: m.corners_mm for m in scene.markers.markers},
-            scene.markers.dictionary,
-            scene.markers.min_markers,
-        )
+    from .placement import marker_layout, placement_fields
+
+    layout = marker_layout(scene)
     specs = []
     for photo in scene.photos:
         per_photo = dict(photo.roi_px)
@@ -263,6 +259,7 @@ def photo_specs(scene: Scene) -> list[Any]:
                 faces_mm=tuple(faces.items()),
                 markers=layout if faces else None,
                 reference=reference,
+                **placement_fields(scene, photo, faces),
             )
         )
     return specs

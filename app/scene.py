@@ -82,10 +82,17 @@ class Light:
 
 @dataclass(frozen=True)
 class Camera:
-    """The camera: channel sensitivities by name, and the spread of viewing angles over a face."""
+    """The camera: channel sensitivities by name, and the spread of viewing angles over a face.
+
+    `focal_length_px` and `principal_point_px` (optional, pixels of the full-resolution raw
+    image) make it a pinhole for placing wedge faces in 3-D from the markers; without them an
+    affine camera is assumed (docs/imaging.md §3-D placement).
+    """
 
     sensitivity: str = "ideal"
     angular_extent_deg: float = 0.0
+    focal_length_px: float | None = None
+    principal_point_px: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -413,7 +420,8 @@ def _light(r: _Reader, d: dict[str, Any]) -> Light:
 
 
 def _camera(r: _Reader, d: dict[str, Any]) -> Camera:
-    r.table(d, "camera", ["sensitivity", "angular_extent_deg"])
+    fields = ["sensitivity", "angular_extent_deg", "focal_length_px", "principal_point_px"]
+    r.table(d, "camera", fields)
     sens = r.get(d, "sensitivity", str, "camera", default="ideal")
     from stairfit.model import spectral
 
@@ -422,7 +430,15 @@ def _camera(r: _Reader, d: dict[str, Any]) -> Camera:
             "camera.sensitivity", f"unknown camera {sens!r}; known: {', '.join(spectral.CAMERAS)}"
         )
     ext = r.get(d, "angular_extent_deg", float, "camera", default=0.0, lo=0, hi=30)
-    return Camera(sens, ext)
+    focal = r.get(d, "focal_length_px", float, "camera", default=None, lo=1.0, hi=1e6)
+    centre = d.get("principal_point_px")
+    if centre is not None:
+        if not (isinstance(centre, list) and len(centre) == 2 and all(map(_is_num, centre))):
+            r.fail("camera.principal_point_px", "must be [cx, cy] in pixels, e.g. [2999.5, 1999.5]")
+        if focal is None:
+            r.fail("camera.principal_point_px", "needs camera.focal_length_px as well")
+        centre = (float(centre[0]), float(centre[1]))
+    return Camera(sens, ext, focal, centre)
 
 
 def _markers(r: _Reader, d: Any, w: str) -> Markers:

@@ -50,6 +50,11 @@ class MeasurementRow:
         reprojection_error_px: RMS marker reprojection error (px) for marker-placed ROIs.
         n_markers: markers used for the placement, for marker-placed ROIs.
         camera: camera make and model from EXIF ("" when absent).
+        marker_ids: the markers used, space-separated ids ("" unless placed from markers).
+        marker_cell_px: the smallest cell of those markers (full-resolution px, its
+            foreshortened side; docs/imaging.md §Markers).
+        placement: the camera model that placed the ROI: "homography" (a face on the base),
+            "affine" or "pinhole" (docs/imaging.md §3-D placement); "" for pixel polygons.
     """
 
     photo: str
@@ -75,6 +80,9 @@ class MeasurementRow:
     reprojection_error_px: float | None
     n_markers: int | None
     camera: str
+    marker_ids: str
+    marker_cell_px: float | None
+    placement: str
 
 
 COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(MeasurementRow))

@@ -159,8 +159,10 @@ def _draw_markers(
     background: np.ndarray,
     white: np.ndarray,
     black: np.ndarray,
+    quiet_cells: float = 1.0,
 ) -> dict[int, np.ndarray]:
-    """Draw the markers (with a one-cell white quiet zone) on the background pixels, in place."""
+    """Draw the markers, each in a white quiet zone `quiet_cells` cells wide (0: none, the black
+    border lies directly on the background), on the background pixels, in place."""
     h_img, w_img = field.shape
     dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, layout.dictionary))
     cells = dictionary.markerSize + 2  # data bits plus the black border, per side
@@ -173,9 +175,8 @@ def _draw_markers(
         loc_to_px = plane_to_image @ loc_to_mm
         pts = cv2.perspectiveTransform(corners_mm.reshape(-1, 1, 2), plane_to_image).reshape(4, 2)
         corners_px[mid] = pts
-        quiet = np.array(
-            [[-1, -1], [cells + 1, -1], [cells + 1, cells + 1], [-1, cells + 1]], float
-        )
+        q0, q1 = -quiet_cells, cells + quiet_cells
+        quiet = np.array([[q0, q0], [q1, q0], [q1, q1], [q0, q1]], float)
         q = cv2.perspectiveTransform(quiet.reshape(-1, 1, 2), loc_to_px).reshape(4, 2)
         x0, y0 = max(0, math.floor(q[:, 0].min())), max(0, math.floor(q[:, 1].min()))
         x1, y1 = min(w_img, math.ceil(q[:, 0].max()) + 1), min(h_img, math.ceil(q[:, 1].max()) + 1)
@@ -184,8 +185,10 @@ def _draw_markers(
         cell_px = float(np.linalg.norm(pts[1] - pts[0])) / cells
         p = max(4, math.ceil(2 * cell_px))  # marker-image pixels per cell: 2x oversampled
         img = cv2.aruco.generateImageMarker(dictionary, mid, cells * p, borderBits=1)
-        img = np.pad(img, p, constant_values=255).astype(np.float32) / 255.0
-        to_local = np.array([[1 / p, 0, 0.5 / p - 1], [0, 1 / p, 0.5 / p - 1], [0, 0, 1]])
+        pad = round(quiet_cells * p)
+        img = np.pad(img, pad, constant_values=255).astype(np.float32) / 255.0
+        off = 0.5 / p - pad / p
+        to_local = np.array([[1 / p, 0, off], [0, 1 / p, off], [0, 0, 1]])
         shift = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1]], dtype=np.float64)
         m = shift @ loc_to_px @ to_local
         size = (x1 - x0, y1 - y0)
@@ -238,6 +241,7 @@ def render_photo(
     plane_to_image: np.ndarray | None = None,
     marker_white: Sequence[float] | None = None,
     marker_black: Sequence[float] | None = None,
+    marker_quiet_zone_cells: float = 1.0,
     texture_amplitude: float = 0.02,
     texture_sigma_px: float = 1.5,
     vignetting: float = 0.04,
@@ -259,6 +263,9 @@ def render_photo(
         plane_to_image: 3 x 3 homography from base-plane mm to pixels.
         marker_white, marker_black: (R, G, B) radiance of the markers' white and black cells
             (default: the background, and a tenth of it).
+        marker_quiet_zone_cells: width of the white margin around each marker's black border,
+            in marker cells (1 = one cell, OpenCV's minimum; 0 = none: the marker's black border
+            lies directly on the background, as a marker printed on a dark plate would).
         texture_amplitude: relative standard deviation of the multiplicative texture.
         texture_sigma_px: correlation scale of the texture: Gaussian smoothing (px) of white
             noise; the texture's autocorrelation is a Gaussian of width sigma * sqrt(2).
@@ -295,8 +302,11 @@ def render_photo(
             raise ImagingError("render_photo: markers need plane_to_image (a 3 x 3 homography)")
         white = np.asarray(marker_white if marker_white is not None else bg, np.float32)
         black = np.asarray(marker_black if marker_black is not None else 0.1 * bg, np.float32)
+        if not (math.isfinite(marker_quiet_zone_cells) and marker_quiet_zone_cells >= 0):
+            raise ImagingError("render_photo: marker_quiet_zone_cells must be >= 0")
+        hom = np.asarray(plane_to_image, float)
         corners_px = _draw_markers(
-            field, label, pattern, markers, np.asarray(plane_to_image, float), bg, white, black
+            field, label, pattern, markers, hom, bg, white, black, marker_quiet_zone_cells
         )
     del label
     vig = _vignetting(h_img, w_img, vignetting)
