@@ -163,6 +163,8 @@ def _draw_markers(
 ) -> dict[int, np.ndarray]:
     """Draw the markers, each in a white quiet zone `quiet_cells` cells wide (0: none, the black
     border lies directly on the background), on the background pixels, in place."""
+    if not (math.isfinite(quiet_cells) and quiet_cells >= 0):
+        raise ImagingError("render_photo: marker_quiet_zone_cells must be >= 0")
     h_img, w_img = field.shape
     dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, layout.dictionary))
     cells = dictionary.markerSize + 2  # data bits plus the black border, per side
@@ -302,8 +304,6 @@ def render_photo(
             raise ImagingError("render_photo: markers need plane_to_image (a 3 x 3 homography)")
         white = np.asarray(marker_white if marker_white is not None else bg, np.float32)
         black = np.asarray(marker_black if marker_black is not None else 0.1 * bg, np.float32)
-        if not (math.isfinite(marker_quiet_zone_cells) and marker_quiet_zone_cells >= 0):
-            raise ImagingError("render_photo: marker_quiet_zone_cells must be >= 0")
         hom = np.asarray(plane_to_image, float)
         corners_px = _draw_markers(
             field, label, pattern, markers, hom, bg, white, black, marker_quiet_zone_cells
