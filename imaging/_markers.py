@@ -26,9 +26,9 @@ ARUCO_DICTIONARIES: tuple[str, ...] = tuple(
 """Names of OpenCV's predefined ArUco dictionaries (e.g. "DICT_4X4_50")."""
 
 
-DEFAULT_MIN_CELL_PX = 3.0
-"""Markers with fewer full-resolution pixels per cell than this are near the detection limit
-(measured: docs/imaging.md §Markers, benchmarks/bench_markers.py)."""
+SMALL_CELL_PX = 6.0
+"""Markers whose cells are smaller than this (full-resolution px) on the binned image are
+searched for at full resolution too: there their corners start 3-5 times closer."""
 
 TONE_MAPS: tuple[str, ...] = ("gamma", "linear", "log", "clahe")
 """Tone maps `detect_markers` can search: 99.5th-percentile white with a 1/2.2 gamma (the
@@ -47,7 +47,8 @@ class DetectorSettings:
             that 7 misses.
         full_resolution_passes: passes searched on the full-resolution image (the mosaic with
             its CFA positions balanced) when some expected marker was not found on the binned
-            one: it finds markers down to about half the cell size. Empty: never.
+            one, or was found with cells under `SMALL_CELL_PX`: it finds markers down to about
+            half the cell size, with finer corners. Empty: never.
         refine: refine the merged corners to sub-pixel precision (`cv2.cornerSubPix` on the
             linear image) instead of ArUco's own refinement on each pass.
         min_marker_px: the smallest marker side (pixels of the searched image) a pass
@@ -381,25 +382,6 @@ def _merge(
     return merged, ambiguous
 
 
-def refine_window(corners: np.ndarray, cells: int) -> tuple[int, int]:
-    """cornerSubPix's half-window (x, y) for a marker: 0.6 of the distance, along x and along
-    y, from a corner to the nearest other edge (the inner edges of the border cell, the edge of a
-    one-cell quiet zone), so that only the corner's own two edges lie in it; 1 to 10 px.
-
-    With marker axes a and b (one cell each), the lines parallel to a at +-b lie
-    |a x b| / |a_y| away along x and |a x b| / |a_x| along y (likewise for b), so a marker
-    foreshortened along y gets a window that is wide in x and short in y.
-    """
-    c = np.asarray(corners, dtype=np.float64).reshape(4, 2)
-    a = 0.5 * ((c[1] - c[0]) + (c[2] - c[3])) / cells
-    b = 0.5 * ((c[3] - c[0]) + (c[2] - c[1])) / cells
-    area = abs(a[0] * b[1] - a[1] * b[0])
-    with np.errstate(divide="ignore"):
-        hx = min(area / abs(a[1]), area / abs(b[1])) if area > 0 else 0.0
-        hy = min(area / abs(a[0]), area / abs(b[0])) if area > 0 else 0.0
-    return tuple(int(min(10, max(1, math.floor(0.6 * h)))) for h in (hx, hy))  # type: ignore[return-value]
-
-
 def marker_crop(frame: RawFrame, corners: np.ndarray, margin: float) -> tuple[np.ndarray, int, int]:
     """A full-resolution float32 linear crop around a marker: (image, x0, y0 of its origin).
 
@@ -433,24 +415,105 @@ def marker_crop(frame: RawFrame, corners: np.ndarray, margin: float) -> tuple[np
     return crop, x0, y0
 
 
-def refine_corners(frame: RawFrame, corners: np.ndarray, cells: int) -> np.ndarray:
-    """Sub-pixel corners (`cv2.cornerSubPix`) of one marker, full-resolution pixel coordinates.
+def _edge_crossings(
+    image: np.ndarray, a: np.ndarray, b: np.ndarray, outward: np.ndarray, half: float, step: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where profiles across the marker side a -> b cross halfway from the ink to the outside.
 
-    Refined on the linear full-resolution image around the marker (`marker_crop`): on a
-    tone-mapped image the blurred corner's gradients are re-weighted and the corner moves by up
-    to half a pixel, and on the binned image the errors are 2-4 times larger (measured). The
-    window is `refine_window`'s. A corner that moves by more than the window (the refinement
-    slipped onto another edge) stays where the detector put it.
+    Profiles (bilinear samples every 0.2 px over +-`half` px along `outward`) start every
+    0.5 px along the side, `step` px clear of its ends. Returns the crossing points (n, 2) and
+    each profile's contrast (outside minus ink level; the ends of the profile give the levels).
     """
-    win = refine_window(corners, cells)
-    crop, x0, y0 = marker_crop(frame, corners, margin=3 * max(win) + 2)
+    length = float(np.linalg.norm(b - a))
+    u = (b - a) / length
+    s = np.arange(step, length - step, 0.5)
+    o = np.arange(-half, half + 1e-9, 0.2)
+    pts = a[None, None, :] + s[:, None, None] * u + o[None, :, None] * outward
+    prof = cv2.remap(
+        image, pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32), cv2.INTER_LINEAR
+    )
+    k = max(1, len(o) // 5)
+    inner, outer = prof[:, :k].mean(axis=1), prof[:, -k:].mean(axis=1)
+    mid = 0.5 * (inner + outer)
+    above = prof > mid[:, None]
+    idx = np.clip(np.argmax(above, axis=1), 1, len(o) - 1)
+    rows = np.arange(len(s))
+    p0, p1 = prof[rows, idx - 1], prof[rows, idx]
+    rise = np.where(p1 > p0, p1 - p0, 1.0)
+    off = o[idx - 1] + np.clip((mid - p0) / rise, 0.0, 1.0) * (o[1] - o[0])
+    contrast = np.where(above.any(axis=1) & (np.abs(off) < half - 0.3), outer - inner, 0.0)
+    return a + s[:, None] * u + off[:, None] * outward, contrast
+
+
+def _fit_line(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Total-least-squares line (a point, a unit direction), refitted once without points
+    more than 3 median distances (at least 0.5 px) off it."""
+    for _ in range(2):
+        centre = points.mean(axis=0)
+        direction = np.linalg.svd(points - centre)[2][0]
+        dist = np.abs((points - centre) @ np.array([-direction[1], direction[0]]))
+        keep = dist <= max(0.5, 3.0 * float(np.median(dist)))
+        if keep.sum() < 3 or keep.all():
+            break
+        points = points[keep]
+    return centre, direction
+
+
+def refine_corners(frame: RawFrame, corners: np.ndarray, cells: int) -> np.ndarray:
+    """Sub-pixel corners of one marker (full-resolution pixel coordinates) from its edges.
+
+    Each of the 4 outer sides of the black border is located along its length in the linear
+    full-resolution image around the marker (`marker_crop`): profiles across it, half a cell in
+    and out, cross halfway from the ink to the paper (or plate) outside, which is where the
+    edge is for any symmetric blur; a line is fitted through the crossings and the corners are
+    the intersections of adjacent lines. Measured on synthetic markers (benchmarks/
+    bench_markers.py): 0.03-0.2 px, where `cv2.cornerSubPix` in a window small enough to see
+    only the corner's own edges gave 0.1-1.3 px. Profiles with less than half the median
+    contrast (the side's edge is not inside them) are dropped; a side with fewer than 3 left,
+    or corners that would move by more than half a cell, keep the detector's corners.
+    """
+    c = np.asarray(corners, dtype=np.float64).reshape(4, 2)
+    axes = (
+        0.5 * ((c[1] - c[0]) + (c[2] - c[3])) / cells,
+        0.5 * ((c[3] - c[0]) + (c[2] - c[1])) / cells,
+    )
+    margin = 4.0 + 1.5 * max(float(np.linalg.norm(v)) for v in axes)
+    crop, x0, y0 = marker_crop(frame, c, margin)
     origin = np.array([x0, y0], dtype=np.float64)
-    local = (corners - origin).astype(np.float32).reshape(-1, 1, 2)
-    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 0.005)
-    refined = cv2.cornerSubPix(crop, local, win, (-1, -1), criteria).reshape(4, 2) + origin
-    step = np.abs(refined - corners)
-    moved = (step[:, 0] > win[0]) | (step[:, 1] > win[1])
-    return np.where(moved[:, None], corners, refined).astype(np.float64)
+    loc, centre = c - origin, (c - origin).mean(axis=0)
+    sides = []
+    for k in range(4):
+        a, b = loc[k], loc[(k + 1) % 4]
+        u = (b - a) / np.linalg.norm(b - a)
+        n = np.array([-u[1], u[0]])
+        n = n if n @ (0.5 * (a + b) - centre) > 0 else -n
+        across = abs(float(axes[(k + 1) % 2] @ n))  # the cell size across this side
+        along = float(np.linalg.norm(axes[k % 2]))
+        sides.append(_edge_crossings(crop, a, b, n, max(0.8, 0.6 * across), 0.6 * along))
+    contrasts = np.concatenate([con for _, con in sides])
+    ref = float(np.median(contrasts[contrasts > 0])) if (contrasts > 0).any() else 0.0
+    lines = []
+    for pts, con in sides:
+        good = pts[con >= 0.5 * ref] if ref > 0 else pts[:0]
+        if len(good) < 3:
+            return c
+        lines.append(_fit_line(good))
+    out = np.array([_intersect(lines[k - 1], lines[k]) for k in range(4)])
+    smallest = min(float(np.linalg.norm(v)) for v in axes)
+    if not np.all(np.isfinite(out)) or np.abs(out - loc).max() > 0.5 * smallest:
+        return c
+    return out + origin
+
+
+def _intersect(l1: tuple[np.ndarray, np.ndarray], l2: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """The intersection of two lines given as (point, direction); NaN for parallel lines."""
+    (p, d), (q, e) = l1, l2
+    det = d[0] * -e[1] - d[1] * -e[0]
+    if abs(det) < 1e-12:
+        return np.full(2, np.nan)
+    rhs = q - p
+    t = (rhs[0] * -e[1] - rhs[1] * -e[0]) / det
+    return p + t * d
 
 
 def detect_markers(
@@ -479,11 +542,15 @@ def detect_markers(
     expected = set(expected_ids)
     linear, factor = binned_linear(frame)
     candidates, twice = _search(linear, factor, aruco_dict, settings.passes, settings, expected)
-    missing = expected - {c.id for c in candidates}
-    if settings.full_resolution_passes and factor > 1 and missing:
+    small = {c.id for c in candidates if marker_cell_px(c.corners_px, cells) < SMALL_CELL_PX}
+    again = (expected - {c.id for c in candidates}) | small
+    if settings.full_resolution_passes and factor > 1 and again:
         full = full_linear(frame)
         passes = settings.full_resolution_passes
-        more, twice_full = _search(full, 1, aruco_dict, passes, settings, missing)
+        more, twice_full = _search(full, 1, aruco_dict, passes, settings, again)
+        found_full = {c.id for c in more}
+        # a small marker found at full resolution keeps only those (finer) corners
+        candidates = [c for c in candidates if not (c.id in small and c.id in found_full)]
         candidates += more
         twice |= twice_full
     merged, ambiguous = _merge([c for c in candidates if c.id not in twice], cells)

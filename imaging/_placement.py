@@ -398,7 +398,7 @@ def foreshortening_hint(detection: MarkerDetection, view_deg: float | None) -> s
     return "".join(parts)
 
 
-MIN_DETECTABLE_CELL_PX = 2.5
+MIN_DETECTABLE_CELL_PX = 3.0
 """About the smallest marker cell (full-resolution px, the foreshortened side) the detector
 finds: measured by benchmarks/bench_markers.py (docs/imaging.md §Markers)."""
 

@@ -184,8 +184,8 @@ def _draw_markers(
         x1, y1 = min(w_img, math.ceil(q[:, 0].max()) + 1), min(h_img, math.ceil(q[:, 1].max()) + 1)
         if x0 >= x1 or y0 >= y1:
             continue
-        cell_px = float(np.linalg.norm(pts[1] - pts[0])) / cells
-        p = max(4, math.ceil(2 * cell_px))  # marker-image pixels per cell: 2x oversampled
+        sides = [float(np.linalg.norm(pts[1] - pts[0])), float(np.linalg.norm(pts[3] - pts[0]))]
+        p = max(4, math.ceil(2 * max(sides) / cells))  # marker-image px per cell: 2x oversampled
         img = cv2.aruco.generateImageMarker(dictionary, mid, cells * p, borderBits=1)
         pad = round(quiet_cells * p)
         img = np.pad(img, pad, constant_values=255).astype(np.float32) / 255.0
@@ -193,10 +193,8 @@ def _draw_markers(
         to_local = np.array([[1 / p, 0, off], [0, 1 / p, off], [0, 0, 1]])
         shift = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1]], dtype=np.float64)
         m = shift @ loc_to_px @ to_local
-        size = (x1 - x0, y1 - y0)
-        flags = cv2.INTER_LINEAR
-        whiteness = cv2.warpPerspective(img, m, size, flags=flags, borderValue=0)
-        cover = cv2.warpPerspective(np.ones_like(img), m, size, flags=flags, borderValue=0)
+        supersample = min(8, math.ceil(max(sides) / max(min(sides), 1e-9)))
+        whiteness, cover = _warped(img, m, (x1 - x0, y1 - y0), supersample)
         ys, xs = np.arange(y0, y1), np.arange(x0, x1)
         chan = pattern[(ys % 2)[:, None], (xs % 2)[None, :]]
         value = background[chan] * (1 - cover) + black[chan] * cover
@@ -205,6 +203,23 @@ def _draw_markers(
         bg = label[y0:y1, x0:x1] == 0
         box[bg] = value[bg]
     return corners_px
+
+
+def _warped(
+    img: np.ndarray, m: np.ndarray, size: tuple[int, int], k: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The marker image and its coverage warped by `m` into a box of `size` (width, height),
+    rendered k x k times finer and area-averaged: a foreshortened marker (k = the ratio of its
+    sides) is anti-aliased across its short side too, so its edges do not snap to pixels."""
+    fine = np.array([[k, 0, (k - 1) / 2], [0, k, (k - 1) / 2], [0, 0, 1]]) @ m
+    fsize = (size[0] * k, size[1] * k)
+    flags = cv2.INTER_LINEAR
+    whiteness = cv2.warpPerspective(img, fine, fsize, flags=flags, borderValue=0)
+    cover = cv2.warpPerspective(np.ones_like(img), fine, fsize, flags=flags, borderValue=0)
+    if k > 1:
+        whiteness = cv2.resize(whiteness, size, interpolation=cv2.INTER_AREA)
+        cover = cv2.resize(cover, size, interpolation=cv2.INTER_AREA)
+    return whiteness, cover
 
 
 def _vignetting(h: int, w: int, falloff: float) -> np.ndarray | None:
@@ -496,3 +511,54 @@ def _append_exif_ifd(path: Path, exposure: Exposure) -> None:
         f.write(ifd)
         f.seek(4)
         f.write(struct.pack("<I", new_ifd0))
+
+
+def marker_test_photo(
+    cell_px: float,
+    *,
+    view_deg: float = 0.0,
+    paper_to_peak: float = 0.5,
+    quiet_zone_cells: float = 1.0,
+    dictionary: str = "DICT_4X4_50",
+    seed: int = 0,
+) -> tuple[SyntheticPhoto, MarkerLayout]:
+    """A small photo of four ArUco markers around a bright face, for detection sweeps.
+
+    An orthographic camera at `view_deg` (a rotation about the base's y axis) sees 12 mm
+    markers at the corners of a 64 x 64 mm square and a 20 x 20 mm face in its middle, all on
+    the base. The markers' cells are `cell_px` pixels along x (foreshortened by cos(view)) and
+    cell_px / cos(view) along y. The exposure puts the face at half the raw range, as a session
+    exposed for the wedges would; the markers' white paper has `paper_to_peak` of the face's
+    radiance, the ink 4% and the base plate 10% of the paper.
+
+    Returns:
+        The photo (true marker corners in `marker_corners_px`) and the marker layout.
+    """
+    cells = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)).markerSize + 2
+    side_mm, cos_v = 12.0, math.cos(math.radians(view_deg))
+    px_per_mm = cell_px * cells / side_mm / cos_v
+    corners = {
+        i: [(x, y), (x, y + side_mm), (x + side_mm, y + side_mm), (x + side_mm, y)]
+        for i, (x, y) in enumerate([(0, 0), (0, 52), (52, 0), (52, 52)])
+    }  # ArUco order as seen by the camera below (image x along +y, image y along +x)
+    layout = MarkerLayout(corners, dictionary=dictionary)
+    margin = 6 * side_mm / 12 + 4 * cell_px / px_per_mm
+    w = math.ceil((64 + 2 * margin) * px_per_mm / 2) * 2
+    h = math.ceil((64 + 2 * margin) * px_per_mm * cos_v / 2) * 2
+    hom = np.array(
+        [[0, px_per_mm, margin * px_per_mm], [px_per_mm * cos_v, 0, margin * px_per_mm * cos_v],
+         [0, 0, 1]]
+    )  # fmt: skip
+    face_mm = np.array([[22, 22], [22, 42], [42, 42], [42, 22]], float)
+    face = cv2.perspectiveTransform(face_mm.reshape(-1, 1, 2), hom).reshape(-1, 2)
+    exposure = Exposure(1 / 100, 5.6, 100)
+    sensor = SensorModel()
+    peak = 0.5 * (sensor.white - sensor.black_level) * exposure.scale
+    paper = paper_to_peak * peak
+    photo = render_photo(
+        (w, h), {"face": face.tolist()}, {"face": np.full(3, peak)}, exposure,
+        background=np.full(3, 0.1 * paper), sensor=sensor, markers=layout, plane_to_image=hom,
+        marker_white=np.full(3, paper), marker_black=np.full(3, 0.04 * paper),
+        marker_quiet_zone_cells=quiet_zone_cells, vignetting=0.0, erode_px=2, seed=seed,
+    )  # fmt: skip
+    return photo, layout
