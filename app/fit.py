@@ -265,17 +265,24 @@ def photo_specs(scene: Scene) -> list[Any]:
     return specs
 
 
-def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
-    """Decode and measure every photo (cached in DIR/.stairfit-cache), previews into out."""
+def extraction_settings(scene: Scene) -> Any:
+    """The scene's [extraction] as `imaging.ExtractionSettings`."""
     from stairfit import imaging
 
     e = scene.extraction
-    settings = imaging.ExtractionSettings(
+    return imaging.ExtractionSettings(
         erode_px=e.erode_px,
         block_px=e.block_px,
         saturation_level=e.saturation_level,
         max_saturated_fraction=e.max_saturated_fraction,
     )
+
+
+def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
+    """Decode and measure every photo (cached in DIR/.stairfit-cache), previews into out."""
+    from stairfit import imaging
+
+    settings = extraction_settings(scene)
     cache = scene.folder / CACHE_DIR / MEASUREMENT_CACHE if options.cache else None
     try:
         if cache is not None:

@@ -107,8 +107,12 @@ def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
 
 def write_outputs(outcome: FitOutcome, out: Path) -> None:
     """Write every output into `out` (a temporary folder moved into place by the caller)."""
+    from .measure import MARKER_COLUMNS, fit_marker_reports, write_table
+
     out.mkdir(parents=True, exist_ok=True)
     outcome.table.write_csv(out / "measurements.csv")
+    markers = fit_marker_reports(outcome.scene, outcome.table)
+    write_table(out / "markers.csv", markers, MARKER_COLUMNS)
     write_observations(outcome, out / "observations.csv")
     figures = write_figures(outcome, out / "figures")
     results = results_dict(outcome, figures)
@@ -524,6 +528,9 @@ def report_html(
         f"<li>{e(w['message'])}</li>" for w in ls["warnings"] + (po["warnings"] if po else [])
     )
     notes = "".join(f"<li>{e(n)}</li>" for n in diag["notes"])
+    from .measure import MARKER_COLUMNS, fit_marker_reports, html_table
+
+    markers = html_table(fit_marker_reports(outcome.scene, outcome.table), MARKER_COLUMNS)
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>stairfit report</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}td,th{{padding:2px 8px}}
 table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}</style></head><body>
@@ -541,6 +548,7 @@ table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}</style
 <ul>{warn}{notes}</ul>
 <h2>Figures</h2>{imgs}
 <h2>Regions of interest</h2>{prev}
+<h3>Markers per photo (markers.csv)</h3>{markers}
 <p style="color:#777">stairfit {e(__version__)}; conventions: docs/conventions.md; all numbers
 also in results.json.</p></body></html>
 """

@@ -612,6 +612,7 @@ def measure_photos(
     preview_dir: str | Path | None = None,
     progress: bool = False,
     max_workers: int | None = None,
+    raise_on_failure: bool = True,
 ) -> MeasurementTable:
     """Measure a set of photos: the measurement table, one row per photo x ROI x channel.
 
@@ -631,6 +632,9 @@ def measure_photos(
         max_workers: worker processes; default min(2, CPU count, photos to decode). With 1,
             photos are measured in this process. Each worker holds one photo at a time, so
             memory stays bounded by a few photos.
+        raise_on_failure: False returns the rows of the photos that succeeded, with the
+            failures in the table's `failed` ((photo, one-line reason) pairs), instead of
+            raising (`stairfit measure` reports them).
 
     Returns:
         The table, rows in the order of `specs`.
@@ -707,12 +711,13 @@ def measure_photos(
     if cache_path is not None:
         table.write_csv(cache_path)
         _prune_preview_cache(preview_cache_dir(cache_path), table)
-    if errors:
+    if errors and raise_on_failure:
         raise ImagingError(
             f"{len(errors)} of {len(specs)} photos could not be measured: "
             + _summarise_failures([(n, errors[n]) for n in names if n in errors])
         )
-    return table
+    failed = tuple((n, " ".join(errors[n].split())) for n in names if n in errors)
+    return MeasurementTable(table.rows, failed) if failed else table
 
 
 def _summarise_failures(failures: Sequence[tuple[str, str]]) -> str:

@@ -118,9 +118,14 @@ def _parse(name: str, text: str) -> object:
 
 @dataclass(frozen=True)
 class MeasurementTable:
-    """The measurements of a set of photos: an immutable sequence of `MeasurementRow`s."""
+    """The measurements of a set of photos: an immutable sequence of `MeasurementRow`s.
+
+    `failed` lists (photo, one-line reason) of photos that could not be measured, when
+    `measure_photos` was asked not to raise (it is not written to CSV).
+    """
 
     rows: tuple[MeasurementRow, ...] = ()
+    failed: tuple[tuple[str, str], ...] = ()
 
     def __len__(self) -> int:
         return len(self.rows)

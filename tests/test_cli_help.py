@@ -40,9 +40,12 @@ EXPECTED_OPTIONS = {
         "--views",
         "--seed",
         "--workers",
+        "--exposure-tags",
+        "--markers",
         "--force",
         "--quiet",
     ],
+    "measure": ["--output", "--workers", "--no-cache", "--force", "--quiet"],
     "fit": [
         "--output",
         "--preset",
@@ -68,7 +71,7 @@ EXPECTED_OPTIONS = {
         "--quiet",
     ],
 }
-POSITIONAL = {"predict": None, "simulate": "out", "fit": "DIR", "demo": "out"}
+POSITIONAL = {"predict": None, "simulate": "out", "fit": "DIR", "measure": "DIR", "demo": "out"}
 
 
 @pytest.fixture(autouse=True)

@@ -109,3 +109,9 @@ def test_fit_with_rois_placed_by_markers_alone_recovers_the_truth(folders, tmp_p
             assert abs(ls["value"] - truth[rec["name"]]) < 1.96 * ls["stderr"], rec
             checked += 1
     assert checked >= 3  # sigma, scale, floor
+    # the per-photo marker table of the fit outputs, also in the report
+    with open(out / "markers.csv", encoding="utf-8") as fh:
+        lines = fh.read().splitlines()
+    assert lines[0].startswith("photo,placement,marker_ids") and len(lines) == 6
+    assert all(",affine,0 1 2 3," in line for line in lines[1:])
+    assert "Markers per photo" in (out / "report.html").read_text()
