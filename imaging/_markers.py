@@ -450,7 +450,7 @@ def _fit_line(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     more than 3 median distances (at least 0.5 px) off it."""
     for _ in range(2):
         centre = points.mean(axis=0)
-        direction = np.linalg.svd(points - centre)[2][0]
+        direction = np.linalg.svd(points - centre, full_matrices=False)[2][0]
         dist = np.abs((points - centre) @ np.array([-direction[1], direction[0]]))
         keep = dist <= max(0.5, 3.0 * float(np.median(dist)))
         if keep.sum() < 3 or keep.all():
