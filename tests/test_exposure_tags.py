@@ -98,3 +98,24 @@ def test_synthetic_photo_writes_the_tags_where_asked(tmp_path: Path, where: str)
     assert frame.exposure_sources == (expected,) * 3
     with pytest.raises(imaging.ImagingError, match="exposure_tags"):
         photo.write_dng(tmp_path / "q.dng", exposure_tags="exif-ifd")
+
+
+@pytest.mark.parametrize("where", ["ifd0", "none"])
+def test_simulate_writes_the_tags_where_asked(where: str, tmp_path: Path) -> None:
+    """`stairfit simulate --exposure-tags`: in IFD0, or nowhere (the scene then overrides)."""
+    import tomllib
+
+    from stairfit.cli import main
+
+    folder = tmp_path / "photos"
+    argv = ["simulate", str(folder), "--megapixels", "0.5", "--views", "3", "--quiet"]
+    assert main([*argv, "--exposure-tags", where]) == 0
+    photos = tomllib.loads((folder / "scene.toml").read_text())["photos"]
+    frame = imaging.decode_raw(folder / photos[0]["file"])
+    expected = {"ifd0": ("ifd0",) * 3, "none": ("",) * 3}[where]
+    assert frame.exposure_sources == expected
+    assert ("exposure_time_s" in photos[0]) == (where == "none")
+    exposure = imaging.resolve_exposure(
+        frame, photos[0].get("exposure_time_s"), photos[0].get("f_number"), photos[0].get("iso")
+    )
+    assert exposure.source == {"ifd0": "ifd0", "none": "scene"}[where]
