@@ -261,9 +261,9 @@ def measure_frame(
         )
         for n in spec.roi_names()
     }
-    _check_overlaps(rois, photo)
-    if placement is not None:
+    if placement is not None:  # before the overlap check: a hidden face overlaps its hider
         _check_hidden(spec, placement, rois)
+    _check_overlaps(rois, photo)
     key = cache_key(spec, settings)
     black = frame.black_level_per_channel()
     stats = {n: roi_channel_stats(frame, roi, settings) for n, roi in rois.items()}

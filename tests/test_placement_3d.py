@@ -197,3 +197,58 @@ def test_hidden_faces_are_found() -> None:
         roi = imaging.roi_mask(poly, SIZE[::-1], 2, photo="p", wedge="back")
         fraction, by = imaging._placement.hidden_fraction(pose, *back, occluders, roi)
         assert (fraction > 0.5) == expect_hidden and (by == "front") == expect_hidden, view
+
+
+def _photo(project, faces: dict, tmp_path, name: str = "p.dng"):
+    """A synthetic photo of `faces` (name -> (outline, beta2)) and the markers seen by
+    `project`; returns the decoded frame and the true face polygons (px)."""
+    import cv2
+
+    from stairfit.imaging import synthetic
+
+    base = np.array([c for m in MARKERS.values() for c in m], float)
+    hom, _ = cv2.findHomography(base, project(_lift(base, 0.0)))
+    true = {n: project(_lift(o, b)) for n, (o, b) in faces.items()}
+    exposure = imaging.Exposure(1 / 100, 5.6, 100)
+    photo = synthetic.render_photo(
+        SIZE, {n: p.tolist() for n, p in true.items()}, {n: np.full(3, 4e6) for n in faces},
+        exposure, background=np.full(3, 4e5), markers=LAYOUT, plane_to_image=hom,
+        marker_white=np.full(3, 3e6), marker_black=np.full(3, 1e5), seed=2,
+    )  # fmt: skip
+    return imaging.decode_raw(photo.write_dng(tmp_path / name)), true
+
+
+def _spec(frame, faces: dict, view_deg: float, camera=None) -> imaging.PhotoSpec:
+    return imaging.PhotoSpec(
+        frame.path, faces_mm={n: o for n, (o, _) in faces.items()}, markers=LAYOUT,
+        face_angles_deg={n: b for n, (_, b) in faces.items()}, view_deg=view_deg, camera=camera,
+    )  # fmt: skip
+
+
+def test_pinhole_photo_places_faces_within_a_pixel(tmp_path) -> None:
+    """Detected markers, a pinhole 400 mm away: within a pixel of the true faces; the same photo
+    without the focal length is refused (too close for a parallel projection)."""
+    project = _pinhole(-35.0, distance_mm=400.0, focal_px=2400.0)
+    frame, true = _photo(project, WEDGES, tmp_path)
+    spec = _spec(frame, WEDGES, -35.0, imaging.PinholeCamera(2400.0))
+    result = imaging.measure_frame(frame, spec, imaging.ExtractionSettings(erode_px=3))
+    assert result.placement is not None and result.placement.model == "pinhole"
+    for name, poly in true.items():
+        placed = np.asarray(result.rois[name].polygon)
+        assert np.linalg.norm(placed - poly, axis=1).max() < 1.0, name
+    assert {r.placement for r in result.rows} == {"pinhole"}
+    with pytest.raises(imaging.ImagingError, match=r"affine camera .*focal_length_px"):
+        imaging.measure_frame(frame, _spec(frame, WEDGES, -35.0), imaging.ExtractionSettings())
+
+
+def test_hidden_face_is_refused_in_a_photo(tmp_path) -> None:
+    faces = {
+        "front": ([(0, 0), (20, 0), (20, 20), (0, 20)], 60.0),
+        "back": ([(25, 0), (45, 0), (45, 20), (25, 20)], 10.0),
+    }
+    frame, _ = _photo(_ortho(-30.0), faces, tmp_path)
+    with pytest.raises(imaging.ImagingError) as err:
+        imaging.measure_frame(frame, _spec(frame, faces, -30.0), imaging.ExtractionSettings())
+    msg = str(err.value)
+    assert "'p.dng', wedge 'back'" in msg and "hidden behind wedge 'front'" in msg
+    assert "roi_px" in msg
