@@ -528,9 +528,6 @@ def report_html(
         f"<li>{e(w['message'])}</li>" for w in ls["warnings"] + (po["warnings"] if po else [])
     )
     notes = "".join(f"<li>{e(n)}</li>" for n in diag["notes"])
-    from .measure import MARKER_COLUMNS, fit_marker_reports, html_table
-
-    markers = html_table(fit_marker_reports(outcome.scene, outcome.table), MARKER_COLUMNS)
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>stairfit report</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}td,th{{padding:2px 8px}}
 table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}</style></head><body>
@@ -547,11 +544,17 @@ table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}</style
 {ls["n_used"]} of {ls["n_rows"]} measurements fitted.<br>{e(post_line)}</p>
 <ul>{warn}{notes}</ul>
 <h2>Figures</h2>{imgs}
-<h2>Regions of interest</h2>{prev}
-<h3>Markers per photo (markers.csv)</h3>{markers}
+<h2>Regions of interest</h2>{prev}<h3>Markers per photo</h3>{_markers_html(outcome)}
 <p style="color:#777">stairfit {e(__version__)}; conventions: docs/conventions.md; all numbers
 also in results.json.</p></body></html>
 """
+
+
+def _markers_html(outcome: FitOutcome) -> str:
+    """The per-photo marker table (app/measure.py), as in markers.csv."""
+    from .measure import MARKER_COLUMNS, fit_marker_reports, html_table
+
+    return html_table(fit_marker_reports(outcome.scene, outcome.table), MARKER_COLUMNS)
 
 
 def _fmt(x: Any, spec: str) -> str:

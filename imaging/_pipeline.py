@@ -711,13 +711,22 @@ def measure_photos(
     if cache_path is not None:
         table.write_csv(cache_path)
         _prune_preview_cache(preview_cache_dir(cache_path), table)
-    if errors and raise_on_failure:
+    return _with_failures(table, [(n, errors[n]) for n in names if n in errors], raise_on_failure)
+
+
+def _with_failures(
+    table: MeasurementTable, failures: list[tuple[str, str]], raise_on_failure: bool
+) -> MeasurementTable:
+    """`measure_photos`'s result: the table, or an ImagingError listing the failures (one
+    line), or with `raise_on_failure=False` the table with the failures in `failed`."""
+    if failures and raise_on_failure:
         raise ImagingError(
-            f"{len(errors)} of {len(specs)} photos could not be measured: "
-            + _summarise_failures([(n, errors[n]) for n in names if n in errors])
+            f"{len(failures)} of {len(table.photos()) + len(failures)} photos could not be "
+            f"measured: {_summarise_failures(failures)}"
         )
-    failed = tuple((n, " ".join(errors[n].split())) for n in names if n in errors)
-    return MeasurementTable(table.rows, failed) if failed else table
+    if not failures:
+        return table
+    return MeasurementTable(table.rows, tuple((n, " ".join(m.split())) for n, m in failures))
 
 
 def _summarise_failures(failures: Sequence[tuple[str, str]]) -> str:

@@ -280,9 +280,8 @@ def render_photo(
         plane_to_image: 3 x 3 homography from base-plane mm to pixels.
         marker_white, marker_black: (R, G, B) radiance of the markers' white and black cells
             (default: the background, and a tenth of it).
-        marker_quiet_zone_cells: width of the white margin around each marker's black border,
-            in marker cells (1 = one cell, OpenCV's minimum; 0 = none: the marker's black border
-            lies directly on the background, as a marker printed on a dark plate would).
+        marker_quiet_zone_cells: the white margin around each marker's black border, in
+            cells (0: none, the border lies on the background as on a dark plate).
         texture_amplitude: relative standard deviation of the multiplicative texture.
         texture_sigma_px: correlation scale of the texture: Gaussian smoothing (px) of white
             noise; the texture's autocorrelation is a Gaussian of width sigma * sqrt(2).
@@ -319,10 +318,8 @@ def render_photo(
             raise ImagingError("render_photo: markers need plane_to_image (a 3 x 3 homography)")
         white = np.asarray(marker_white if marker_white is not None else bg, np.float32)
         black = np.asarray(marker_black if marker_black is not None else 0.1 * bg, np.float32)
-        hom = np.asarray(plane_to_image, float)
-        corners_px = _draw_markers(
-            field, label, pattern, markers, hom, bg, white, black, marker_quiet_zone_cells
-        )
+        corners_px = _draw_markers(field, label, pattern, markers, np.asarray(plane_to_image,
+                                   float), bg, white, black, marker_quiet_zone_cells)  # fmt: skip
     del label
     vig = _vignetting(h_img, w_img, vignetting)
     if vig is not None:

@@ -114,4 +114,4 @@ def test_fit_with_rois_placed_by_markers_alone_recovers_the_truth(folders, tmp_p
         lines = fh.read().splitlines()
     assert lines[0].startswith("photo,placement,marker_ids") and len(lines) == 6
     assert all(",affine,0 1 2 3," in line for line in lines[1:])
-    assert "Markers per photo" in (out / "report.html").read_text()
+    assert "Markers per photo</h3><table>" in (out / "report.html").read_text()
