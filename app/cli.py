@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import __version__, demo, fit, predict, simulate, study
+from . import __version__, demo, fit, measure, predict, simulate, study
 from ._jaxcache import enable_persistent_cache
 from .errors import UserError
 
@@ -25,6 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     predict.add_parser(sub)
     simulate.add_parser(sub)
     fit.add_parser(sub)
+    measure.add_parser(sub)
     demo.add_parser(sub)
     study.add_parser(sub)
     return parser

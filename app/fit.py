@@ -224,13 +224,9 @@ def photo_specs(scene: Scene) -> list[Any]:
     """One `imaging.PhotoSpec` per photo: the ROIs of the wedges it can see."""
     from stairfit import imaging
 
-    layout = None
-    if scene.markers is not None:
-        layout = imaging.MarkerLayout(
-            {m.id: m.corners_mm for m in scene.markers.markers},
-            scene.markers.dictionary,
-            scene.markers.min_markers,
-        )
+    from .placement import marker_layout, placement_fields
+
+    layout = marker_layout(scene)
     specs = []
     for photo in scene.photos:
         per_photo = dict(photo.roi_px)
@@ -263,22 +259,30 @@ def photo_specs(scene: Scene) -> list[Any]:
                 faces_mm=tuple(faces.items()),
                 markers=layout if faces else None,
                 reference=reference,
+                **placement_fields(scene, photo, faces),
             )
         )
     return specs
+
+
+def extraction_settings(scene: Scene) -> Any:
+    """The scene's [extraction] as `imaging.ExtractionSettings`."""
+    from stairfit import imaging
+
+    e = scene.extraction
+    return imaging.ExtractionSettings(
+        erode_px=e.erode_px,
+        block_px=e.block_px,
+        saturation_level=e.saturation_level,
+        max_saturated_fraction=e.max_saturated_fraction,
+    )
 
 
 def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
     """Decode and measure every photo (cached in DIR/.stairfit-cache), previews into out."""
     from stairfit import imaging
 
-    e = scene.extraction
-    settings = imaging.ExtractionSettings(
-        erode_px=e.erode_px,
-        block_px=e.block_px,
-        saturation_level=e.saturation_level,
-        max_saturated_fraction=e.max_saturated_fraction,
-    )
+    settings = extraction_settings(scene)
     cache = scene.folder / CACHE_DIR / MEASUREMENT_CACHE if options.cache else None
     try:
         if cache is not None:

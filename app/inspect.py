@@ -530,12 +530,8 @@ def photo_image(m: FitModel, photo: str) -> tuple[np.ndarray, float, dict[str, n
     spec = next(s for s in photo_specs(m.scene) if s.name == photo)
     frame = imaging.decode_raw(spec.path)
     polygons = {n: np.asarray(p, float) for n, p in spec.rois}
-    placed = spec.placed_names()
-    if placed:
-        detection = imaging.detect_markers(frame, spec.markers.dictionary)
-        placement = imaging.fit_placement(detection, spec.markers, photo=photo, wedges=placed)
-        faces = dict(spec.faces_mm)
-        polygons |= {n: np.asarray(placement.polygon(faces[n]), float) for n in placed}
+    _detection, _pose, placed = imaging.place_faces(frame, spec)  # as the measurement does
+    polygons |= {n: np.asarray(p, float) for n, p in placed.items()}
     img = imaging.render_preview(frame)[..., ::-1]  # BGR -> RGB
     scale = img.shape[1] / frame.width
     return img, scale, {n: (p + 0.5) * scale - 0.5 for n, p in polygons.items()}

@@ -107,8 +107,12 @@ def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
 
 def write_outputs(outcome: FitOutcome, out: Path) -> None:
     """Write every output into `out` (a temporary folder moved into place by the caller)."""
+    from .measure import MARKER_COLUMNS, fit_marker_reports, write_table
+
     out.mkdir(parents=True, exist_ok=True)
     outcome.table.write_csv(out / "measurements.csv")
+    markers = fit_marker_reports(outcome.scene, outcome.table)
+    write_table(out / "markers.csv", markers, MARKER_COLUMNS)
     write_observations(outcome, out / "observations.csv")
     figures = write_figures(outcome, out / "figures")
     results = results_dict(outcome, figures)
@@ -540,10 +544,17 @@ table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}</style
 {ls["n_used"]} of {ls["n_rows"]} measurements fitted.<br>{e(post_line)}</p>
 <ul>{warn}{notes}</ul>
 <h2>Figures</h2>{imgs}
-<h2>Regions of interest</h2>{prev}
+<h2>Regions of interest</h2>{prev}<h3>Markers per photo</h3>{_markers_html(outcome)}
 <p style="color:#777">stairfit {e(__version__)}; conventions: docs/conventions.md; all numbers
 also in results.json.</p></body></html>
 """
+
+
+def _markers_html(outcome: FitOutcome) -> str:
+    """The per-photo marker table (app/measure.py), as in markers.csv."""
+    from .measure import MARKER_COLUMNS, fit_marker_reports, html_table
+
+    return html_table(fit_marker_reports(outcome.scene, outcome.table), MARKER_COLUMNS)
 
 
 def _fmt(x: Any, spec: str) -> str:

@@ -85,10 +85,17 @@ class Light:
 
 @dataclass(frozen=True)
 class Camera:
-    """The camera: channel sensitivities by name, and the spread of viewing angles over a face."""
+    """The camera: channel sensitivities by name, and the spread of viewing angles over a face.
+
+    `focal_length_px` and `principal_point_px` (optional, pixels of the full-resolution raw
+    image) make it a pinhole for placing wedge faces in 3-D from the markers; without them an
+    affine camera is assumed (docs/imaging.md §3-D placement).
+    """
 
     sensitivity: str = "ideal"
     angular_extent_deg: float = 0.0
+    focal_length_px: float | None = None
+    principal_point_px: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -119,15 +126,29 @@ class Reference:
 
 @dataclass(frozen=True)
 class Photo:
-    """One photograph: its file, geometry and optional overrides."""
+    """One photograph: its file, geometry and optional overrides.
+
+    `light_deg` and `view_deg` are always set in a scene for `fit`; a measure-only scene of
+    patches alone (no [specimen]) may leave them out (None).
+    """
 
     file: str
-    light_deg: float
-    view_deg: float
+    light_deg: float | None
+    view_deg: float | None
     exposure_time_s: float | None = None
     f_number: float | None = None
     iso: float | None = None
     roi_px: tuple[tuple[str, Polygon], ...] = ()
+
+
+@dataclass(frozen=True)
+class Patch:
+    """A named patch measured by `stairfit measure` (a colour-chart patch, a grey card): its
+    pixel polygon in every photo, or its outline on the base (flat, placed by the markers)."""
+
+    name: str
+    roi_px: Polygon | None = None
+    face_mm: Polygon | None = None
 
 
 @dataclass(frozen=True)
@@ -146,13 +167,14 @@ class Scene:
 
     path: Path
     angles_relative_to: str
-    specimen: Specimen
+    specimen: Specimen | None  # None only in a measure-only scene of patches
     light: Light
     camera: Camera
     photos: tuple[Photo, ...]
     markers: Markers | None = None
     reference: Reference | None = None
     extraction: Extraction = field(default_factory=Extraction)
+    patches: tuple[Patch, ...] = ()
 
     @property
     def folder(self) -> Path:
@@ -181,8 +203,12 @@ class Scene:
 # --- loading and validation -----------------------------------------------------------------
 
 
-def load_scene(path: Path) -> Scene:
-    """Read and validate a scene file (or the `scene.toml` inside a folder)."""
+def load_scene(path: Path, measure_only: bool = False) -> Scene:
+    """Read and validate a scene file (or the `scene.toml` inside a folder).
+
+    `measure_only` (for `stairfit measure`) also allows `[[patches]]`, beside or instead of
+    `[specimen]`, and photos without angles when there is no specimen.
+    """
     path = Path(path)
     if not path.exists():
         raise UserError(
@@ -205,11 +231,11 @@ def load_scene(path: Path) -> Scene:
         raise UserError(
             f"{path}: cannot read the scene file ({e.strerror or e}); check its permissions"
         ) from None
-    return parse_scene(raw, path)
+    return parse_scene(raw, path, measure_only)
 
 
-def parse_scene(raw: dict[str, Any], path: Path) -> Scene:
-    """Validate a scene given as a dict (as read from TOML)."""
+def parse_scene(raw: dict[str, Any], path: Path, measure_only: bool = False) -> Scene:
+    """Validate a scene given as a dict (as read from TOML); see `load_scene`."""
     r = _Reader(path)
     top = r.table(
         raw,
@@ -224,6 +250,7 @@ def parse_scene(raw: dict[str, Any], path: Path) -> Scene:
             "markers",
             "reference",
             "extraction",
+            "patches",
         ],
     )
     version = r.get(top, "version", int, "", default=SCENE_VERSION)
@@ -232,16 +259,23 @@ def parse_scene(raw: dict[str, Any], path: Path) -> Scene:
     relative = r.get(top, "angles_relative_to", str, "", default="base")
     if relative not in ("base", "face"):
         r.fail("angles_relative_to", f'is {relative!r}; use "base" or "face"')
-    specimen = _specimen(r, r.need_table(top, "specimen", ""))
+    if "patches" in top and not measure_only:
+        r.fail("patches", "named patches are measured by 'stairfit measure' only; remove them")
+    patch_only = measure_only and "patches" in top and "specimen" not in top
+    specimen = None if patch_only else _specimen(r, r.need_table(top, "specimen", ""))
     light = _light(r, r.opt_table(top, "light", ""))
     camera = _camera(r, r.opt_table(top, "camera", ""))
     markers = _markers(r, top["markers"], "markers") if "markers" in top else None
     reference = _reference(r, top["reference"], "reference") if "reference" in top else None
     extraction = _extraction(r, r.opt_table(top, "extraction", ""))
-    photos = _photos(r, top, specimen)
-    scene = Scene(path, relative, specimen, light, camera, photos, markers, reference, extraction)
-    _check_geometry(r, scene)
-    _check_rois(r, scene)
+    patches = _patches(r, top, specimen, reference, markers) if "patches" in top else ()
+    photos = _photos(r, top, specimen, tuple(x.name for x in patches))
+    scene = Scene(
+        path, relative, specimen, light, camera, photos, markers, reference, extraction, patches
+    )
+    if specimen is not None:
+        _check_geometry(r, scene)
+        _check_rois(r, scene)
     return scene
 
 
@@ -441,7 +475,8 @@ def _light(r: _Reader, d: dict[str, Any]) -> Light:
 
 
 def _camera(r: _Reader, d: dict[str, Any]) -> Camera:
-    r.table(d, "camera", ["sensitivity", "angular_extent_deg"])
+    fields = ["sensitivity", "angular_extent_deg", "focal_length_px", "principal_point_px"]
+    r.table(d, "camera", fields)
     sens = r.get(d, "sensitivity", str, "camera", default="ideal")
     from stairfit.model import spectral
 
@@ -450,7 +485,15 @@ def _camera(r: _Reader, d: dict[str, Any]) -> Camera:
             "camera.sensitivity", f"unknown camera {sens!r}; known: {', '.join(spectral.CAMERAS)}"
         )
     ext = r.get(d, "angular_extent_deg", float, "camera", default=0.0, lo=0, hi=30)
-    return Camera(sens, ext)
+    focal = r.get(d, "focal_length_px", float, "camera", default=None, lo=1.0, hi=1e6)
+    centre = d.get("principal_point_px")
+    if centre is not None:
+        if not (isinstance(centre, list) and len(centre) == 2 and all(map(_is_num, centre))):
+            r.fail("camera.principal_point_px", "must be [cx, cy] in pixels, e.g. [2999.5, 1999.5]")
+        if focal is None:
+            r.fail("camera.principal_point_px", "needs camera.focal_length_px as well")
+        centre = (float(centre[0]), float(centre[1]))
+    return Camera(sens, ext, focal, centre)
 
 
 def _markers(r: _Reader, d: Any, w: str) -> Markers:
@@ -498,11 +541,45 @@ def _extraction(r: _Reader, d: dict[str, Any]) -> Extraction:
     )
 
 
-def _photos(r: _Reader, top: dict[str, Any], specimen: Specimen) -> tuple[Photo, ...]:
+def _patches(
+    r: _Reader,
+    top: dict[str, Any],
+    specimen: Specimen | None,
+    reference: Reference | None,
+    markers: Markers | None,
+) -> tuple[Patch, ...]:
+    """The `[[patches]]` of a measure-only scene: unique names, one polygon each."""
+    items = top["patches"]
+    if not isinstance(items, list) or not items:
+        r.fail("patches", "must be [[patches]] tables with name and roi_px (or face_mm)")
+    taken = {w.name for w in specimen.wedges} if specimen else set()
+    taken |= {reference.name} if reference else set()
+    patches = []
+    for k, d in enumerate(items):
+        w = f"patches[{k}]"
+        r.table(d, w, ["name", "roi_px", "face_mm"])
+        name = r.get(d, "name", str, w)
+        patch = Patch(name, r.polygon(d, "roi_px", w), r.polygon(d, "face_mm", w))
+        if (patch.roi_px is None) == (patch.face_mm is None):
+            r.fail(w, "give either roi_px (pixels) or face_mm (base-plane mm), one of them")
+        if patch.face_mm is not None and markers is None:
+            r.fail(f"{w}.face_mm", "needs a [markers] layout to be placed; or give roi_px")
+        if patch.name in taken:
+            r.fail(f"{w}.name", f"{patch.name!r} is already a wedge, patch or reference name")
+        taken.add(patch.name)
+        patches.append(patch)
+    return tuple(patches)
+
+
+def _photos(
+    r: _Reader, top: dict[str, Any], specimen: Specimen | None, patches: tuple[str, ...] = ()
+) -> tuple[Photo, ...]:
     items = top.get("photos")
     if not isinstance(items, list) or not items:
         r.fail("photos", "missing or empty; add one [[photos]] table per photograph")
-    names = {w.name for w in specimen.wedges}
+    names = {w.name for w in specimen.wedges} if specimen is not None else set()
+    names |= set(patches)
+    angle = ... if specimen is not None else None  # required unless there are no wedges
     photos = []
     for k, p in enumerate(items):
         w = f"photos[{k}]"
@@ -524,8 +601,8 @@ def _photos(r: _Reader, top: dict[str, Any], specimen: Specimen) -> tuple[Photo,
         photos.append(
             Photo(
                 file=r.get(p, "file", str, w),
-                light_deg=r.get(p, "light_deg", float, w, lo=-90, hi=90),
-                view_deg=r.get(p, "view_deg", float, w, lo=-90, hi=90),
+                light_deg=r.get(p, "light_deg", float, w, default=angle, lo=-90, hi=90),
+                view_deg=r.get(p, "view_deg", float, w, default=angle, lo=-90, hi=90),
                 exposure_time_s=r.get(
                     p, "exposure_time_s", float, w, default=None, lo=1e-6, hi=3600
                 ),
@@ -557,9 +634,13 @@ def visible(scene: Scene, photo: Photo, wedge: Wedge) -> bool:
 
 
 def _check_geometry(r: _Reader, scene: Scene) -> None:
+    assert scene.specimen is not None
+    patches = {p.name for p in scene.patches}
     for k, photo in enumerate(scene.photos):
         seen = [w for w in scene.specimen.wedges if visible(scene, photo, w)]
         for name, _ in photo.roi_px:
+            if name in patches:
+                continue
             wedge = next(w for w in scene.specimen.wedges if w.name == name)
             if wedge not in seen:
                 ti, to = scene.face_angles_deg(photo, wedge)
@@ -568,7 +649,7 @@ def _check_geometry(r: _Reader, scene: Scene) -> None:
                     f"this photo cannot see wedge {name!r}'s face lit (face-frame theta_i = "
                     f"{ti:g} deg, theta_o = {to:g} deg); fix light_deg/view_deg or drop the ROI",
                 )
-        if not seen:
+        if not seen and not patches:
             r.fail(
                 f"photos[{k}]",
                 "no wedge face is both lit and visible in this photo; fix "
@@ -577,6 +658,7 @@ def _check_geometry(r: _Reader, scene: Scene) -> None:
 
 
 def _check_rois(r: _Reader, scene: Scene) -> None:
+    assert scene.specimen is not None
     for k, photo in enumerate(scene.photos):
         per_photo = dict(photo.roi_px)
         for wedge in scene.specimen.wedges:

@@ -31,6 +31,22 @@ from .scene import SCENE_FILE, SCENE_VERSION
 DEG = np.pi / 180
 TRUTH_FILE = "truth.json"
 
+MARKER_STYLES: tuple[str, ...] = ("quiet-zone", "no-quiet-zone")
+"""ArUco markers printed on white paper with a one-cell white margin, or straight on the dark
+base plate (their black border touches the plate)."""
+
+MARKER_WHITE_PER_SCALE = 0.003
+"""Relative radiance of the markers' white paper per unit of the truth's `scale`: a Lambertian
+white that, like every diffuse surface under the fixed light, has the same radiance in every
+photo (6000 at the default scale, 1.5 times the default floor). Exposures are chosen for the
+wedges, so in the bright specular views the markers come out dark, as in a real session."""
+
+MARKER_INK = 0.04
+"""Radiance of the markers' black ink, as a fraction of the white paper."""
+
+BASE_PLATE = 0.10
+"""Radiance of the dark base plate the wedges and markers sit on, as a fraction of the paper."""
+
 
 @dataclass(frozen=True)
 class Truth:
@@ -60,6 +76,8 @@ class SimulationSettings:
     seed: int = 1
     workers: int = 1
     truth: Truth = field(default_factory=Truth)
+    exposure_tags: str = "exif"  # where the DNGs carry the exposure (imaging.synthetic)
+    markers: str = "quiet-zone"  # MARKER_STYLES
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -97,6 +115,19 @@ def add_truth_options(p: argparse.ArgumentParser, seed_and_workers: bool = True)
         default=len(s.views_deg),
         help="number of photos (viewing angles from -80 to 20 deg, base frame)",
     )
+    p.add_argument(
+        "--exposure-tags",
+        default=s.exposure_tags,
+        choices=("exif", "ifd0", "both", "none"),
+        help="where the DNGs carry ExposureTime/FNumber/ISO: the EXIF IFD, IFD0 (TIFF/EP), both,"
+        " or none (the scene file then gives them as overrides)",
+    )
+    p.add_argument(
+        "--markers",
+        default=s.markers,
+        choices=MARKER_STYLES,
+        help="ArUco markers in a white quiet zone, or printed straight on the dark base plate",
+    )
     if seed_and_workers:
         p.add_argument("--seed", type=int, default=s.seed, help="seed of texture and noise")
         p.add_argument("--workers", type=int, default=s.workers, help="processes for rendering")
@@ -131,6 +162,8 @@ def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
         seed=args.seed,
         workers=args.workers,
         truth=truth,
+        exposure_tags=getattr(args, "exposure_tags", base.exposure_tags),
+        markers=getattr(args, "markers", base.markers),
     )
     _check_edge_radius(settings)
     return settings
@@ -284,9 +317,13 @@ def simulate(folder: Path, settings: SimulationSettings, progress: bool = False)
     radiance = face_radiance(settings)
     size = image_size(settings.megapixels)
     jobs = [
-        _PhotoJob(folder, p, view, size, layout, radiance[p], settings.seed * 1000 + p)
+        _PhotoJob(
+            folder, p, view, size, layout, radiance[p], settings.seed * 1000 + p,
+            settings.exposure_tags, settings.markers,
+            MARKER_WHITE_PER_SCALE * settings.truth.scale,
+        )
         for p, view in enumerate(settings.views_deg)
-    ]
+    ]  # fmt: skip
     photos: list[dict[str, Any]] = []
     bar = tqdm(total=len(jobs), desc="rendering photos", unit="photo", disable=not progress)
     if settings.workers > 1:
@@ -330,6 +367,9 @@ class _PhotoJob:
     layout: SpecimenLayout
     radiance: np.ndarray  # (n_wedges, 3)
     seed: int
+    exposure_tags: str = "exif"
+    markers: str = "quiet-zone"
+    paper: float = 6000.0  # relative radiance of the markers' white paper
 
 
 def _render(job: _PhotoJob) -> dict[str, Any]:
@@ -353,29 +393,32 @@ def _render(job: _PhotoJob) -> dict[str, Any]:
     import cv2
 
     h, _ = cv2.findHomography(src, dst)
-    background = np.full(3, 0.02 * peak)
     photo = synthetic.render_photo(
         job.size,
         faces,
         {n: job.radiance[k] for k, n in enumerate(names)},
         exposure,
-        background=background,
+        background=np.full(3, BASE_PLATE * job.paper),
         sensor=sensor,
         markers=MarkerLayout({i: c.tolist() for i, c in markers_mm.items()}),
         plane_to_image=h,
-        marker_white=np.full(3, 0.3 * peak),
-        marker_black=np.full(3, 0.01 * peak),
+        marker_white=np.full(3, job.paper),
+        marker_black=np.full(3, MARKER_INK * job.paper),
+        marker_quiet_zone_cells=1.0 if job.markers == "quiet-zone" else 0.0,
         vignetting=0.0,  # as if flat-field corrected: the pipeline does not correct vignetting
         seed=job.seed,
     )
     name = f"IMG_{job.index + 1:04d}.dng"
-    photo.write_dng(job.folder / name)
-    return {
+    photo.write_dng(job.folder / name, exposure_tags=job.exposure_tags)
+    entry = {
         "file": name,
         "light_deg": None,  # filled in by _scene_dict (same light for every photo)
         "view_deg": round(job.view_deg, 6),
-        "roi_px": {n: [[round(x, 2), round(y, 2)] for x, y in faces[n]] for n in names},
     }
+    if job.exposure_tags == "none":  # the scene file gives what the files lack
+        entry |= {"exposure_time_s": t, "f_number": f_number, "iso": iso}
+    entry["roi_px"] = {n: [[round(x, 2), round(y, 2)] for x, y in faces[n]] for n in names}
+    return entry
 
 
 def _compact_arrays(toml_text: str) -> str:

@@ -25,6 +25,9 @@ from ._extract import ChannelStats as ChannelStats
 from ._extract import ExtractionSettings as ExtractionSettings
 from ._extract import roi_channel_stats as roi_channel_stats
 from ._markers import ARUCO_DICTIONARIES as ARUCO_DICTIONARIES
+from ._markers import LEGACY_DETECTOR as LEGACY_DETECTOR
+from ._markers import TONE_MAPS as TONE_MAPS
+from ._markers import DetectorSettings as DetectorSettings
 from ._markers import MarkerDetection as MarkerDetection
 from ._markers import MarkerLayout as MarkerLayout
 from ._markers import Placement as Placement
@@ -37,7 +40,15 @@ from ._pipeline import cache_key as cache_key
 from ._pipeline import measure_frame as measure_frame
 from ._pipeline import measure_photo as measure_photo
 from ._pipeline import measure_photos as measure_photos
+from ._pipeline import place_faces as place_faces
 from ._pipeline import preview_path as preview_path
+from ._placement import MIN_DETECTABLE_CELL_PX as MIN_DETECTABLE_CELL_PX
+from ._placement import PLACEMENT_MODELS as PLACEMENT_MODELS
+from ._placement import CameraPose as CameraPose
+from ._placement import PinholeCamera as PinholeCamera
+from ._placement import face_outline_3d as face_outline_3d
+from ._placement import face_polygon as face_polygon
+from ._placement import fit_camera_pose as fit_camera_pose
 from ._preview import render_preview as render_preview
 from ._preview import write_preview as write_preview
 from ._roi import Polygon as Polygon

@@ -28,12 +28,20 @@ from ._errors import ImagingError
 from ._exposure import Exposure, resolve_exposure
 from ._extract import ChannelStats, ExtractionSettings, roi_channel_stats
 from ._io import atomic_write_bytes
-from ._markers import MarkerDetection, MarkerLayout, Placement, detect_markers, fit_placement
+from ._markers import MarkerDetection, MarkerLayout, detect_markers
+from ._placement import (
+    CameraPose,
+    PinholeCamera,
+    check_in_image,
+    face_polygon,
+    fit_camera_pose,
+    hidden_fraction,
+)
 from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import Polygon, RoiMask, as_polygon, roi_mask
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 2
+TABLE_VERSION = 3
 """Part of every cache key: bump it when a change to the code changes measured values."""
 
 
@@ -65,6 +73,15 @@ class PhotoSpec:
         markers: the marker layout, needed when some name is only in `faces_mm`.
         reference: the name (in `rois` or `faces_mm`) of a reference patch: every other ROI's
             value is divided by the reference's value in the same photo and channel.
+        face_angles_deg: the wedge angle beta2 (deg) of faces in `faces_mm`, name -> angle: the
+            face rises along +x from its outline's foot and is placed in 3-D (docs/imaging.md
+            §3-D placement). A face without an angle lies on the base.
+        view_deg: the camera's direction from the base normal, a rotation about the layer lines
+            (y; positive: the uphill side), base frame; needed to place rising faces without
+            `camera`.
+        camera: pinhole intrinsics (`PinholeCamera`), or None for an affine camera.
+        occluders_mm: (name, outline on the base, beta2) of every wedge that may hide a placed
+            face from the camera (default: the placed faces themselves).
     """
 
     path: Path
@@ -76,6 +93,10 @@ class PhotoSpec:
     faces_mm: tuple[tuple[str, Polygon], ...] = ()
     markers: MarkerLayout | None = None
     reference: str | None = None
+    face_angles_deg: tuple[tuple[str, float], ...] = ()
+    view_deg: float | None = None
+    camera: PinholeCamera | None = None
+    occluders_mm: tuple[tuple[str, Polygon, float], ...] = ()
 
     def __post_init__(self) -> None:
         path = Path(self.path)
@@ -86,6 +107,7 @@ class PhotoSpec:
         object.__setattr__(
             self, "faces_mm", _named_polygons(self.faces_mm, f"photo {name!r}, face_mm")
         )
+        _check_geometry_fields(self)
         names = self.roi_names()
         if not names:
             raise ImagingError(f"photo {name!r}: no ROIs; give pixel polygons or faces in mm")
@@ -112,6 +134,35 @@ class PhotoSpec:
         px = {n for n, _ in self.rois}
         return tuple(n for n, _ in self.faces_mm if n not in px)
 
+    def occluders(self) -> tuple[tuple[str, Polygon, float], ...]:
+        """The wedges that may hide a face: `occluders_mm`, else every face with an angle."""
+        if self.occluders_mm:
+            return self.occluders_mm
+        angles = dict(self.face_angles_deg)
+        return tuple((n, p, angles[n]) for n, p in self.faces_mm if n in angles)
+
+
+def _check_geometry_fields(spec: PhotoSpec) -> None:
+    """Normalise and check `face_angles_deg`, `view_deg` and `occluders_mm` of a PhotoSpec."""
+    name = spec.name
+    angles = tuple((str(n), float(a)) for n, a in dict(spec.face_angles_deg).items())
+    faces = {n for n, _ in spec.faces_mm}
+    for n, a in angles:
+        if n not in faces:
+            raise ImagingError(f"photo {name!r}: face_angles_deg names {n!r}, not in faces_mm")
+        if not (math.isfinite(a) and 0 <= a < 90):
+            raise ImagingError(f"photo {name!r}, face {n!r}: the wedge angle {a} is not in [0, 90)")
+    view = spec.view_deg
+    if view is not None and not (math.isfinite(float(view)) and abs(float(view)) < 89.9):
+        raise ImagingError(f"photo {name!r}: view_deg = {view!r} must be in (-89.9, 89.9)")
+    occ = tuple(
+        (str(n), as_polygon(p, f"photo {name!r}, occluder {n!r}"), float(a))
+        for n, p, a in spec.occluders_mm
+    )
+    object.__setattr__(spec, "face_angles_deg", angles)
+    object.__setattr__(spec, "view_deg", None if view is None else float(view))
+    object.__setattr__(spec, "occluders_mm", occ)
+
 
 @dataclass(frozen=True, eq=False)
 class FrameMeasurement:
@@ -121,7 +172,7 @@ class FrameMeasurement:
     rois: dict[str, RoiMask]
     exposure: Exposure
     detection: MarkerDetection | None
-    placement: Placement | None
+    placement: CameraPose | None
 
 
 def cache_key(spec: PhotoSpec, settings: ExtractionSettings) -> str:
@@ -131,6 +182,14 @@ def cache_key(spec: PhotoSpec, settings: ExtractionSettings) -> str:
         "rois": spec.rois,
         "faces_mm": spec.faces_mm,
         "markers": asdict(spec.markers) if spec.markers and spec.placed_names() else None,
+        "geometry": [
+            spec.face_angles_deg,
+            spec.view_deg,
+            asdict(spec.camera) if spec.camera else None,
+            spec.occluders_mm,
+        ]
+        if spec.placed_names()
+        else None,
         "reference": spec.reference,
         "exposure": [spec.exposure_time_s, spec.f_number, spec.iso],
         "settings": asdict(settings),
@@ -189,15 +248,8 @@ def measure_frame(
     photo = spec.name
     exposure = resolve_exposure(frame, spec.exposure_time_s, spec.f_number, spec.iso)
     polygons: dict[str, tuple[Polygon, str]] = {n: (p, "polygon") for n, p in spec.rois}
-    detection = placement = None
-    placed = spec.placed_names()
-    if placed:
-        assert spec.markers is not None  # checked by PhotoSpec
-        detection = detect_markers(frame, spec.markers.dictionary)
-        placement = fit_placement(detection, spec.markers, photo=photo, wedges=placed)
-        faces = dict(spec.faces_mm)
-        for n in placed:
-            polygons[n] = (placement.polygon(faces[n]), "markers")
+    detection, placement, placed_polygons = place_faces(frame, spec)
+    polygons |= {n: (p, "markers") for n, p in placed_polygons.items()}
     rois = {
         n: roi_mask(
             polygons[n][0],
@@ -209,6 +261,8 @@ def measure_frame(
         )
         for n in spec.roi_names()
     }
+    if placement is not None:  # before the overlap check: a hidden face overlaps its hider
+        _check_hidden(spec, placement, rois)
     _check_overlaps(rois, photo)
     key = cache_key(spec, settings)
     black = frame.black_level_per_channel()
@@ -252,15 +306,84 @@ def measure_frame(
                     exposure_time_s=exposure.exposure_time_s,
                     f_number=exposure.f_number,
                     iso=exposure.iso,
+                    exposure_source=exposure.source,
                     black_level=black[c],
                     white_level=frame.white_level,
                     roi_source=roi.source,
                     reprojection_error_px=placement.rms_error_px if by_marker else None,  # type: ignore[union-attr]
                     n_markers=len(placement.ids) if by_marker else None,  # type: ignore[union-attr]
                     camera=frame.camera,
+                    **_marker_columns(placement if by_marker else None, detection),
                 )
             )
     return FrameMeasurement(tuple(rows), rois, exposure, detection, placement)
+
+
+def place_faces(
+    frame: RawFrame, spec: PhotoSpec
+) -> tuple[MarkerDetection | None, CameraPose | None, dict[str, Polygon]]:
+    """Detect the markers and place the faces of `spec.placed_names()`: (detection, camera,
+    image polygons by name); (None, None, {}) when nothing is placed from markers.
+
+    Faces with a wedge angle are placed in 3-D (docs/imaging.md §3-D placement).
+
+    Raises:
+        ImagingError: too few markers, an inconsistent camera, or a face outside the image.
+    """
+    placed = spec.placed_names()
+    if not placed:
+        return None, None, {}
+    layout = spec.markers
+    assert layout is not None  # checked by PhotoSpec
+    ids = [m for m, _ in layout.markers]
+    detection = detect_markers(frame, layout.dictionary, layout.detector, expected_ids=ids)
+    angles = dict(spec.face_angles_deg)
+    size = (frame.width, frame.height)
+    pose = fit_camera_pose(
+        detection,
+        layout,
+        photo=spec.name,
+        image_size=size,
+        rising=any(angles.get(n, 0.0) > 0 for n in placed),
+        view_deg=spec.view_deg,
+        camera=spec.camera,
+        wedges=placed,
+    )
+    faces = dict(spec.faces_mm)
+    polygons = {}
+    for n in placed:
+        polygons[n] = face_polygon(pose, faces[n], angles.get(n, 0.0))
+        check_in_image(polygons[n], size, photo=spec.name, wedge=n)
+    return detection, pose, polygons
+
+
+def _check_hidden(spec: PhotoSpec, pose: CameraPose, rois: dict[str, RoiMask]) -> None:
+    """ImagingError when another wedge hides part of a placed face's eroded ROI."""
+    faces, angles = dict(spec.faces_mm), dict(spec.face_angles_deg)
+    occluders = spec.occluders()
+    for n in spec.placed_names():
+        others = [o for o in occluders if o[0] != n]
+        if not others:
+            continue
+        fraction, by = hidden_fraction(pose, faces[n], angles.get(n, 0.0), others, rois[n])
+        if fraction > 0:
+            raise ImagingError(
+                f"photo {spec.name!r}, wedge {n!r}: {100 * fraction:.0f}% of the face's ROI is "
+                f"hidden behind wedge {by!r} from this view; give a roi_px polygon for {n!r} in "
+                "this photo that keeps to the visible part, or leave the photo out"
+            )
+
+
+def _marker_columns(pose: CameraPose | None, detection: MarkerDetection | None) -> dict:
+    """The marker columns of a row: ids used, their smallest cell (px) and the camera model."""
+    if pose is None or detection is None:
+        return {"marker_ids": "", "marker_cell_px": None, "placement": ""}
+    cells = dict(zip(detection.ids, detection.cell_px, strict=True))
+    return {
+        "marker_ids": " ".join(str(i) for i in pose.ids),
+        "marker_cell_px": min(cells[i] for i in pose.ids),
+        "placement": pose.model,
+    }
 
 
 def measure_photo(
@@ -311,7 +434,16 @@ def _measure_decoded(
     except ImagingError as e:
         if preview is None:
             raise
-        det = detect_markers(frame, spec.markers.dictionary) if spec.markers else None
+        det = (
+            detect_markers(
+                frame,
+                spec.markers.dictionary,
+                spec.markers.detector,
+                expected_ids=[m for m, _ in spec.markers.markers],
+            )
+            if spec.markers
+            else None
+        )
         return e, partial(_write_previews, frame, {}, det, settings, [Path(preview)])
     if preview is None:
         return result.rows, None
@@ -480,6 +612,7 @@ def measure_photos(
     preview_dir: str | Path | None = None,
     progress: bool = False,
     max_workers: int | None = None,
+    raise_on_failure: bool = True,
 ) -> MeasurementTable:
     """Measure a set of photos: the measurement table, one row per photo x ROI x channel.
 
@@ -499,6 +632,9 @@ def measure_photos(
         max_workers: worker processes; default min(2, CPU count, photos to decode). With 1,
             photos are measured in this process. Each worker holds one photo at a time, so
             memory stays bounded by a few photos.
+        raise_on_failure: False returns the rows of the photos that succeeded, with the
+            failures in the table's `failed` ((photo, one-line reason) pairs), instead of
+            raising (`stairfit measure` reports them).
 
     Returns:
         The table, rows in the order of `specs`.
@@ -575,12 +711,22 @@ def measure_photos(
     if cache_path is not None:
         table.write_csv(cache_path)
         _prune_preview_cache(preview_cache_dir(cache_path), table)
-    if errors:
+    return _with_failures(table, [(n, errors[n]) for n in names if n in errors], raise_on_failure)
+
+
+def _with_failures(
+    table: MeasurementTable, failures: list[tuple[str, str]], raise_on_failure: bool
+) -> MeasurementTable:
+    """`measure_photos`'s result: the table, or an ImagingError listing the failures (one
+    line), or with `raise_on_failure=False` the table with the failures in `failed`."""
+    if failures and raise_on_failure:
         raise ImagingError(
-            f"{len(errors)} of {len(specs)} photos could not be measured: "
-            + _summarise_failures([(n, errors[n]) for n in names if n in errors])
+            f"{len(failures)} of {len(table.photos()) + len(failures)} photos could not be "
+            f"measured: {_summarise_failures(failures)}"
         )
-    return table
+    if not failures:
+        return table
+    return MeasurementTable(table.rows, tuple((n, " ".join(m.split())) for n, m in failures))
 
 
 def _summarise_failures(failures: Sequence[tuple[str, str]]) -> str:

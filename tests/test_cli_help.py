@@ -40,9 +40,12 @@ EXPECTED_OPTIONS = {
         "--views",
         "--seed",
         "--workers",
+        "--exposure-tags",
+        "--markers",
         "--force",
         "--quiet",
     ],
+    "measure": ["--output", "--workers", "--no-cache", "--force", "--quiet"],
     "fit": [
         "--output",
         "--preset",
@@ -87,6 +90,7 @@ POSITIONAL = {
     "predict": None,
     "simulate": "out",
     "fit": "DIR",
+    "measure": "DIR",
     "demo": "out",
     "study": "ROOT_OR_FOLDER",
 }
