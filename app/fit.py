@@ -134,16 +134,15 @@ def default_output(folder: Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """`stairfit fit DIR`."""
+    from .outputs import staged_folder
     from .report import print_summary
-    from .simulate import staged_folder
 
     options = options_from_args(args)
     scene = load_scene(args.folder)
     out = args.output or default_output(args.folder)
-    if out.exists() and not args.force:
-        raise UserError(f"{out}: already exists; choose another --output or add --force")
-    check_photos(scene)
-    with staged_folder(out, args.force) as tmp:
+    inputs = (scene.folder, *scene.input_files())
+    with staged_folder(out, args.force, inputs=inputs, reserved=(scene.folder / CACHE_DIR,)) as tmp:
+        check_photos(scene)
         outcome = fit_scene(scene, tmp, options)
     print_summary(outcome, out)
     return 0

@@ -17,7 +17,7 @@ import numpy as np
 
 from . import _ranges
 from .errors import UserError
-from .outputs import atomic_text
+from .outputs import staged_file
 
 
 class _RowWriter(Protocol):
@@ -375,7 +375,5 @@ def _open_output(path: Path | None, force: bool) -> Iterator[TextIO]:
     if path is None:
         yield sys.stdout
         return
-    if path.exists() and not force:
-        raise UserError(f"{path}: already exists; choose another --output or add --force")
-    with atomic_text(path) as fh:
+    with staged_file(path, force) as fh:
         yield fh

@@ -156,6 +156,19 @@ class Scene:
         """The photo folder (the scene file's folder)."""
         return self.path.parent
 
+    def input_files(self) -> tuple[Path, ...]:
+        """Every file this scene makes a run read, as absolute resolved paths, without repeats.
+
+        The scene file, then each photo's file (every member of a bracket, when `file` lists
+        several). Whoever adds a new kind of input file (flat fields, dark frames, ...) adds it
+        here: outputs are refused when they would replace any of these (app/outputs.py).
+        """
+        files = [self.path]
+        for photo in self.photos:
+            names = photo.file if isinstance(photo.file, list | tuple) else (photo.file,)
+            files.extend(self.folder / name for name in names)
+        return tuple(dict.fromkeys(Path(p).resolve() for p in files))
+
     def face_angles_deg(self, photo: Photo, wedge: Wedge) -> tuple[float, float]:
         """(theta_i, theta_o) of this photo in this wedge's face frame, degrees.
 

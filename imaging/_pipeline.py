@@ -555,20 +555,11 @@ def measure_photos(
                     ): spec
                     for spec in todo
                 }
-                for fut in as_completed(futures):
-                    spec = futures[fut]
-                    try:
-                        done[spec.name] = fut.result()
-                    except ImagingError as e:
-                        errors[spec.name] = str(e)
-                    except BrokenProcessPool as e:
-                        raise ImagingError(
-                            f"photo {spec.name!r}: a worker process died ({e}); it may have run "
-                            "out of memory, or measure_photos was called while a script was "
-                            "being imported (put the call under `if __name__ == '__main__':`). "
-                            "Retry with max_workers=1"
-                        ) from e
-                    bar.update(1)
+                try:
+                    _collect(futures, done, errors, bar)
+                except BaseException:  # an interruption: do not start the photos still queued
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    raise
     finally:
         bar.close()
     table = MeasurementTable(tuple(r for s in specs if s.name in done for r in done[s.name]))
@@ -581,6 +572,30 @@ def measure_photos(
             + _summarise_failures([(n, errors[n]) for n in names if n in errors])
         )
     return table
+
+
+
+def _collect(
+    futures: dict[Future, PhotoSpec],
+    done: dict[str, tuple[MeasurementRow, ...]],
+    errors: dict[str, str],
+    bar: tqdm,
+) -> None:
+    """Gather the worker processes' results into `done` and `errors` as they complete."""
+    for fut in as_completed(futures):
+        spec = futures[fut]
+        try:
+            done[spec.name] = fut.result()
+        except ImagingError as e:
+            errors[spec.name] = str(e)
+        except BrokenProcessPool as e:
+            raise ImagingError(
+                f"photo {spec.name!r}: a worker process died ({e}); it may have run "
+                "out of memory, or measure_photos was called while a script was "
+                "being imported (put the call under `if __name__ == '__main__':`). "
+                "Retry with max_workers=1"
+            ) from e
+        bar.update(1)
 
 
 def _summarise_failures(failures: Sequence[tuple[str, str]]) -> str:

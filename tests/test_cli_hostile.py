@@ -1,0 +1,293 @@
+"""Hostile and careless input (issue 18): the catalogue of faults, one table or test per fault.
+
+Each case gives: no traceback, no silent wrong result, no deleted input, no leftover file, and
+one clear line (exit status 2 for a mistake in the input, 1 for a system error, 128 + N for a
+signal). The photo folders are copies of the small simulated folder of tests/test_cli_errors.py
+(3 photos of 0.5 MP); almost every case stops before any model is fitted, so no JAX
+compilation is needed.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import test_cli_errors as cli_errors
+from test_cli_errors import _folder_snapshot, assert_one_line_user_error, run
+
+from stairfit import outputs
+from stairfit.errors import UserError
+
+simulated = cli_errors.simulated  # the session's small simulated photo folder (a fixture)
+photos = cli_errors.photos  # a private copy of it, to break (a fixture)
+POSIX = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals, locks and modes")
+
+
+def _entries(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir())
+
+
+# --- 1. data loss: an output that is, or contains, an input ---------------------------------
+
+# (id, the -o given relative to the test's tmp_path (the photos are tmp_path/photos), --force)
+UNSAFE_OUTPUTS = [
+    ("photo-folder", "photos", False),
+    ("photo-folder-force", "photos", True),
+    ("parent-of-photos-force", ".", True),
+    ("scene-file-force", "photos/scene.toml", True),
+    ("a-photo-force", "photos/IMG_0002.dng", True),
+    ("cache-folder-force", "photos/.stairfit-cache", True),
+    ("link-to-photos-force", "link", True),
+]
+
+
+@pytest.mark.parametrize(
+    ("output", "force"), [c[1:] for c in UNSAFE_OUTPUTS], ids=[c[0] for c in UNSAFE_OUTPUTS]
+)
+def test_output_holding_an_input_is_refused_and_nothing_is_deleted(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], output: str, force: bool
+) -> None:
+    (tmp_path / "link").symlink_to(photos, target_is_directory=True)
+    (photos / ".stairfit-cache").mkdir()
+    before = _folder_snapshot(photos)
+    top = _entries(tmp_path)
+    extra = ["--force"] if force else []
+    status, err = run(capsys, "fit", str(photos), "-o", str(tmp_path / output), "--quiet", *extra)
+    fragment = "stairfit keeps" if "cache" in output else "which this run reads"
+    assert_one_line_user_error(status, err, "fit", fragment, "choose")
+    assert _folder_snapshot(photos) == before
+    assert _entries(tmp_path) == top
+
+
+@pytest.mark.parametrize("command", ["fit", "simulate", "demo"])
+def test_dot_output_with_force_is_refused_without_traceback(
+    photos: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    command: str,
+) -> None:
+    # `-o .` (fit) or `OUT = .` (simulate, demo): the current folder, here the photo folder
+    # itself for fit and an unrelated working folder for the others.
+    cwd = photos if command == "fit" else tmp_path / "work"
+    cwd.mkdir(exist_ok=True)
+    (cwd / "mine.txt").write_text("keep me")
+    before = _folder_snapshot(cwd)
+    monkeypatch.chdir(cwd)
+    argv = ["fit", str(photos), "-o", "."] if command == "fit" else [command, "."]
+    status, err = run(capsys, *argv, "--force", "--quiet")
+    fragment = "which this run reads" if command == "fit" else "the current folder"
+    assert_one_line_user_error(status, err, command, fragment)
+    assert _folder_snapshot(cwd) == before
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_check_output_refuses_home_and_root(tmp_path: Path) -> None:
+    for unsafe in (Path.home(), Path("/")):
+        with pytest.raises(UserError, match=r"home folder|current folder|root"):
+            outputs.check_output(unsafe)
+    inside = tmp_path / "photos"
+    inside.mkdir()
+    assert outputs.check_output(tmp_path / "results", inputs=[inside]) == tmp_path / "results"
+    with pytest.raises(UserError, match="contains"):
+        outputs.check_output(tmp_path, inputs=[inside])
+
+
+# --- 8. leftovers ----------------------------------------------------------------------------
+
+
+def test_stale_leftovers_of_killed_runs_are_removed(tmp_path: Path) -> None:
+    out = tmp_path / "results"
+    young_other = tmp_path / ".other.0123abcd.partial"
+    old_other = tmp_path / ".older.89abcdef.partial"
+    own = [
+        tmp_path / ".results.deadbeef.partial",
+        tmp_path / ".results.old-4242",
+        tmp_path / ".results.AbC_12x9.tmp",
+    ]
+    for p in [young_other, old_other, *own[:2]]:
+        p.mkdir()
+        (p / "x.png").write_bytes(b"x" * 1000)
+    own[2].write_text("half a file")
+    long_ago = time.time() - 2 * outputs.STALE_AGE_S
+    os.utime(old_other, (long_ago, long_ago))
+    keep = [tmp_path / "results.partial", tmp_path / ".results.txt", tmp_path / "mine"]
+    for p in keep:
+        p.write_text("not stairfit's")
+    with outputs.staged_folder(out, force=False) as tmp:
+        (tmp / "a.txt").write_text("new")
+    assert _entries(tmp_path) == sorted(p.name for p in [out, young_other, *keep])
+
+
+def test_existing_file_replaced_with_force_leaves_no_old_copy(tmp_path: Path) -> None:
+    for existing in ("file", "link", "folder"):
+        out = tmp_path / f"out-{existing}"
+        if existing == "file":
+            out.write_text("old")
+        elif existing == "link":
+            (tmp_path / "target").mkdir(exist_ok=True)
+            (tmp_path / "target" / "kept.txt").write_text("the link's target is not deleted")
+            out.symlink_to(tmp_path / "target")
+        else:
+            out.mkdir()
+            (out / "old.txt").write_text("old")
+        with outputs.staged_folder(out, force=True) as tmp:
+            (tmp / "new.txt").write_text("new")
+        resolved = out.resolve()
+        assert (resolved / "new.txt").read_text() == "new"
+        assert _entries(resolved) == ["new.txt"]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], _entries(tmp_path)
+
+
+def test_simulate_over_an_existing_file_with_force_leaves_nothing_else(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "existing.txt"
+    out.write_text("old")
+    argv = ["simulate", str(out), "--force", "--quiet", "--megapixels", "0.3", "--views", "3"]
+    status, err = run(capsys, *argv)
+    assert status == 0, err
+    assert _entries(tmp_path) == ["existing.txt"]
+    assert (out / "scene.toml").is_file()
+
+
+def test_failed_staging_removes_its_folder_and_names_the_real_target(tmp_path: Path) -> None:
+    out = tmp_path / "results"
+    with pytest.raises(OSError) as err, outputs.staged_folder(out, force=False) as tmp:
+        raise OSError(28, "No space left on device", str(tmp / "figures" / "corner.png"))
+    assert err.value.filename == str(out / "figures" / "corner.png")
+    with pytest.raises(OSError) as err, outputs.staged_folder(out, force=False):
+        raise OSError(28, "No space left on device")  # a write through a file object: no name
+    assert err.value.filename == str(out)
+    assert _entries(tmp_path) == []
+
+
+def test_full_disk_names_the_output_file(tmp_path: Path) -> None:
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full")
+    # the temporary file's writes fail as on a full disk; the error names the real target
+    target = tmp_path / "out.csv"
+    real_open = os.fdopen
+
+    def full_disk(fd: int, *args, **kwargs):
+        full = os.open("/dev/full", os.O_WRONLY)
+        os.dup2(full, fd)
+        os.close(full)
+        return real_open(fd, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(os, "fdopen", full_disk)
+        with pytest.raises(OSError) as err, outputs.atomic_text(target) as fh:
+            fh.write("x" * 100_000)
+    assert err.value.errno == 28
+    assert err.value.filename == str(target)
+    assert _entries(tmp_path) == []
+
+
+_SLOW_SIMULATE = """
+import sys
+from stairfit.cli import main
+sys.exit(main(["simulate", sys.argv[1], "--megapixels", "4", "--views", "40"]))
+"""
+
+
+@POSIX
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_signal_during_a_run_cleans_up_with_one_line(tmp_path: Path, sig: int) -> None:
+    out = tmp_path / "sim"
+    env = {**os.environ, "STAIRFIT_JAX_CACHE": "off"}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _SLOW_SIMULATE, str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    deadline = time.monotonic() + 240
+    while not list(tmp_path.glob(".sim.*.partial/IMG_0001.dng")):  # rendering has begun
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline, "no photo rendered in 240 s"
+        time.sleep(0.05)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=120)
+    expected = 128 + sig if sig != signal.SIGINT else 130
+    assert proc.returncode == expected, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("stairfit simulate")]
+    assert len(lines) == 1 and ("terminated by SIGTERM" in lines[0] or "interrupted" in lines[0])
+    assert "Traceback" not in err
+    assert _entries(tmp_path) == []
+
+
+# --- 10. two runs into one output ------------------------------------------------------------
+
+_HOLD_LOCK = """
+import sys, time
+from pathlib import Path
+from stairfit import outputs
+with outputs.output_lock(Path(sys.argv[1]).resolve()):
+    print("locked", flush=True)
+    time.sleep(600)
+"""
+
+
+@POSIX
+def test_second_run_into_a_locked_output_is_refused_and_a_dead_lock_is_not(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "results"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", _HOLD_LOCK, str(out)], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "locked"
+        status, err = run(capsys, "fit", str(photos), "-o", str(out), "--quiet")
+        assert_one_line_user_error(status, err, "fit", str(out), "another stairfit run", "wait")
+        status, err = run(capsys, "predict", "--theta-o-deg", "0", "-o", str(out))
+        assert_one_line_user_error(status, err, "predict", "another stairfit run")
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.communicate()
+    assert (tmp_path / ".results.lock").exists()  # left by the killed holder ...
+    (photos / "IMG_0001.dng").write_text("garbage")  # ... does not block: the run gets further
+    status, err = run(capsys, "fit", str(photos), "-o", str(out), "--quiet")
+    assert_one_line_user_error(status, err, "fit", "IMG_0001.dng", "cannot decode")
+    assert _entries(tmp_path) == ["photos"]  # and the stale lock file is gone
+
+
+# --- 12. file modes --------------------------------------------------------------------------
+
+
+@POSIX
+def test_written_files_honour_the_umask(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    old = os.umask(0o027)
+    try:
+        status, err = run(capsys, "predict", "--theta-o-deg", "0", "-o", str(tmp_path / "a.csv"))
+        assert status == 0, err
+        outputs.atomic_bytes(tmp_path / "b.bin", b"x")
+        from stairfit.imaging._io import atomic_write_bytes, temporary_sibling
+
+        atomic_write_bytes(tmp_path / "c.bin", b"x")
+        sibling = temporary_sibling(tmp_path / "d.dng")
+    finally:
+        os.umask(old)
+    for p in ("a.csv", "b.bin", "c.bin", sibling.name):
+        assert stat.S_IMODE((tmp_path / p).stat().st_mode) == 0o640, p
+
+
+@POSIX
+def test_simulated_photos_and_chain_honour_the_umask(simulated: Path, tmp_path: Path) -> None:
+    import numpy as np
+
+    from stairfit.fitting._posterior import _save_chain
+
+    umask = os.umask(0)
+    os.umask(umask)
+    _save_chain(tmp_path / "chain.npz", {"x": np.zeros(3)})
+    for p in [*simulated.iterdir(), tmp_path / "chain.npz"]:
+        assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~umask, p.name
