@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import UserError
+from .errors import StairfitWarning, UserError
 from .presets import PRESETS, Preset, get_preset
 from .scene import Scene, load_scene, visible
 
@@ -282,8 +282,14 @@ def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
     try:
         if cache is not None:
             cache.parent.mkdir(exist_ok=True)
-    except OSError:
-        cache = None  # a read-only photo folder: measure without a cache
+    except OSError as e:  # a read-only photo folder, or a file in the way: measure without
+        warnings.warn(
+            f"{cache.parent}: cannot keep the measurement cache there ({e.strerror or e}); "
+            "measuring without it",
+            StairfitWarning,
+            stacklevel=2,
+        )
+        cache = None
     try:
         return imaging.measure_photos(
             photo_specs(scene),

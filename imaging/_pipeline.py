@@ -13,7 +13,6 @@ import json
 import math
 import multiprocessing
 import os
-import warnings
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -23,6 +22,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from ._cache import prune_previews, read_cache, write_cache
 from ._decode import CHANNELS, RawFrame, decode_raw, file_sha256
 from ._errors import ImagingError
 from ._exposure import Exposure, resolve_exposure
@@ -330,11 +330,19 @@ def _write_previews(
     settings: ExtractionSettings,
     paths: Sequence[Path],
 ) -> None:
-    """Render a photo's preview once and write it (atomically) to each of `paths`."""
+    """Render a photo's preview once and write it (atomically) to each of `paths`.
+
+    Only the first path is required; the others are cached copies, skipped when they cannot be
+    written (a read-only photo folder: the next run renders the preview again).
+    """
     level = settings.saturation_level
     png = preview_png(frame, rois, detection, saturation_level=level, max_size=PREVIEW_MAX_SIZE)
-    for path in paths:
-        atomic_write_bytes(path, png)
+    for k, path in enumerate(paths):
+        try:
+            atomic_write_bytes(path, png)
+        except OSError:
+            if k == 0:
+                raise
 
 
 def _measure_in_process(
@@ -433,23 +441,9 @@ def _cached_preview(folder: Path, rows: Sequence[MeasurementRow]) -> bytes | Non
     return png if png.startswith(_PNG_START) and png.endswith(_PNG_END) else None
 
 
-def _prune_preview_cache(folder: Path, table: MeasurementTable) -> None:
-    """Delete the cached previews of rows that are no longer in the cache file."""
-    if not folder.is_dir():
-        return
-    keep = {cached_preview_name(r.photo_sha256, r.settings_key) for r in table.rows}
-    for path in folder.glob("*.png"):
-        if path.name not in keep:
-            path.unlink(missing_ok=True)
-
-
 def _load_cache(cache: Path | None) -> dict[str, tuple[MeasurementRow, ...]]:
-    if cache is None or not cache.exists():
-        return {}
-    try:
-        table = MeasurementTable.read_csv(cache)
-    except ImagingError as e:
-        warnings.warn(f"ignoring the cache: {e}", stacklevel=3)
+    table = read_cache(cache, TABLE_VERSION)
+    if table is None:
         return {}
     return {p: table.for_photo(p) for p in table.photos()}
 
@@ -563,16 +557,15 @@ def measure_photos(
     finally:
         bar.close()
     table = MeasurementTable(tuple(r for s in specs if s.name in done for r in done[s.name]))
-    if cache_path is not None:
-        table.write_csv(cache_path)
-        _prune_preview_cache(preview_cache_dir(cache_path), table)
+    if cache_path is not None and write_cache(cache_path, table, TABLE_VERSION):
+        keep = {cached_preview_name(r.photo_sha256, r.settings_key) for r in table.rows}
+        prune_previews(preview_cache_dir(cache_path), keep)
     if errors:
         raise ImagingError(
             f"{len(errors)} of {len(specs)} photos could not be measured: "
             + _summarise_failures([(n, errors[n]) for n in names if n in errors])
         )
     return table
-
 
 
 def _collect(

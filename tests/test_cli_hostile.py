@@ -15,6 +15,7 @@ import stat
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import pytest
@@ -291,3 +292,105 @@ def test_simulated_photos_and_chain_honour_the_umask(simulated: Path, tmp_path: 
     _save_chain(tmp_path / "chain.npz", {"x": np.zeros(3)})
     for p in [*simulated.iterdir(), tmp_path / "chain.npz"]:
         assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~umask, p.name
+
+
+# --- 2. the measurement cache is verified, not trusted ---------------------------------------
+
+
+def _specs(folder: Path) -> list:
+    from stairfit.fit import photo_specs
+    from stairfit.scene import load_scene
+
+    return photo_specs(load_scene(folder))
+
+
+def _tamper(cache: Path, how: str, column: str = "value") -> None:
+    lines = cache.read_text().splitlines(keepends=True)
+    header = lines[0].rstrip("\n").split(",")
+    col = header.index(column)
+    if how == "scale-one-photo":  # every row of the first photo x 1.1
+        photo = lines[1].split(",")[0]
+        for k in range(1, len(lines)):
+            fields = lines[k].split(",")
+            if fields[0] == photo:
+                fields[col] = repr(float(fields[col]) * 1.1)
+                lines[k] = ",".join(fields)
+    elif how == "one-digit":
+        fields = lines[1].split(",")
+        digit = next(i for i, ch in enumerate(fields[col]) if ch.isdigit() and ch != "0")
+        fields[col] = fields[col][:digit] + "0" + fields[col][digit + 1 :]
+        lines[1] = ",".join(fields)
+    elif how == "truncated":
+        lines = lines[: len(lines) // 2]
+    cache.write_text("".join(lines))
+
+
+@pytest.mark.parametrize("how", ["scale-one-photo", "one-digit", "truncated", "no-checksum"])
+def test_tampered_cache_is_measured_again_with_a_warning(photos: Path, tmp_path: Path, how: str):
+    from stairfit import imaging
+    from stairfit.imaging._cache import checksum_path
+
+    cache = tmp_path / "cache" / "measurements.csv"
+    specs = _specs(photos)
+    first = imaging.measure_photos(specs, cache=cache)
+    if how == "no-checksum":
+        checksum_path(cache).unlink()
+    else:
+        _tamper(cache, how)
+    with pytest.warns(imaging.ImagingWarning, match="measuring every photo again") as record:
+        again = imaging.measure_photos(specs, cache=cache)
+    assert str(cache) in str(record[0].message)
+    assert again.to_csv() == first.to_csv()  # measured again, not read from the cache
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the rewritten cache is trusted again, silently
+        assert imaging.measure_photos(specs, cache=cache).to_csv() == first.to_csv()
+
+
+def test_cache_in_the_way_or_read_only_does_not_stop_the_measurement(
+    photos: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from stairfit import imaging
+    from stairfit.imaging import _cache
+
+    specs = _specs(photos)
+    reference = imaging.measure_photos(specs)
+    folder_cache = tmp_path / "a" / "measurements.csv"
+    folder_cache.mkdir(parents=True)  # a folder where the cache file should be
+    with pytest.warns(imaging.ImagingWarning) as record:
+        table = imaging.measure_photos(specs, cache=folder_cache, preview_dir=tmp_path / "pv")
+    assert table.to_csv() == reference.to_csv()
+    text = " ".join(str(w.message) for w in record)
+    assert "cannot read it" in text and "cannot write it" in text
+    # a read-only photo folder that already holds a cache (simulated: root ignores mode bits)
+    cache = tmp_path / "b" / "measurements.csv"
+    imaging.measure_photos(specs, cache=cache, preview_dir=tmp_path / "pv1")
+
+    def read_only(path: Path, data: bytes) -> Path:
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(_cache, "atomic_write_bytes", read_only)
+    monkeypatch.setattr(Path, "unlink", lambda self, missing_ok=False: read_only(self, b""))
+    with pytest.warns(imaging.ImagingWarning, match="cannot write it"):
+        table = imaging.measure_photos(specs, cache=cache, preview_dir=tmp_path / "pv2")
+    assert table.to_csv() == reference.to_csv()
+    assert sorted(p.name for p in (tmp_path / "pv2").iterdir()) == sorted(
+        p.name for p in (tmp_path / "pv1").iterdir()
+    )
+
+
+def test_fit_says_in_one_line_that_an_edited_cache_is_measured_again(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # overexposed photos: measuring succeeds (and fills the cache), the fit stops right after
+    cli_errors.rewrite_photos(photos, overexpose=1000.0)
+    argv = ["fit", str(photos), "-o", str(tmp_path / "out"), "--quiet"]
+    status, err = run(capsys, *argv)
+    assert_one_line_user_error(status, err, "fit", "no usable measurement")
+    cache = photos / ".stairfit-cache" / "measurements.csv"
+    _tamper(cache, "one-digit", column="black_level")  # values are NaN: all saturated
+    status, err = run(capsys, *argv)
+    lines = err.strip().splitlines()
+    assert status == 2 and "Traceback" not in err and len(lines) == 2, err
+    assert lines[0].startswith("stairfit fit: warning: measurement cache ")
+    assert str(cache) in lines[0] and "does not match its checksum" in lines[0]
+    assert lines[1].startswith("stairfit fit: error: ") and "no usable measurement" in lines[1]
