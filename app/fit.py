@@ -189,6 +189,7 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     observations, row_info, excluded_notes = to_observations(scene, table)
     notes.extend(excluded_notes)
     spectral, aperture = fit_setup(scene, options.preset)
+    notes.extend(index_notes(scene, spectral))
     selection = select(observations, spectral, aperture, options)
     timings["fit_s"] = time.perf_counter() - t0
 
@@ -422,6 +423,18 @@ def fit_setup(scene: Scene, preset: Preset) -> tuple[Any, Any]:
         else 1,
     )
     return spectral, aperture
+
+
+def index_notes(scene: Scene, spectral: Any) -> list[str]:
+    """A warning (and a note for results.json) when the fit uses the index outside `valid_nm`."""
+    from ._index_checks import extrapolation_warning
+
+    index = scene.specimen.index
+    name = index.name if index.model == "named" else f"the scene's {index.model} index"
+    message = extrapolation_warning(
+        index.build(), name, spectral.wavelength_nm, spectral.weights, user="the fit"
+    )
+    return [message] if message else []
 
 
 def ladder_for(preset: Preset) -> tuple[Any, ...]:

@@ -16,6 +16,7 @@ from typing import Protocol, TextIO
 import numpy as np
 
 from . import _ranges
+from ._index_checks import extrapolation_warning
 from .errors import UserError
 from .outputs import staged_file
 
@@ -354,6 +355,10 @@ def _index(args: argparse.Namespace, lam: np.ndarray) -> np.ndarray:
             disp = model.get_material(args.material)
         except ValueError as e:
             raise UserError(f"--material: {e}") from None
+        problem = model.materials.index_problem(disp, lam, args.delta_n)
+        if problem is not None:
+            raise UserError(f"--material {args.material}, --delta-n {args.delta_n:g}: {problem}")
+        extrapolation_warning(disp, args.material, lam, user="this prediction")
         values = np.asarray(disp(lam))
     values = values + args.delta_n
     if np.any(np.real(values) <= 1.0):

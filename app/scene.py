@@ -405,12 +405,17 @@ def _index(r: _Reader, d: dict[str, Any], w: str) -> IndexSpec:
     if model == "sellmeier" and len(params["b"]) != len(params["c_um"]):
         r.fail(w, "b and c_um must have the same length")
     spec = IndexSpec(model, params=tuple(sorted(params.items())))
-    import numpy as np
-
-    n550 = complex(np.asarray(spec.build()(np.array([550.0])))[0])
-    if not n550.real > 1.0 or n550.imag < 0:
-        r.fail(w, f"gives n(550 nm) = {n550:.4g}; need Re(n) > 1 and k >= 0")
+    _check_physical_index(r, spec, w)
     return spec
+
+
+def _check_physical_index(r: _Reader, spec: IndexSpec, where: str) -> None:
+    """The index must be physical over the whole spectral grid a fit can use [conventions §8]."""
+    from stairfit.model import materials, spectral
+
+    problem = materials.index_problem(spec.build(), spectral.VISIBLE_NM)
+    if problem is not None:
+        r.fail(where, f"{problem}; fix the {spec.model} coefficients")
 
 
 def _light(r: _Reader, d: dict[str, Any]) -> Light:

@@ -394,3 +394,93 @@ def test_fit_says_in_one_line_that_an_edited_cache_is_measured_again(
     assert lines[0].startswith("stairfit fit: warning: measurement cache ")
     assert str(cache) in lines[0] and "does not match its checksum" in lines[0]
     assert lines[1].startswith("stairfit fit: error: ") and "no usable measurement" in lines[1]
+
+
+# --- 3. non-physical refractive indices ------------------------------------------------------
+
+# (id, [specimen] index table, fragments of the one-line error); each passed the old check of
+# n(550 nm) alone
+BAD_INDICES = [
+    (
+        "cauchy-below-1-at-380",
+        {"model": "cauchy", "a": 1.05, "b_um2": -0.01},
+        ("specimen.index", "n(380 nm) = 0.98", "Re n > 1", "fix the cauchy coefficients"),
+    ),
+    (
+        "sellmeier-pole-in-band",
+        {"model": "sellmeier", "b": [1.0], "c_um": [0.5]},
+        ("specimen.index", "Sellmeier pole", "500 nm", "fix the sellmeier coefficients"),
+    ),
+    (
+        "tabulated-unsorted",
+        {"model": "tabulated", "wavelength_nm": [700, 400, 550], "n": [1.46, 1.48, 1.47]},
+        ("specimen.index", "increase strictly", "sort the table"),
+    ),
+    (
+        "negative-k",
+        {"model": "constant", "n": 1.5, "k": -0.01},
+        ("specimen.index", "k >= 0"),
+    ),
+]
+
+
+@pytest.mark.parametrize(
+    ("index", "fragments"), [c[1:] for c in BAD_INDICES], ids=[c[0] for c in BAD_INDICES]
+)
+def test_non_physical_index_is_refused(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], index: dict, fragments
+) -> None:
+    def change(scene: dict) -> None:
+        scene["specimen"].pop("material", None)
+        scene["specimen"]["index"] = index
+
+    cli_errors.edit_scene(photos, change)
+    status, err = run(capsys, "fit", str(photos), "-o", str(tmp_path / "out"), "--quiet")
+    assert_one_line_user_error(status, err, "fit", "scene.toml", *fragments)
+    assert _entries(tmp_path) == ["photos"]
+
+
+def test_fit_outside_the_validity_range_warns_and_notes_it(photos: Path) -> None:
+    from stairfit.fit import fit_setup, index_notes
+    from stairfit.presets import get_preset
+    from stairfit.scene import load_scene
+
+    cli_errors.edit_scene(photos, lambda s: s["specimen"].update(material="pla-bodurov2016"))
+    scene = load_scene(photos)
+    spectral, _ = fit_setup(scene, get_preset("accurate"))  # 5 nm samples over 380-780 nm
+    with pytest.warns(UserWarning, match="valid over 405-635 nm") as record:
+        notes = index_notes(scene, spectral)
+    message = str(record[0].message)
+    assert notes == [message]
+    assert "380-400 nm and 640-780 nm" in message
+    assert "% of the channels' spectral weight" in message
+    cli_errors.edit_scene(photos, lambda s: s["specimen"].update(material="pla"))
+    constant = load_scene(photos)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert index_notes(constant, fit_setup(constant, get_preset("accurate"))[0]) == []
+
+
+@pytest.mark.parametrize(
+    ("options", "status", "fragments"),
+    [
+        (["--material", "pla-bodurov2016", "--wavelength-nm", "390"], 0,
+         ("warning:", "valid over 405-635 nm", "390 nm", "extrapolated")),
+        (["--material", "pla-bodurov2016", "--wavelength-nm", "450,600"], 0, ()),
+        (["--delta-n", "-0.5"], 2, ("error:", "--delta-n", "Re n > 1")),
+        (["--material", "pla-bodurov2016", "--delta-n", "-0.47"], 2, ("error:", "Re n > 1")),
+    ],
+    ids=["extrapolated", "inside", "delta-n-below-1", "material-delta-n-below-1"],
+)  # fmt: skip
+def test_predict_checks_the_index_at_every_wavelength(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], options, status, fragments
+) -> None:
+    out = tmp_path / "p.csv"
+    code, err = run(capsys, "predict", "--theta-o-deg", "0", "-o", str(out), *options)
+    assert code == status, err
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == (1 if fragments else 0), err
+    for fragment in fragments:
+        assert fragment in err
+    assert out.exists() == (status == 0)
