@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from . import _exclusions
+from ._failed_previews import FAILED_PREVIEWS, forget_previews, keep_previews
 from .errors import StairfitWarning, UserError
 from .presets import PRESETS, Preset, get_preset
 from .scene import Scene, load_scene, visible
@@ -149,14 +151,37 @@ def run(args: argparse.Namespace) -> int:
 
 
 def check_photos(scene: Scene) -> None:
-    """Every listed photo exists (a one-line error names the missing one)."""
+    """Every listed photo is a regular file (a one-line error names the one that is not)."""
     for k, photo in enumerate(scene.photos):
-        path = scene.folder / photo.file
-        if not path.is_file():
-            raise UserError(
-                f"{scene.path}: photos[{k}].file: {photo.file!r} is not in {scene.folder}; fix "
-                "the name or remove the [[photos]] entry"
-            )
+        names = photo.file if isinstance(photo.file, list | tuple) else (photo.file,)
+        for name in names:
+            problem = photo_file_problem(scene.folder / name, scene.folder)
+            if problem is not None:
+                raise UserError(f"{scene.path}: photos[{k}].file: {name!r} {problem}")
+
+
+def photo_file_problem(path: Path, folder: Path) -> str | None:
+    """Why `path` cannot be read as a photo (missing, a folder, a device, a broken link), or None.
+
+    Checked before decoding: reading a link to /dev/zero would never end.
+    """
+    import os
+    import stat
+
+    if not path.exists():
+        if path.is_symlink():
+            return f"is a link to {os.readlink(path)}, which does not exist; fix the link"
+        return f"is not in {folder}; fix the name or remove the [[photos]] entry"
+    link = f" (a link to {path.resolve()})" if path.is_symlink() else ""
+    mode = path.stat().st_mode
+    if stat.S_ISDIR(mode):
+        return f"is a folder{link}, not a RAW file; name the photo file itself"
+    if not stat.S_ISREG(mode):
+        kinds = {stat.S_ISCHR: "a character device", stat.S_ISBLK: "a block device",
+                 stat.S_ISFIFO: "a pipe", stat.S_ISSOCK: "a socket"}  # fmt: skip
+        kind = next((v for f, v in kinds.items() if f(mode)), "not a regular file")
+        return f"is {kind}{link}, not a RAW file; give the photo's RAW file"
+    return None
 
 
 @dataclass
@@ -186,7 +211,13 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     timings["measure_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    observations, row_info, excluded_notes = to_observations(scene, table)
+    try:
+        observations, row_info, excluded_notes = to_observations(scene, table)
+    except UserError as err:  # nothing usable: keep the previews (ROIs, saturation) to look at
+        kept = scene.folder / CACHE_DIR / FAILED_PREVIEWS
+        shown = "ROIs, saturated pixels in magenta"
+        where = keep_previews(kept, out / "previews", photo_specs(scene), table.photos(), shown)
+        raise UserError(f"{err}{where}") from None
     notes.extend(excluded_notes)
     spectral, aperture = fit_setup(scene, options.preset)
     notes.extend(index_notes(scene, spectral))
@@ -291,9 +322,11 @@ def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
             stacklevel=2,
         )
         cache = None
+    specs = photo_specs(scene)
+    kept = scene.folder / CACHE_DIR / FAILED_PREVIEWS
     try:
-        return imaging.measure_photos(
-            photo_specs(scene),
+        table = imaging.measure_photos(
+            specs,
             settings,
             cache=cache,
             preview_dir=out / "previews",
@@ -301,7 +334,11 @@ def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
             max_workers=options.workers,
         )
     except imaging.ImagingError as err:
-        raise UserError(f"{scene.path}: {err}") from None
+        failed = getattr(err, "failed_photos", ())
+        where = keep_previews(kept, out / "previews", specs, failed)
+        raise UserError(f"{scene.path}: {err}{where}") from None
+    forget_previews(kept)
+    return table
 
 
 def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]], list[str]]:
@@ -359,20 +396,20 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
                 "stderr_inflation": inflation[(r.photo, r.wedge)],
             }
         )
+    fitted_rows = [r for r in table if r.wedge != reference]
     if not rows or not any(r["use"] for r in rows):
-        raise UserError(
-            f"{scene.path}: no usable measurement: every ROI is flagged or saturated (see the "
-            "previews and the flag column); shorten the exposures or move the ROIs"
-        )
+        counts = _exclusions.count_reasons(fitted_rows)
+        raise UserError(f"{scene.path}: {_exclusions.nothing_usable(len(rows), counts)}")
     try:
         obs = fitting.Observations.from_rows(rows)
     except fitting.FitInputError as err:
         raise UserError(f"{scene.path}: {err}") from None
     notes = []
     if n_flagged:
+        flags = _exclusions.count_reasons(r for r in fitted_rows if r.flag)
         notes.append(
-            f"{n_flagged} measurements flagged by imaging (saturated, too few blocks, "
-            "...) were not fitted"
+            f"{n_flagged} measurements flagged by imaging ({_exclusions.describe(flags)}) were "
+            "not fitted"
         )
     if n_saturated:
         notes.append(f"{n_saturated} measurements with some saturated pixels were not fitted")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -202,7 +203,7 @@ def load_scene(path: Path) -> Scene:
             "'stairfit simulate OUT' to see a complete one)"
         )
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+        raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))  # a BOM (Notepad) is fine
     except tomllib.TOMLDecodeError as e:
         raise UserError(f"{path}: not valid TOML ({e}); fix the syntax at that line") from None
     except UnicodeDecodeError:
@@ -314,7 +315,7 @@ class _Reader:
         ok = (
             isinstance(v, list)
             and len(v) >= 3
-            and all(isinstance(p, list) and len(p) == 2 and all(_is_num(c) for c in p) for p in v)
+            and all(isinstance(p, list) and len(p) == 2 and all(_is_real(c) for c in p) for p in v)
         )
         if not ok:
             self.fail(
@@ -322,6 +323,7 @@ class _Reader:
                 "must be a list of at least 3 [x, y] points, e.g. [[10, 10], "
                 "[200, 10], [200, 150], [10, 150]]",
             )
+        _check_polygon(self, name, v)
         return tuple((float(p[0]), float(p[1])) for p in v)
 
 
@@ -528,7 +530,39 @@ def _photos(r: _Reader, top: dict[str, Any], specimen: Specimen) -> tuple[Photo,
     dup = {f for f in files if files.count(f) > 1}
     if dup:
         r.fail("photos", f"file(s) listed twice: {sorted(dup)}")
+    _check_photo_paths(r, photos)
     return tuple(photos)
+
+
+def _check_photo_paths(r: _Reader, photos: list[Photo]) -> None:
+    """Every photo file lies in the scene's folder (by its name) and is listed once (by path).
+
+    `../x.dng` or an absolute path elsewhere is refused: results must not depend on files
+    outside the folder, and a preview is never written outside the output. A link inside the
+    folder may point anywhere (that is how to use photos kept elsewhere). Two names of one file
+    (`./a.dng` and `a.dng`, or two links to it) are refused by comparing resolved paths.
+    """
+    folder = Path(os.path.abspath(r.path.parent))
+    seen: dict[Path, tuple[int, str]] = {}
+    for k, photo in enumerate(photos):
+        names = photo.file if isinstance(photo.file, list | tuple) else (photo.file,)
+        for name in names:
+            lexical = Path(os.path.normpath(folder / name))
+            if folder not in lexical.parents:
+                r.fail(
+                    f"photos[{k}].file",
+                    f"{name!r} is outside the photo folder {folder}; copy the file (or a link to "
+                    "it) into the folder and give its name relative to the folder",
+                )
+            resolved = lexical.resolve()
+            if resolved in seen:
+                j, other = seen[resolved]
+                r.fail(
+                    f"photos[{k}].file",
+                    f"{name!r} is the same file as photos[{j}].file {other!r}; list each photo "
+                    "once",
+                )
+            seen[resolved] = (k, name)
 
 
 VISIBILITY_LIMIT_DEG = 89.0
@@ -580,8 +614,25 @@ def _check_rois(r: _Reader, scene: Scene) -> None:
                 )
 
 
+def _check_polygon(r: _Reader, name: str, points: list[list[float]]) -> None:
+    """Finite coordinates, and a simple outline (corners in order, not crossing)."""
+    from ._polygons import polygon_problem
+
+    for k, p in enumerate(points):
+        if not all(math.isfinite(c) for c in p):
+            r.fail(name, f"point {k} is {p!r}; every coordinate must be a finite number")
+    problem = polygon_problem([(float(x), float(y)) for x, y in points])
+    if problem is not None:
+        r.fail(name, f"the polygon {problem}")
+
+
 def _join(where: str, key: str) -> str:
     return f"{where}.{key}" if where else key
+
+
+def _is_real(x: Any) -> bool:
+    """A number (finite or not; `_check_polygon` says which coordinate is not finite)."""
+    return isinstance(x, int | float) and not isinstance(x, bool)
 
 
 def _is_num(x: Any) -> bool:

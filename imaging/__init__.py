@@ -20,6 +20,7 @@ from ._decode import decode_raw as decode_raw
 from ._decode import file_sha256 as file_sha256
 from ._errors import ImagingError as ImagingError
 from ._errors import ImagingWarning as ImagingWarning
+from ._errors import PhotosFailed as PhotosFailed
 from ._exposure import Exposure as Exposure
 from ._exposure import resolve_exposure as resolve_exposure
 from ._extract import ChannelStats as ChannelStats

@@ -16,3 +16,14 @@ class ImagingWarning(UserWarning):
 
     The message names the photo or file; the command line prints it as one line.
     """
+
+
+class PhotosFailed(ImagingError):
+    """Some photos of a `measure_photos` call could not be measured; `failed_photos` names them.
+
+    Its message is one line covering every failed photo (see `measure_photos`).
+    """
+
+    def __init__(self, message: str, failed_photos: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.failed_photos = tuple(failed_photos)

@@ -23,8 +23,9 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ._cache import prune_previews, read_cache, write_cache
+from ._checks import low_signal_warnings, same_bytes_warnings
 from ._decode import CHANNELS, RawFrame, decode_raw, file_sha256
-from ._errors import ImagingError
+from ._errors import ImagingError, PhotosFailed
 from ._exposure import Exposure, resolve_exposure
 from ._extract import ChannelStats, ExtractionSettings, roi_channel_stats
 from ._io import atomic_write_bytes
@@ -33,8 +34,11 @@ from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import Polygon, RoiMask, as_polygon, roi_mask
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 2
-"""Part of every cache key: bump it when a change to the code changes measured values."""
+TABLE_VERSION = 3
+"""Part of every cache key: bump it when a change to the code changes measured values.
+
+3: rows flagged below_black carry NaN (were negative values).
+"""
 
 
 def _named_polygons(
@@ -222,6 +226,8 @@ def measure_frame(
             value = s.mean_dn * exposure.scale
             stderr = s.stderr_dn * exposure.scale
             flags = _flags(s, settings)
+            if "below_black" in flags:  # no radiance: never a negative value in the table
+                value = stderr = math.nan
             normalised_by = ""
             if ref is not None and ref_flags is not None and n != spec.reference:
                 r = ref[c]
@@ -312,7 +318,9 @@ def _measure_decoded(
         if preview is None:
             raise
         det = detect_markers(frame, spec.markers.dictionary) if spec.markers else None
-        return e, partial(_write_previews, frame, {}, det, settings, [Path(preview)])
+        # for drawing roi_px by hand: the markers found, the given polygons, a pixel grid
+        job = partial(_write_previews, frame, {}, det, settings, [Path(preview)], dict(spec.rois))
+        return e, job
     if preview is None:
         return result.rows, None
     paths = [Path(preview)]
@@ -329,14 +337,24 @@ def _write_previews(
     detection: MarkerDetection | None,
     settings: ExtractionSettings,
     paths: Sequence[Path],
+    failed: dict[str, Polygon] | None = None,
 ) -> None:
     """Render a photo's preview once and write it (atomically) to each of `paths`.
 
     Only the first path is required; the others are cached copies, skipped when they cannot be
-    written (a read-only photo folder: the next run renders the preview again).
+    written (a read-only photo folder: the next run renders the preview again). `failed` (the
+    pixel polygons of a photo that could not be measured) draws those and a pixel grid.
     """
     level = settings.saturation_level
-    png = preview_png(frame, rois, detection, saturation_level=level, max_size=PREVIEW_MAX_SIZE)
+    png = preview_png(
+        frame,
+        rois,
+        detection,
+        saturation_level=level,
+        max_size=PREVIEW_MAX_SIZE,
+        grid=failed is not None,
+        outlines=failed,
+    )
     for k, path in enumerate(paths):
         try:
             atomic_write_bytes(path, png)
@@ -400,8 +418,14 @@ def _measure_in_process(
 
 
 def preview_path(preview_dir: str | Path, spec: PhotoSpec) -> Path:
-    """Where `measure_photos` writes a photo's preview: `<preview_dir>/<name>.png`."""
-    return Path(preview_dir) / f"{spec.name}.png"
+    """Where `measure_photos` writes a photo's preview: `<preview_dir>/<name>.png`.
+
+    Always directly inside `preview_dir`: a name with folders (`raw/IMG_1.dng`) is flattened
+    to `raw__IMG_1.dng.png`, and `.`/`..` parts are dropped, so a photo's name can never place
+    its preview elsewhere.
+    """
+    parts = [p for p in spec.name.replace("\\", "/").split("/") if p not in ("", ".", "..")]
+    return Path(preview_dir) / f"{'__'.join(parts) or 'photo'}.png"
 
 
 def preview_cache_dir(cache: str | Path) -> Path:
@@ -498,9 +522,11 @@ def measure_photos(
         The table, rows in the order of `specs`.
 
     Raises:
-        ImagingError: one or more photos failed; the message, one line, lists each (photo,
-            wedge, fix), photos that failed alike together. Rows of the photos that succeeded
-            are written to the cache first.
+        PhotosFailed: one or more photos failed (an ImagingError; `failed_photos` names them);
+            the message, one line, lists each (photo, wedge, fix), photos that failed alike
+            together. Rows of the photos that succeeded are written to the cache first, and the
+            failed photos' previews (with `preview_dir`) show the markers found, their pixel
+            ROIs and a pixel grid.
     """
     settings = settings or ExtractionSettings()
     names = [s.name for s in specs]
@@ -560,10 +586,13 @@ def measure_photos(
     if cache_path is not None and write_cache(cache_path, table, TABLE_VERSION):
         keep = {cached_preview_name(r.photo_sha256, r.settings_key) for r in table.rows}
         prune_previews(preview_cache_dir(cache_path), keep)
+    same_bytes_warnings(table)
+    low_signal_warnings(table)
     if errors:
-        raise ImagingError(
+        raise PhotosFailed(
             f"{len(errors)} of {len(specs)} photos could not be measured: "
-            + _summarise_failures([(n, errors[n]) for n in names if n in errors])
+            + _summarise_failures([(n, errors[n]) for n in names if n in errors]),
+            tuple(n for n in names if n in errors),
         )
     return table
 
