@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from . import _exclusions
+from . import _exclusions, _ranges
 from ._failed_previews import FAILED_PREVIEWS, forget_previews, keep_previews
 from .errors import StairfitWarning, UserError
 from .presets import PRESETS, Preset, get_preset
@@ -97,8 +97,7 @@ class FitOptions:
 
 def options_from_args(args: argparse.Namespace) -> FitOptions:
     """Validated options (user mistakes raise UserError)."""
-    if args.workers < 1:
-        raise UserError("--workers: must be >= 1")
+    _ranges.check_workers(args.workers)
     if args.seed < 0:
         raise UserError(f"--seed: {args.seed} is negative; give an integer >= 0")
     if args.model is not None:

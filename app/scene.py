@@ -480,8 +480,10 @@ def _reference(r: _Reader, d: Any, w: str) -> Reference:
 def _extraction(r: _Reader, d: dict[str, Any]) -> Extraction:
     w = "extraction"
     r.table(d, w, ["erode_px", "block_px", "saturation_level", "max_saturated_fraction"])
+    from stairfit.imaging import MAX_ERODE_PX  # erosion time grows as radius^2 x ROI area
+
     return Extraction(
-        erode_px=r.get(d, "erode_px", int, w, default=8, lo=0, hi=1000),
+        erode_px=r.get(d, "erode_px", int, w, default=8, lo=0, hi=MAX_ERODE_PX),
         block_px=r.get(d, "block_px", int, w, default=8, lo=2, hi=512),
         saturation_level=r.get(d, "saturation_level", float, w, default=0.98, lo=0.5, hi=1.0),
         max_saturated_fraction=r.get(

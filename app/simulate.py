@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__
+from . import __version__, _ranges
 from ._layout import SpecimenLayout, camera_for
 from .errors import UserError
 from .outputs import staged_folder as staged_folder
@@ -121,8 +121,7 @@ def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
         )
     if not 3 <= args.views <= 200:
         raise UserError(f"--views: {args.views} is outside [3, 200]")
-    if args.workers < 1:
-        raise UserError("--workers: must be >= 1")
+    _ranges.check_workers(args.workers)
     if args.seed < 0:
         raise UserError(f"--seed: {args.seed} is negative; give an integer >= 0")
     base = SimulationSettings()

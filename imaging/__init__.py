@@ -20,7 +20,7 @@ from ._decode import decode_raw as decode_raw
 from ._decode import file_sha256 as file_sha256
 from ._errors import ImagingError as ImagingError
 from ._errors import ImagingWarning as ImagingWarning
-from ._errors import PhotosFailed as PhotosFailed
+from ._errors import PhotosFailedError as PhotosFailedError
 from ._exposure import Exposure as Exposure
 from ._exposure import resolve_exposure as resolve_exposure
 from ._extract import ChannelStats as ChannelStats
@@ -42,6 +42,7 @@ from ._pipeline import measure_photos as measure_photos
 from ._pipeline import preview_path as preview_path
 from ._preview import render_preview as render_preview
 from ._preview import write_preview as write_preview
+from ._roi import MAX_ERODE_PX as MAX_ERODE_PX
 from ._roi import Polygon as Polygon
 from ._roi import RoiMask as RoiMask
 from ._roi import roi_mask as roi_mask

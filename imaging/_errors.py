@@ -18,7 +18,7 @@ class ImagingWarning(UserWarning):
     """
 
 
-class PhotosFailed(ImagingError):
+class PhotosFailedError(ImagingError):
     """Some photos of a `measure_photos` call could not be measured; `failed_photos` names them.
 
     Its message is one line covering every failed photo (see `measure_photos`).

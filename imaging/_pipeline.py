@@ -25,7 +25,7 @@ from tqdm import tqdm
 from ._cache import prune_previews, read_cache, write_cache
 from ._checks import low_signal_warnings, same_bytes_warnings
 from ._decode import CHANNELS, RawFrame, decode_raw, file_sha256
-from ._errors import ImagingError, PhotosFailed
+from ._errors import ImagingError, PhotosFailedError
 from ._exposure import Exposure, resolve_exposure
 from ._extract import ChannelStats, ExtractionSettings, roi_channel_stats
 from ._io import atomic_write_bytes
@@ -522,7 +522,7 @@ def measure_photos(
         The table, rows in the order of `specs`.
 
     Raises:
-        PhotosFailed: one or more photos failed (an ImagingError; `failed_photos` names them);
+        PhotosFailedError: one or more photos failed (an ImagingError; `failed_photos` names them);
             the message, one line, lists each (photo, wedge, fix), photos that failed alike
             together. Rows of the photos that succeeded are written to the cache first, and the
             failed photos' previews (with `preview_dir`) show the markers found, their pixel
@@ -589,7 +589,7 @@ def measure_photos(
     same_bytes_warnings(table)
     low_signal_warnings(table)
     if errors:
-        raise PhotosFailed(
+        raise PhotosFailedError(
             f"{len(errors)} of {len(specs)} photos could not be measured: "
             + _summarise_failures([(n, errors[n]) for n in names if n in errors]),
             tuple(n for n in names if n in errors),

@@ -21,6 +21,10 @@ Polygon = tuple[tuple[float, float], ...]
 
 _SHIFT = 8  # fixed-point bits for cv2.fillPoly: vertices are placed to 1/256 px
 
+MAX_ERODE_PX = 64
+"""The largest erosion radius: the disk erosion's time grows as radius^2 x area (about 1 s for
+a 1500 px ROI at 64 px, 30 s at 256 px on the development machine), docs/imaging.md §Pixels."""
+
 
 def as_polygon(points: Iterable[Sequence[float]], what: str) -> Polygon:
     """`points` as a Polygon of floats; an ImagingError naming `what` if it is not one."""
@@ -36,6 +40,25 @@ def as_polygon(points: Iterable[Sequence[float]], what: str) -> Polygon:
             "e.g. [[10, 10], [200, 10], [200, 150]]"
         )
     return poly
+
+
+def _too_narrow(
+    box: np.ndarray, erode_px: int, inner_y: tuple[bool, bool], inner_x: tuple[bool, bool]
+) -> bool:
+    """Whether erosion by a disk of `erode_px` must leave nothing (checked before eroding).
+
+    A pixel survives only if the whole disk around it, `2 erode_px + 1` pixels across, is
+    inside the filled polygon; along an axis where the box does not reach the image border
+    (`inner_*`: away from the first and last row or column), a fill narrower than that cannot
+    hold it. At the image border the outside counts as inside, so nothing is decided there.
+    """
+    width = 2 * erode_px + 1
+    rows, cols = np.flatnonzero(box.any(axis=1)), np.flatnonzero(box.any(axis=0))
+    if rows.size == 0:
+        return True
+    tall = rows[-1] - rows[0] + 1
+    wide = cols[-1] - cols[0] + 1
+    return (all(inner_y) and tall < width) or (all(inner_x) and wide < width)
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,7 +145,15 @@ def roi_mask(
     fixed = np.round((pts - (x0, y0)) * (1 << _SHIFT)).astype(np.int32)
     cv2.fillPoly(box, [fixed], 1, lineType=cv2.LINE_8, shift=_SHIFT)
     n_before = int(box.sum())
-    if erode_px > 0:
+    if erode_px > MAX_ERODE_PX:
+        raise ImagingError(
+            f"photo {photo!r}, wedge {wedge!r}: erosion by {erode_px} px is more than the "
+            f"maximum {MAX_ERODE_PX} px; lower extraction.erode_px"
+        )
+    narrow = erode_px > 0 and _too_narrow(box, erode_px, (y0 > 0, y1 < h_img), (x0 > 0, x1 < w_img))
+    if narrow:  # known to be empty: not worth an erosion that may take minutes
+        box = np.zeros_like(box)
+    elif erode_px > 0:
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
         # Outside the box is outside the polygon, except at the image border, which is not an
         # edge of the face: erode with a border of ones only there.
@@ -141,8 +172,9 @@ def roi_mask(
     if not mask.any():
         raise ImagingError(
             f"photo {photo!r}, wedge {wedge!r}: the ROI ({how}) is empty after eroding it by "
-            f"{erode_px} px ({n_before} px before erosion); enlarge the polygon or lower "
-            "extraction.erode_px"
+            f"{erode_px} px ({n_before} px before erosion"
+            + (f"; narrower than the {2 * erode_px + 1} px erosion disk" if narrow else "")
+            + "); enlarge the polygon or lower extraction.erode_px"
         )
     rows = np.flatnonzero(mask.any(axis=1))
     cols = np.flatnonzero(mask.any(axis=0))

@@ -740,3 +740,128 @@ def test_failed_photo_keeps_a_preview_with_markers_and_a_grid(
     status, err = run(capsys, "fit", str(photos), "-o", str(tmp_path / "out"), "--quiet")
     assert_one_line_user_error(status, err, "fit", "no usable measurement", str(kept))
     assert _entries(kept) == ["IMG_0001.dng.png", "IMG_0002.dng.png", "IMG_0003.dng.png"]
+
+
+# --- 6, 7, 9. numeric options, huge requests, contradictions (all refused before any work) ----
+
+PREDICT_CASES = [
+    # 6. NaN in, NaN out: every numeric option finite and in range
+    (["--n", "nan"], ("--n", "'nan' is not a finite number")),
+    (["--n", "inf"], ("--n", "not a finite number")),
+    (["--n", "1.5+nanj"], ("--n", "not a finite number")),
+    (["--n", "1.5-0.1j"], ("--n", "0 <= Im(n)")),
+    (["--delta-n", "nan"], ("--delta-n", "must be a finite number, not nan")),
+    (["--layer-um", "nan"], ("--layer-um", "finite")),
+    (["--layer-um", "inf"], ("--layer-um", "finite")),
+    (["--sigma-deg", "nan"], ("--sigma-deg", "finite")),
+    (["--edge-radius-um", "nan"], ("--edge-radius-um", "outside the valid range")),
+    (["--theta-o-deg", "nan"], ("--theta-o-deg", "not a finite number")),
+    (["--wavelength-nm", "inf"], ("--wavelength-nm", "not a finite number")),
+    # 7. huge requests: refused up front, never a MemoryError, an OverflowError or a long run
+    (["--theta-o-deg", "-90:90:1e-9"], ("--theta-o-deg", "gives 1.8e+11 values", "coarser")),
+    (["--theta-o-deg", "0:inf:1"], ("--theta-o-deg", "not a finite number")),
+    (["--theta-o-deg", "-90:90:0.000018"], ("--theta-o-deg", "gives 1e+07 values")),
+    (["--wedge-deg", "10", "--theta-o-deg", "-90:90:0.0001"],
+     ("the table would have 1,800,001 rows", "1 wedge x", "the limit is 1,000,000")),
+    (["--lobes", "--wedge-deg", "10:80:1", "--theta-i-deg", "-90:90:0.01"],
+     ("the table would have", "x 3 lobes", "limit")),
+    # 9. silently accepted, no effect: contradictions refused
+    (["--sigma-deg", "1e6"], ("--sigma-deg", "1e+06 deg is outside [0, 90] deg")),
+    (["--n", "1.5", "--material", "pla"], ("--n with --material", "only one")),
+    (["--lobes", "--diffuse"], ("--lobes with --diffuse",)),
+    (["--cosine-weighted"], ("--cosine-weighted", "add --diffuse")),
+    (["--lobes", "--sigma-deg", "3"], ("--sigma-deg with --lobes", "sharp")),
+    (["--lobes", "--theta-o-deg", "0"], ("--theta-o-deg with --lobes",)),
+    (["--diffuse", "--theta-i-deg", "10"], ("--theta-i-deg with --diffuse",)),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("options", "fragments"), PREDICT_CASES, ids=[" ".join(c[0]) for c in PREDICT_CASES]
+)
+def test_predict_refuses_bad_numbers_huge_grids_and_contradictions(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], options, fragments
+) -> None:
+    t0 = time.perf_counter()
+    status, err = run(capsys, "predict", "-o", str(tmp_path / "out.csv"), *options)
+    assert_one_line_user_error(status, err, "predict", *fragments)
+    assert _entries(tmp_path) == []
+    assert time.perf_counter() - t0 < 10  # refused up front (no model evaluation)
+
+
+def test_predict_defaults_and_documented_combinations_still_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # the README's examples: --sigma-deg 0 with --diffuse, --lobes with --theta-i-deg
+    for k, options in enumerate(
+        [
+            ["--lobes", "--wedge-deg", "30", "--theta-i-deg", "-90:90:45"],
+            ["--diffuse", "--sigma-deg", "0", "--wedge-deg", "10", "--theta-o-deg", "0,10"],
+            ["--diffuse", "--cosine-weighted", "--wedge-deg", "10", "--theta-o-deg", "0"],
+            ["--n", "1.5", "--lobes", "--sigma-deg", "0", "--wedge-deg", "20"],
+        ]
+    ):
+        status, err = run(capsys, "predict", "-o", str(tmp_path / f"{k}.csv"), *options)
+        assert status == 0 and err == "", (options, err)
+
+
+@pytest.mark.parametrize("command", ["fit", "simulate"])
+def test_too_many_workers_is_refused(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    target = (
+        [str(photos), "-o", str(tmp_path / "out")] if command == "fit" else [str(tmp_path / "s")]
+    )
+    status, err = run(capsys, command, *target, "--workers", "100000", "--quiet")
+    assert_one_line_user_error(status, err, command, "--workers", "<= 32", "100000")
+    assert _entries(tmp_path) == ["photos"]
+
+
+def test_killed_predict_temp_file_is_removed_by_the_next_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "p.csv"
+    (tmp_path / ".p.csv.k3x_9ab2.tmp").write_text("half a table")  # left by SIGKILL (mkstemp)
+    (tmp_path / ".p.csv.0123abcd.tmp").write_text("half a table")  # (this version's names)
+    status, err = run(capsys, "predict", "--theta-o-deg", "0", "-o", str(out))
+    assert status == 0, err
+    assert _entries(tmp_path) == ["p.csv"]
+
+
+def test_huge_erosion_is_refused_up_front(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cli_errors.edit_scene(photos, lambda s: s.update(extraction={"erode_px": 1000}))
+    status, err = run(capsys, "fit", str(photos), "-o", str(tmp_path / "out"), "--quiet")
+    assert_one_line_user_error(status, err, "fit", "extraction.erode_px", "1000 is outside [0, 64]")
+    cli_errors.edit_scene(photos, lambda s: s.update(extraction={"erode_px": 64}))
+    t0 = time.perf_counter()
+    status, err = run(capsys, "fit", str(photos), "-o", str(tmp_path / "out"), "--quiet")
+    assert_one_line_user_error(status, err, "fit", "empty after eroding it by 64 px", "129 px")
+    assert time.perf_counter() - t0 < 30
+    assert _entries(tmp_path) == ["photos"]
+
+
+def test_narrow_roi_shortcut_agrees_with_the_erosion() -> None:
+    # whenever the up-front "too narrow" test refuses an ROI, the erosion leaves nothing of it
+    import cv2
+
+    from stairfit import imaging
+    from stairfit.imaging import _roi
+
+    rng = np.random.default_rng(7)
+    narrow = 0
+    for _ in range(400):
+        r = int(rng.integers(1, 12))
+        pts = rng.uniform(20.0, 60.0, size=(int(rng.integers(3, 6)), 2))  # away from the border
+        pts = pts[np.argsort(np.arctan2(*(pts - pts.mean(0)).T[::-1]))]  # a star-shaped order
+        filled = imaging.roi_mask(
+            tuple(map(tuple, pts.tolist())), (80, 80), 0, photo="p", wedge="w"
+        )
+        mask = filled.mask.astype(np.uint8)
+        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        eroded = cv2.erode(np.pad(mask, r + 1), disk, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        if _roi._too_narrow(mask, r, (True, True), (True, True)):
+            narrow += 1
+            assert not eroded.any()
+    assert narrow > 50  # the shortcut was exercised
