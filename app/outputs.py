@@ -36,6 +36,7 @@ from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import TextIO
 
+from ._signals import deferred
 from .errors import UserError
 
 try:  # POSIX; on other systems runs are not locked (documented in the README)
@@ -249,12 +250,13 @@ def _replace(new: Path, out: Path) -> None:
         return
     trash = out.with_name(f".{out.name}.old-{os.getpid()}")
     _remove(trash)
-    out.rename(trash)
-    try:
-        new.rename(out)
-    except BaseException:
-        trash.rename(out)  # put the old result back
-        raise
+    with deferred():  # no signal between the two renames
+        out.rename(trash)
+        try:
+            new.rename(out)
+        except BaseException:
+            trash.rename(out)  # put the old result back
+            raise
     _remove(trash)
 
 

@@ -177,6 +177,13 @@ def _flags(s: ChannelStats, settings: ExtractionSettings) -> list[str]:
     return flags
 
 
+def _radiance(s: ChannelStats, scale: float, flags: list[str]) -> tuple[float, float]:
+    """(value, stderr) in relative radiance; NaN when below black (never a negative value)."""
+    if "below_black" in flags:
+        return math.nan, math.nan
+    return s.mean_dn * scale, s.stderr_dn * scale
+
+
 def measure_frame(
     frame: RawFrame, spec: PhotoSpec, settings: ExtractionSettings
 ) -> FrameMeasurement:
@@ -223,11 +230,8 @@ def measure_frame(
     for n, roi in rois.items():
         by_marker = roi.source == "markers" and placement is not None
         for c, s in enumerate(stats[n]):
-            value = s.mean_dn * exposure.scale
-            stderr = s.stderr_dn * exposure.scale
             flags = _flags(s, settings)
-            if "below_black" in flags:  # no radiance: never a negative value in the table
-                value = stderr = math.nan
+            value, stderr = _radiance(s, exposure.scale, flags)
             normalised_by = ""
             if ref is not None and ref_flags is not None and n != spec.reference:
                 r = ref[c]

@@ -61,6 +61,27 @@ def _too_narrow(
     return (all(inner_y) and tall < width) or (all(inner_x) and wide < width)
 
 
+def _erode(
+    box: np.ndarray, erode_px: int, inner_y: tuple[bool, bool], inner_x: tuple[bool, bool]
+) -> tuple[np.ndarray, bool]:
+    """The filled `box` eroded by a disk of radius `erode_px`, and whether it was too narrow.
+
+    `inner_*` say, per side, whether the box is away from the image border. Outside the box is
+    outside the polygon, except at the image border, which is not an edge of the face: erode
+    with a border of ones only there. A box known to be emptied (`_too_narrow`) is not eroded.
+    """
+    if erode_px == 0:
+        return box, False
+    if _too_narrow(box, erode_px, inner_y, inner_x):  # not worth an erosion of minutes
+        return np.zeros_like(box), True
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
+    top, bottom = (erode_px if inner else 0 for inner in inner_y)
+    left, right = (erode_px if inner else 0 for inner in inner_x)
+    padded = np.pad(box, ((top, bottom), (left, right)))
+    eroded = cv2.erode(padded, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=1)
+    return eroded[top : top + box.shape[0], left : left + box.shape[1]], False
+
+
 @dataclass(frozen=True, eq=False)
 class RoiMask:
     """The pixels of one region of interest after erosion.
@@ -145,29 +166,7 @@ def roi_mask(
     fixed = np.round((pts - (x0, y0)) * (1 << _SHIFT)).astype(np.int32)
     cv2.fillPoly(box, [fixed], 1, lineType=cv2.LINE_8, shift=_SHIFT)
     n_before = int(box.sum())
-    if erode_px > MAX_ERODE_PX:
-        raise ImagingError(
-            f"photo {photo!r}, wedge {wedge!r}: erosion by {erode_px} px is more than the "
-            f"maximum {MAX_ERODE_PX} px; lower extraction.erode_px"
-        )
-    narrow = erode_px > 0 and _too_narrow(box, erode_px, (y0 > 0, y1 < h_img), (x0 > 0, x1 < w_img))
-    if narrow:  # known to be empty: not worth an erosion that may take minutes
-        box = np.zeros_like(box)
-    elif erode_px > 0:
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
-        # Outside the box is outside the polygon, except at the image border, which is not an
-        # edge of the face: erode with a border of ones only there.
-        pad = erode_px
-        padded = np.pad(
-            box,
-            (
-                (pad if y0 > 0 else 0, pad if y1 < h_img else 0),
-                (pad if x0 > 0 else 0, pad if x1 < w_img else 0),
-            ),
-        )
-        eroded = cv2.erode(padded, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=1)
-        oy, ox = (pad if y0 > 0 else 0), (pad if x0 > 0 else 0)
-        box = eroded[oy : oy + box.shape[0], ox : ox + box.shape[1]]
+    box, narrow = _erode(box, erode_px, (y0 > 0, y1 < h_img), (x0 > 0, x1 < w_img))
     mask = box.astype(bool)
     if not mask.any():
         raise ImagingError(
