@@ -31,13 +31,14 @@ import re
 import secrets
 import shutil
 import time
+import warnings
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import TextIO
 
 from ._signals import deferred
-from .errors import UserError
+from .errors import StairfitWarning, UserError
 
 try:  # POSIX; on other systems runs are not locked (documented in the README)
     import fcntl
@@ -48,6 +49,7 @@ STALE_AGE_S = 3600.0
 """A staging folder of *another* output older than this (and whose lock is free) is removed."""
 
 _FILE_MODE = 0o666  # the umask takes its share, as for any file the user creates
+_NO_LOCKS = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS}
 _TOKEN_HEX = 4  # bytes of randomness in temporary names: 8 hex digits
 
 
@@ -107,7 +109,7 @@ def lock_path(out: Path) -> Path:
 
 
 def _try_lock(lock: Path) -> int | None:
-    """An open, exclusively locked descriptor of `lock` (created if needed), or None if held.
+    """A locked descriptor of `lock` (made if needed); None if held, -1 where flock fails.
 
     The lock is taken on the file that is at `lock` *after* locking: a run that unlinked it in
     the meantime makes us retry, so two runs never both hold "the" lock of one output.
@@ -119,6 +121,11 @@ def _try_lock(lock: Path) -> int | None:
         except BlockingIOError:
             os.close(fd)
             return None
+        except OSError as e:
+            os.close(fd)
+            if e.errno in _NO_LOCKS:
+                return -1  # a filesystem without flock (some network shares): not locked
+            raise
         except BaseException:
             os.close(fd)
             raise
@@ -135,7 +142,8 @@ def _release(lock: Path, fd: int) -> None:
     """Remove the lock file while still holding it, then release it."""
     with suppress(FileNotFoundError):
         lock.unlink()
-    os.close(fd)
+    if fd >= 0:
+        os.close(fd)
 
 
 @contextmanager
@@ -150,6 +158,13 @@ def output_lock(out: Path) -> Iterator[None]:
         return
     lock = lock_path(out)
     fd = _try_lock(lock)
+    if fd == -1:
+        warnings.warn(
+            f"{out.parent}: this filesystem does not support file locks; two runs into {out} at "
+            "once would not be stopped",
+            StairfitWarning,
+            stacklevel=3,
+        )
     if fd is None:
         raise UserError(
             f"{out}: another stairfit run is writing this output now (it holds {lock}); wait "
@@ -218,9 +233,13 @@ def remove_stale_leftovers(out: Path) -> list[Path]:
     except OSError:
         return []
     for path in entries:
-        if own.match(path.name) or _is_stale_partial(path, now):
-            _remove(path)
-            removed.append(path)
+        try:
+            stale = own.match(path.name) is not None or _is_stale_partial(path, now)
+            if stale:
+                _remove(path)
+                removed.append(path)
+        except OSError:  # not ours to clean after all (permissions): leave it
+            continue
     return removed
 
 

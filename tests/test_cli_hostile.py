@@ -865,3 +865,19 @@ def test_narrow_roi_shortcut_agrees_with_the_erosion() -> None:
             narrow += 1
             assert not eroded.any()
     assert narrow > 50  # the shortcut was exercised
+
+
+@POSIX
+def test_a_filesystem_without_locks_warns_and_still_runs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import errno
+
+    def no_locks(fd: int, how: int) -> None:
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(outputs.fcntl, "flock", no_locks)
+    warns = pytest.warns(UserWarning, match="does not support file locks")
+    with warns, outputs.staged_folder(tmp_path / "out", force=False) as tmp:
+        (tmp / "a.txt").write_text("done")
+    assert _entries(tmp_path) == ["out"]
