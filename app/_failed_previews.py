@@ -37,6 +37,10 @@ def keep_previews(
     """
     from stairfit import imaging
 
+    from .outputs import in_staging
+
+    if in_staging(folder):  # e.g. the demo's photos: the folder goes with the failed run
+        return ""
     wanted = set(names)
     sources = [imaging.preview_path(preview_dir, s) for s in specs if s.name in wanted]
     sources = [p for p in sources if p.is_file()]

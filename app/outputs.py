@@ -181,6 +181,11 @@ def output_lock(out: Path) -> Iterator[None]:
 _PARTIAL = re.compile(r"^\.(?P<name>.+)\.[0-9a-f]{8}\.partial$")
 
 
+def in_staging(path: Path) -> bool:
+    """Whether `path` lies inside a staging folder (removed when its run fails)."""
+    return any(_PARTIAL.match(p.name) for p in Path(path).parents)
+
+
 def _own_leftover(name: str) -> re.Pattern[str]:
     """Names that runs writing output `name` create beside it (staging, old copy, temp file)."""
     n = re.escape(name)

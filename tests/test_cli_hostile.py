@@ -881,3 +881,19 @@ def test_a_filesystem_without_locks_warns_and_still_runs(
     with warns, outputs.staged_folder(tmp_path / "out", force=False) as tmp:
         (tmp / "a.txt").write_text("done")
     assert _entries(tmp_path) == ["out"]
+
+
+def test_no_failed_previews_are_promised_inside_a_staging_folder(tmp_path: Path) -> None:
+    # the demo fits photos inside its own staging folder, which a failed run removes
+    from stairfit._failed_previews import keep_previews
+
+    with outputs.staged_folder(tmp_path / "demo", force=False) as tmp:
+        assert outputs.in_staging(tmp / "photos" / ".stairfit-cache" / "failed-previews")
+        (tmp / "pv").mkdir()
+        (tmp / "pv" / "a.dng.png").write_bytes(b"png")
+        spec = type("Spec", (), {"name": "a.dng"})()
+        assert keep_previews(tmp / "photos" / "kept", tmp / "pv", [spec], ["a.dng"]) == ""
+        assert keep_previews(tmp_path / "kept", tmp / "pv", [spec], ["a.dng"]).endswith(
+            str(tmp_path / "kept")
+        )
+    assert not outputs.in_staging(tmp_path / "demo" / "photos")
