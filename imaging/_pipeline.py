@@ -237,7 +237,9 @@ def measure_frame(
                 r = ref[c]
                 normalised_by = spec.reference or ""
                 flags += [f"reference-{f}" for f in ref_flags[c]]
-                if r.mean_dn > 0:
+                if "below_black" in flags:
+                    pass  # no ratio of a value below black: NaN, flagged
+                elif r.mean_dn > 0:
                     ratio = s.mean_dn / r.mean_dn
                     stderr = math.hypot(s.stderr_dn / r.mean_dn, ratio * r.stderr_dn / r.mean_dn)
                     value = ratio

@@ -897,3 +897,25 @@ def test_no_failed_previews_are_promised_inside_a_staging_folder(tmp_path: Path)
             str(tmp_path / "kept")
         )
     assert not outputs.in_staging(tmp_path / "demo" / "photos")
+
+
+def test_below_black_rows_are_nan_also_as_ratios_to_a_reference(tmp_path: Path) -> None:
+    from stairfit import imaging
+    from stairfit.imaging import synthetic
+
+    rng = np.random.default_rng(3)
+    mosaic = (1024 + rng.normal(0, 2, (120, 200))).astype(np.uint16)
+    mosaic[:, :100] -= 30  # the face: 30 DN below the black level
+    mosaic[:, 100:] += 2000  # the reference: well above it
+    path = synthetic.write_dng(tmp_path / "a.dng", mosaic, black_level=1024, white_level=16383,
+                               exposure=imaging.Exposure(0.01, 4.0, 100))  # fmt: skip
+    rois = {"face": [(10, 10), (90, 10), (90, 110), (10, 110)],
+            "ref": [(110, 10), (190, 10), (190, 110), (110, 110)]}  # fmt: skip
+    spec = imaging.PhotoSpec(path, rois=rois, reference="ref")
+    rows = imaging.measure_frame(imaging.decode_raw(path), spec, imaging.ExtractionSettings()).rows
+    face = [r for r in rows if r.wedge == "face"]
+    assert len(face) == 3 and all(r.normalised_by == "ref" for r in face)
+    for row in face:  # never a negative ratio
+        assert np.isnan(row.value) and np.isnan(row.stderr), row
+        assert row.flag == "below_black"
+    assert all(r.value > 0 for r in rows if r.wedge == "ref")
