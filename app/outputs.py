@@ -91,9 +91,10 @@ def check_output(
     for name, p in (("the current folder", Path.cwd()), ("your home folder", Path.home())):
         if _contains(resolved, p.resolve()):
             what = "is" if p.resolve() == resolved else "contains"
+            example = f"{option} results" if option.startswith("-") else "results"
             raise UserError(
                 f"{out}: {option} {what} {name} ({p}); an output is replaced as a whole, so give "
-                f"a new folder, e.g. {option} results"
+                f"a new folder, e.g. {example}"
             )
     if resolved.parent == resolved or os.path.ismount(resolved):
         raise UserError(f"{out}: {option} is a filesystem root or mount point; give a new folder")
