@@ -170,7 +170,8 @@ def photo_file_problem(path: Path, folder: Path) -> str | None:
     if not path.exists():
         if path.is_symlink():
             return f"is a link to {os.readlink(path)}, which does not exist; fix the link"
-        return f"is not in {folder}; fix the name or remove the [[photos]] entry"
+        spaces = " (mind the spaces around the name)" if path.name != path.name.strip() else ""
+        return f"is not in {folder}{spaces}; fix the name or remove the [[photos]] entry"
     link = f" (a link to {path.resolve()})" if path.is_symlink() else ""
     mode = path.stat().st_mode
     if stat.S_ISDIR(mode):

@@ -550,6 +550,8 @@ def _check_photo_paths(r: _Reader, photos: list[Photo]) -> None:
         names = photo.file if isinstance(photo.file, list | tuple) else (photo.file,)
         for name in names:
             lexical = Path(os.path.normpath(folder / name))
+            if lexical == folder:
+                r.fail(f"photos[{k}].file", f"{name!r} names the photo folder, not a photo file")
             if folder not in lexical.parents:
                 r.fail(
                     f"photos[{k}].file",

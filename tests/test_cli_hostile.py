@@ -522,6 +522,16 @@ PHOTO_FILE_CASES = [
         ("photos[2].file", "'alias.dng' is the same file as photos[0].file"),
     ),
     (
+        "the-folder-itself",
+        lambda d: cli_errors.edit_scene(d, _set_file(0, ".")),
+        ("photos[0].file", "'.' names the photo folder, not a photo file"),
+    ),
+    (
+        "spaces-around-the-name",
+        lambda d: cli_errors.edit_scene(d, _set_file(1, " IMG_0002.dng")),
+        ("photos[1].file", "is not in", "mind the spaces"),
+    ),
+    (
         "parent-path",
         lambda d: cli_errors.edit_scene(d, _set_file(0, "../elsewhere/IMG_0001.dng")),
         ("photos[0].file", "is outside the photo folder", "copy the file (or a link to it)"),
