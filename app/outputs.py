@@ -30,6 +30,7 @@ import os
 import re
 import secrets
 import shutil
+import stat
 import time
 import warnings
 from collections.abc import Iterable, Iterator
@@ -72,10 +73,11 @@ def check_output(
     Refused, with or without `--force`: an output that is or contains one of `inputs` (files
     and folders the run reads), that is, contains or lies inside one of `reserved` (e.g. the
     measurement cache), or that is or contains the current folder, the home folder or a
-    filesystem root. `option` names the command-line option in the message.
+    filesystem root, or that is a device, pipe or socket. `option` names the command-line
+    option in the message.
     """
-    target = Path(os.path.abspath(out))
-    resolved = target.resolve()
+    _refuse_special(Path(out))
+    resolved = Path(os.path.abspath(out)).resolve()
     for path in inputs:
         p = Path(path).resolve()
         if _contains(resolved, p):
@@ -297,7 +299,21 @@ def _real_target(e: OSError, tmp: Path, out: Path) -> OSError:
     return type(e)(e.errno, e.strerror or os.strerror(e.errno or errno.EIO), new)
 
 
+def _refuse_special(shown: Path) -> None:
+    """A device, pipe or socket (`-o /dev/null`) is never replaced by an output."""
+    try:
+        mode = os.stat(shown).st_mode
+    except OSError:
+        return
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise UserError(
+            f"{shown}: is a device, pipe or socket, not a file or folder stairfit can replace; "
+            "give a file name (predict writes to stdout without -o)"
+        )
+
+
 def _refuse_existing(out: Path, shown: Path, force: bool) -> None:
+    """An existing output is only replaced with `force`."""
     if (out.exists() or out.is_symlink()) and not force:
         raise UserError(
             f"{shown}: already exists; choose another output or add --force to replace it"

@@ -929,3 +929,17 @@ def test_below_black_rows_are_nan_also_as_ratios_to_a_reference(tmp_path: Path) 
         assert np.isnan(row.value) and np.isnan(row.stderr), row
         assert row.flag == "below_black"
     assert all(r.value > 0 for r in rows if r.wedge == "ref")
+
+
+@POSIX
+def test_a_device_or_pipe_is_never_replaced(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    for argv in (["predict", "--theta-o-deg", "0", "-o", str(fifo), "--force"],
+                 ["simulate", str(fifo), "--force", "--quiet"]):  # fmt: skip
+        status, err = run(capsys, *argv)
+        assert_one_line_user_error(status, err, argv[0], "is a device, pipe or socket")
+    assert stat.S_ISFIFO(fifo.lstat().st_mode)
+    assert _entries(tmp_path) == ["pipe"]
