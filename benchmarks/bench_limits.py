@@ -54,7 +54,7 @@ def predict_process(rows_wanted: int, repeats: int) -> dict[str, float]:
     Fresh processes, interleaved (the persistent JAX cache as a user has it); the difference
     of the medians is the cost of the rows themselves (start-up, imports, compilation apart).
     """
-    step = 180.0 * 6 / rows_wanted  # 6 wedges x (180 / step + 1) angles
+    step = 180.0 / (rows_wanted // 6 - 1)  # 6 wedges x (180 / step + 1) angles <= rows_wanted
     big, small, peak = [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "p.csv"
