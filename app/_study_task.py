@@ -111,8 +111,8 @@ def prepare_worker(task: FolderTask) -> str | None:
 def fit_or_skip(task: FolderTask) -> FolderReport:
     """The folder's status, scene summary and results (the fit runs only when needed)."""
     from .fit import check_photos, fit_scene
+    from .outputs import staged_folder
     from .scene import load_scene
-    from .simulate import staged_folder
 
     scene = load_scene(task.folder)
     summary = scene_summary(scene)

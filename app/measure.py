@@ -58,18 +58,17 @@ def default_output(folder: Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """`stairfit measure DIR`."""
-    from .fit import check_photos
-    from .simulate import staged_folder
+    from .fit import CACHE_DIR, check_photos
+    from .outputs import staged_folder
 
     if args.workers < 1:
         raise UserError("--workers: must be >= 1")
     scene = load_scene(args.folder, measure_only=True)
     out = args.output or default_output(args.folder)
-    if out.exists() and not args.force:
-        raise UserError(f"{out}: already exists; choose another --output or add --force")
     check_photos(scene)
     specs = measure_specs(scene)
-    with staged_folder(out, args.force) as tmp:
+    inputs = (scene.folder, *scene.input_files())
+    with staged_folder(out, args.force, inputs=inputs, reserved=(scene.folder / CACHE_DIR,)) as tmp:
         table = measure_table(scene, specs, tmp, args)
         reports = photo_reports(scene, specs, table)
         write_outputs(scene, table, reports, tmp)

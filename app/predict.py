@@ -16,8 +16,10 @@ from typing import Protocol, TextIO
 import numpy as np
 
 from . import _ranges
+from ._index_checks import extrapolation_warning
+from ._predict_checks import Given, check_combination, check_scalars, check_size, parse_index
 from .errors import UserError
-from .outputs import atomic_text
+from .outputs import staged_file
 
 
 class _RowWriter(Protocol):
@@ -43,12 +45,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--wedge-deg", default="10,20,30,40,45,60", help="wedge angles beta2 (deg)")
     p.add_argument("--layer-um", type=float, default=150.0, help="layer thickness l1 (um)")
-    p.add_argument("--material", default="pla", help="named dispersion model (see README)")
+    p.add_argument(
+        "--material", default="pla", help="named dispersion model (see README)", action=Given
+    )
     p.add_argument(
         "--n", default=None, help="constant complex index instead, e.g. 1.5 or 1.5+0.01j"
     )
     p.add_argument("--delta-n", type=float, default=0.0, help="offset added to n")
-    p.add_argument("--sigma-deg", type=float, default=5.0, help="Gaussian broadening (deg)")
+    p.add_argument(
+        "--sigma-deg", type=float, default=5.0, help="Gaussian broadening (deg)", action=Given
+    )
     p.add_argument(
         "--edge-radius-um",
         type=float,
@@ -60,8 +66,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("--wavelength-nm", default="550", help="wavelengths (nm)")
-    p.add_argument("--theta-i-deg", default="0", help="angles of incidence (deg)")
-    p.add_argument("--theta-o-deg", default="-90:90:1", help="angles of observation (deg)")
+    p.add_argument("--theta-i-deg", default="0", help="angles of incidence (deg)", action=Given)
+    p.add_argument(
+        "--theta-o-deg", default="-90:90:1", help="angles of observation (deg)", action=Given
+    )
     p.add_argument(
         "--lobes",
         action="store_true",
@@ -73,7 +81,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("-o", "--output", type=Path, default=None, help="CSV file (default: stdout)")
     p.add_argument("--force", action="store_true", help="overwrite an existing --output file")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, given=frozenset())
 
 
 def run(args: argparse.Namespace) -> int:
@@ -82,6 +90,8 @@ def run(args: argparse.Namespace) -> int:
 
     from stairfit import model
 
+    check_combination(args)
+    check_scalars(args)
     wedges = _ranges.check_range(
         _ranges.parse_values(args.wedge_deg, "--wedge-deg"), 0.01, 89.99, "--wedge-deg", "deg"
     )
@@ -98,10 +108,7 @@ def run(args: argparse.Namespace) -> int:
     theta_o = _ranges.check_range(
         _ranges.parse_values(args.theta_o_deg, "--theta-o-deg"), -90, 90, "--theta-o-deg", "deg"
     )
-    if args.sigma_deg < 0 or not np.isfinite(args.sigma_deg):
-        raise UserError("--sigma-deg: must be >= 0 (0 means the sharp model)")
-    if args.layer_um <= 0:
-        raise UserError("--layer-um: the layer thickness must be > 0 um")
+    _check_table_size(args, wedges, lam, theta_i, theta_o)
     radius = _edge_radius(args.edge_radius_um, wedges, args.layer_um)
     rounded = radius > 0.0
     if rounded and args.diffuse:
@@ -139,6 +146,7 @@ def run(args: argparse.Namespace) -> int:
             )
             B, N, T = np.meshgrid(b2, n_lam, np.deg2rad(theta_i), indexing="ij")
             lobes = model.sharp_lobes(jnp.asarray(T), jnp.asarray(B), jnp.asarray(N))
+            lobes = type(lobes)(*(np.asarray(x) for x in lobes))  # NumPy: fast per-row reads
             L = np.broadcast_to(lam[None, :, None], B.shape)
             for idx in np.ndindex(B.shape):
                 for k, name in enumerate(model.LOBE_NAMES):
@@ -172,6 +180,7 @@ def run(args: argparse.Namespace) -> int:
                 D = model.diffuse_sharp(Th_o, B, N, cosine_weighted=args.cosine_weighted)
             else:
                 D = model.diffuse_broadened(Th_o, B, N, sigma, cosine_weighted=args.cosine_weighted)
+            D = np.asarray(D)
             L = np.broadcast_to(lam[None, :, None], B.shape)
             for idx in np.ndindex(B.shape):
                 w.writerow(
@@ -205,6 +214,7 @@ def run(args: argparse.Namespace) -> int:
                 R = _rounded_density(b2, n_lam, np.deg2rad(theta_i), np.deg2rad(theta_o), args)
             else:
                 R = model.brdf(T, Th_o, B, N, sigma)
+            R = np.asarray(R)  # a JAX array read element by element is ~100x slower
             L = np.broadcast_to(lam[None, :, None, None], B.shape)
             for idx in np.ndindex(B.shape):
                 w.writerow(
@@ -220,6 +230,24 @@ def run(args: argparse.Namespace) -> int:
                     ]
                 )
     return 0
+
+
+def _check_table_size(
+    args: argparse.Namespace,
+    wedges: np.ndarray,
+    lam: np.ndarray,
+    theta_i: np.ndarray,
+    theta_o: np.ndarray,
+) -> None:
+    """The number of rows the chosen table will have, refused beyond `MAX_ROWS` (up front)."""
+    axes = [("wedges", wedges.size), ("wavelengths", lam.size)]
+    if args.lobes:
+        paths = 10 if args.edge_radius_um > 0 else 3  # model.PATH_NAMES / model.LOBE_NAMES
+        check_size([*axes, ("theta_i", theta_i.size)], paths)
+    elif args.diffuse:
+        check_size([*axes, ("theta_o", theta_o.size)], 1)
+    else:
+        check_size([*axes, ("theta_i", theta_i.size), ("theta_o", theta_o.size)], 1)
 
 
 def _edge_radius(radius_um: float, wedges_deg: np.ndarray, layer_um: float) -> float:
@@ -342,18 +370,17 @@ def _index(args: argparse.Namespace, lam: np.ndarray) -> np.ndarray:
     from stairfit import model
 
     if args.n is not None:
-        try:
-            n = complex(args.n.replace(" ", ""))
-        except ValueError:
-            raise UserError(f"--n: cannot read {args.n!r}; give e.g. 1.46 or 1.5+0.01j") from None
-        if n.real <= 1.0 or n.imag < 0:
-            raise UserError("--n: need Re(n) > 1 and Im(n) >= 0 (docs/conventions.md §6)")
+        n = parse_index(args.n)
         values = np.full(lam.shape, n if n.imag else n.real)
     else:
         try:
             disp = model.get_material(args.material)
         except ValueError as e:
             raise UserError(f"--material: {e}") from None
+        problem = model.materials.index_problem(disp, lam, args.delta_n)
+        if problem is not None:
+            raise UserError(f"--material {args.material}, --delta-n {args.delta_n:g}: {problem}")
+        extrapolation_warning(disp, args.material, lam, user="this prediction")
         values = np.asarray(disp(lam))
     values = values + args.delta_n
     if np.any(np.real(values) <= 1.0):
@@ -375,7 +402,5 @@ def _open_output(path: Path | None, force: bool) -> Iterator[TextIO]:
     if path is None:
         yield sys.stdout
         return
-    if path.exists() and not force:
-        raise UserError(f"{path}: already exists; choose another --output or add --force")
-    with atomic_text(path) as fh:
+    with staged_file(path, force) as fh:
         yield fh

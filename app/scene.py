@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -181,6 +182,19 @@ class Scene:
         """The photo folder (the scene file's folder)."""
         return self.path.parent
 
+    def input_files(self) -> tuple[Path, ...]:
+        """Every file this scene makes a run read, as absolute resolved paths, without repeats.
+
+        The scene file, then each photo's file (every member of a bracket, when `file` lists
+        several). Whoever adds a new kind of input file (flat fields, dark frames, ...) adds it
+        here: outputs are refused when they would replace any of these (app/outputs.py).
+        """
+        files = [self.path]
+        for photo in self.photos:
+            names = photo.file if isinstance(photo.file, list | tuple) else (photo.file,)
+            files.extend(self.folder / name for name in names)
+        return tuple(dict.fromkeys(Path(p).resolve() for p in files))
+
     def face_angles_deg(self, photo: Photo, wedge: Wedge) -> tuple[float, float]:
         """(theta_i, theta_o) of this photo in this wedge's face frame, degrees.
 
@@ -194,10 +208,6 @@ class Scene:
         if self.angles_relative_to == "face":
             return photo.light_deg, photo.view_deg
         return photo.light_deg - wedge.angle_deg, photo.view_deg + wedge.angle_deg
-
-    def input_files(self) -> tuple[Path, ...]:
-        """Every file this scene reads besides the scene file itself (absolute, resolved)."""
-        return tuple((self.folder / p.file).resolve() for p in self.photos)
 
 
 # --- loading and validation -----------------------------------------------------------------
@@ -222,7 +232,7 @@ def load_scene(path: Path, measure_only: bool = False) -> Scene:
             "'stairfit simulate OUT' to see a complete one)"
         )
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+        raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))  # a BOM (Notepad) is fine
     except tomllib.TOMLDecodeError as e:
         raise UserError(f"{path}: not valid TOML ({e}); fix the syntax at that line") from None
     except UnicodeDecodeError:
@@ -342,7 +352,7 @@ class _Reader:
         ok = (
             isinstance(v, list)
             and len(v) >= 3
-            and all(isinstance(p, list) and len(p) == 2 and all(_is_num(c) for c in p) for p in v)
+            and all(isinstance(p, list) and len(p) == 2 and all(_is_real(c) for c in p) for p in v)
         )
         if not ok:
             self.fail(
@@ -350,6 +360,7 @@ class _Reader:
                 "must be a list of at least 3 [x, y] points, e.g. [[10, 10], "
                 "[200, 10], [200, 150], [10, 150]]",
             )
+        _check_polygon(self, name, v)
         return tuple((float(p[0]), float(p[1])) for p in v)
 
 
@@ -454,12 +465,17 @@ def _index(r: _Reader, d: dict[str, Any], w: str) -> IndexSpec:
     if model == "sellmeier" and len(params["b"]) != len(params["c_um"]):
         r.fail(w, "b and c_um must have the same length")
     spec = IndexSpec(model, params=tuple(sorted(params.items())))
-    import numpy as np
-
-    n550 = complex(np.asarray(spec.build()(np.array([550.0])))[0])
-    if not n550.real > 1.0 or n550.imag < 0:
-        r.fail(w, f"gives n(550 nm) = {n550:.4g}; need Re(n) > 1 and k >= 0")
+    _check_physical_index(r, spec, w)
     return spec
+
+
+def _check_physical_index(r: _Reader, spec: IndexSpec, where: str) -> None:
+    """The index must be physical over the whole spectral grid a fit can use [conventions §8]."""
+    from stairfit.model import materials, spectral
+
+    problem = materials.index_problem(spec.build(), spectral.VISIBLE_NM)
+    if problem is not None:
+        r.fail(where, f"{problem}; fix the {spec.model} coefficients")
 
 
 def _light(r: _Reader, d: dict[str, Any]) -> Light:
@@ -531,8 +547,10 @@ def _reference(r: _Reader, d: Any, w: str) -> Reference:
 def _extraction(r: _Reader, d: dict[str, Any]) -> Extraction:
     w = "extraction"
     r.table(d, w, ["erode_px", "block_px", "saturation_level", "max_saturated_fraction"])
+    from stairfit.imaging import MAX_ERODE_PX  # erosion time grows as radius^2 x ROI area
+
     return Extraction(
-        erode_px=r.get(d, "erode_px", int, w, default=8, lo=0, hi=1000),
+        erode_px=r.get(d, "erode_px", int, w, default=8, lo=0, hi=MAX_ERODE_PX),
         block_px=r.get(d, "block_px", int, w, default=8, lo=2, hi=512),
         saturation_level=r.get(d, "saturation_level", float, w, default=0.98, lo=0.5, hi=1.0),
         max_saturated_fraction=r.get(
@@ -615,7 +633,41 @@ def _photos(
     dup = {f for f in files if files.count(f) > 1}
     if dup:
         r.fail("photos", f"file(s) listed twice: {sorted(dup)}")
+    _check_photo_paths(r, photos)
     return tuple(photos)
+
+
+def _check_photo_paths(r: _Reader, photos: list[Photo]) -> None:
+    """Every photo file lies in the scene's folder (by its name) and is listed once (by path).
+
+    `../x.dng` or an absolute path elsewhere is refused: results must not depend on files
+    outside the folder, and a preview is never written outside the output. A link inside the
+    folder may point anywhere (that is how to use photos kept elsewhere). Two names of one file
+    (`./a.dng` and `a.dng`, or two links to it) are refused by comparing resolved paths.
+    """
+    folder = Path(os.path.abspath(r.path.parent))
+    seen: dict[Path, tuple[int, str]] = {}
+    for k, photo in enumerate(photos):
+        names = photo.file if isinstance(photo.file, list | tuple) else (photo.file,)
+        for name in names:
+            lexical = Path(os.path.normpath(folder / name))
+            if lexical == folder:
+                r.fail(f"photos[{k}].file", f"{name!r} names the photo folder, not a photo file")
+            if folder not in lexical.parents:
+                r.fail(
+                    f"photos[{k}].file",
+                    f"{name!r} is outside the photo folder {folder}; copy the file (or a link to "
+                    "it) into the folder and give its name relative to the folder",
+                )
+            resolved = lexical.resolve()
+            if resolved in seen:
+                j, other = seen[resolved]
+                r.fail(
+                    f"photos[{k}].file",
+                    f"{name!r} is the same file as photos[{j}].file {other!r}; list each photo "
+                    "once",
+                )
+            seen[resolved] = (k, name)
 
 
 VISIBILITY_LIMIT_DEG = 89.0
@@ -672,8 +724,25 @@ def _check_rois(r: _Reader, scene: Scene) -> None:
                 )
 
 
+def _check_polygon(r: _Reader, name: str, points: list[list[float]]) -> None:
+    """Finite coordinates, and a simple outline (corners in order, not crossing)."""
+    from ._polygons import polygon_problem
+
+    for k, p in enumerate(points):
+        if not all(math.isfinite(c) for c in p):
+            r.fail(name, f"point {k} is {p!r}; every coordinate must be a finite number")
+    problem = polygon_problem([(float(x), float(y)) for x, y in points])
+    if problem is not None:
+        r.fail(name, f"the polygon {problem}")
+
+
 def _join(where: str, key: str) -> str:
     return f"{where}.{key}" if where else key
+
+
+def _is_real(x: Any) -> bool:
+    """A number (finite or not; `_check_polygon` says which coordinate is not finite)."""
+    return isinstance(x, int | float) and not isinstance(x, bool)
 
 
 def _is_num(x: Any) -> bool:

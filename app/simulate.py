@@ -11,25 +11,25 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import secrets
-import shutil
-from collections.abc import Iterator, Sequence
+import multiprocessing
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from . import __version__
+from . import __version__, _ranges
 from ._layout import SpecimenLayout, camera_for
 from .errors import UserError
+from .outputs import staged_folder as staged_folder
 from .scene import SCENE_FILE, SCENE_VERSION
 
 DEG = np.pi / 180
 TRUTH_FILE = "truth.json"
+MIN_MEGAPIXELS = 0.3
+"""Smaller photos make the 60-degree face at -80 degrees too small for the default erosion."""
 
 MARKER_STYLES: tuple[str, ...] = ("quiet-zone", "no-quiet-zone")
 """ArUco markers printed on white paper with a one-cell white margin, or straight on the dark
@@ -145,12 +145,14 @@ def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
         raise UserError(f"--delta-n: {args.delta_n} is outside [-0.3, 0.5]")
     if args.floor < 0:
         raise UserError("--floor: must be >= 0")
-    if not 0.05 <= args.megapixels <= 60:
-        raise UserError(f"--megapixels: {args.megapixels} is outside [0.05, 60]")
+    if not MIN_MEGAPIXELS <= args.megapixels <= 60:
+        raise UserError(
+            f"--megapixels: {args.megapixels} is outside [{MIN_MEGAPIXELS}, 60] (below "
+            f"{MIN_MEGAPIXELS} the steepest face is smaller than the ROI erosion)"
+        )
     if not 3 <= args.views <= 200:
         raise UserError(f"--views: {args.views} is outside [3, 200]")
-    if args.workers < 1:
-        raise UserError("--workers: must be >= 1")
+    _ranges.check_workers(args.workers)
     if args.seed < 0:
         raise UserError(f"--seed: {args.seed} is negative; give an integer >= 0")
     base = SimulationSettings()
@@ -189,53 +191,10 @@ def _check_edge_radius(s: SimulationSettings) -> None:
 def run(args: argparse.Namespace) -> int:
     """`stairfit simulate OUT`."""
     settings = settings_from_args(args)
-    with staged_folder(args.out, args.force) as tmp:
+    with staged_folder(args.out, args.force, option="OUT") as tmp:
         simulate(tmp, settings, progress=not args.quiet)
     print(f"wrote {len(settings.views_deg)} photos, {SCENE_FILE} and {TRUTH_FILE} to {args.out}")
     return 0
-
-
-@contextmanager
-def staged_folder(out: Path, force: bool) -> Iterator[Path]:
-    """Build a folder under a temporary name next to `out` and move it into place on success.
-
-    A crash leaves no folder named `out`; an existing `out` is only replaced with `force`.
-    """
-    out = Path(out)
-    if out.exists() and not force:
-        raise UserError(
-            f"{out}: already exists; choose another folder or add --force to replace it"
-        )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _fresh_partial_folder(out)
-    try:
-        yield tmp
-        if out.exists():
-            trash = out.with_name(f".{out.name}.old-{os.getpid()}")
-            out.rename(trash)
-            tmp.rename(out)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-def _fresh_partial_folder(out: Path) -> Path:
-    """A new, empty hidden folder `.NAME.XXXXXXXX.partial` next to `out`.
-
-    Made with `mkdir`, so it gets the user's umask like any folder they create (tempfile.mkdtemp
-    would make it private, 0700, and the finished results would stay that way).
-    """
-    for _ in range(100):
-        tmp = out.with_name(f".{out.name}.{secrets.token_hex(4)}.partial")
-        try:
-            tmp.mkdir()
-        except FileExistsError:
-            continue
-        return tmp
-    raise FileExistsError(f"{out.parent}: cannot find a free name for a temporary folder")
 
 
 def image_size(megapixels: float) -> tuple[int, int]:
@@ -311,7 +270,6 @@ def _sharp_values(obs: Any, spectral: Any, params: Any, aperture: Any) -> Any:
 def simulate(folder: Path, settings: SimulationSettings, progress: bool = False) -> dict[str, Any]:
     """Render every photo into `folder` and write the scene file and the truth."""
     import tomli_w
-    from tqdm import tqdm
 
     layout = SpecimenLayout(settings.wedges_deg)
     radiance = face_radiance(settings)
@@ -324,18 +282,7 @@ def simulate(folder: Path, settings: SimulationSettings, progress: bool = False)
         )
         for p, view in enumerate(settings.views_deg)
     ]  # fmt: skip
-    photos: list[dict[str, Any]] = []
-    bar = tqdm(total=len(jobs), desc="rendering photos", unit="photo", disable=not progress)
-    if settings.workers > 1:
-        with ProcessPoolExecutor(max_workers=settings.workers) as pool:
-            for entry in pool.map(_render, jobs):
-                photos.append(entry)
-                bar.update()
-    else:
-        for job in jobs:
-            photos.append(_render(job))
-            bar.update()
-    bar.close()
+    photos = _render_all(jobs, settings.workers, progress)
     scene = _scene_dict(settings, layout, photos)
     text = _compact_arrays(tomli_w.dumps(scene))
     (folder / SCENE_FILE).write_text(_SCENE_HEADER + text, encoding="utf-8")
@@ -356,6 +303,33 @@ def simulate(folder: Path, settings: SimulationSettings, progress: bool = False)
     }
     (folder / TRUTH_FILE).write_text(json.dumps(truth, indent=2), encoding="utf-8")
     return truth
+
+
+def _render_all(jobs: Sequence[_PhotoJob], workers: int, progress: bool) -> list[dict[str, Any]]:
+    """Render every photo (in `workers` spawned processes when > 1), with a progress bar.
+
+    The bar is closed (its line ended) and queued jobs are cancelled however this ends, so an
+    interruption's one-line message starts on a line of its own.
+    """
+    from tqdm import tqdm
+
+    photos: list[dict[str, Any]] = []
+    with tqdm(total=len(jobs), desc="rendering photos", unit="photo", disable=not progress) as bar:
+        if workers <= 1:
+            for job in jobs:
+                photos.append(_render(job))
+                bar.update()
+            return photos
+        # "spawn": never fork a process that has run JAX
+        ctx = multiprocessing.get_context("spawn")
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+        try:
+            for entry in pool.map(_render, jobs):
+                photos.append(entry)
+                bar.update()
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+    return photos
 
 
 @dataclass(frozen=True)

@@ -108,9 +108,11 @@ def run(args: argparse.Namespace) -> int:
     from .study_report import print_summary, write_study
 
     plan = plan_study(args)
+    from .outputs import output_lock
+
     reports: list[FolderReport] = []
     try:
-        with connect(plan) as client:
+        with output_lock(plan.out), connect(plan) as client:
             prepare_output(plan.out)  # only once a cluster is there: a failed start leaves none
             run_tasks(client, plan, reports)
     except KeyboardInterrupt:
@@ -146,6 +148,7 @@ def plan_study(args: argparse.Namespace) -> StudyPlan:
     out = args.output.expanduser().resolve()
     check_output(out)
     folders = find_folders(args.paths, exclude=out)
+    check_output(out, folders)  # OUT must not be, or hold, a photo folder
     cache = jax_cache_folder(args.jax_cache)
     names = output_names(folders)
     tasks = tuple(
@@ -236,8 +239,12 @@ def output_names(folders: Sequence[Path]) -> dict[Path, str]:
     return names
 
 
-def check_output(out: Path) -> None:
-    """Refuse an OUT that is a file, or a non-empty folder that is not a study (never overwrite)."""
+def check_output(out: Path, inputs: Sequence[Path] = ()) -> None:
+    """Refuse an OUT that holds an input, the current or home folder (`outputs.check_output`),
+    that is a file, or a non-empty folder that is not a study (never overwrite)."""
+    from . import outputs
+
+    outputs.check_output(out, inputs, option="-o")
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: exists and is not a folder; choose another -o")
     if out.is_dir() and any(out.iterdir()) and not (out / LEDGER_DIR).is_dir():

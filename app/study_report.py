@@ -156,8 +156,7 @@ def _cell(v: Any) -> Any:
 
 def write_study(out: Path, reports: Sequence[FolderReport]) -> None:
     """study.csv, the figures and study.html in OUT (each file replaced only when complete)."""
-    from .outputs import atomic_text
-    from .simulate import staged_folder
+    from .outputs import atomic_text, staged_folder
 
     rows = sort_rows(reports)
     with atomic_text(out / "study.csv") as fh:

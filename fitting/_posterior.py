@@ -12,7 +12,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-import tempfile
+import secrets
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -176,7 +176,9 @@ def _seeds(seed: int) -> tuple[np.random.Generator, np.random.RandomState]:
 def _save_chain(path: Path, payload: dict[str, np.ndarray]) -> None:
     """Write the chain atomically: a temporary file in the same folder, then `os.replace`."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    # not tempfile.mkstemp: its 0600 would stay on the chain file; 0666 less the umask instead
+    tmp = str(path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp"))
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
         with os.fdopen(fd, "wb") as fh:
             np.savez(fh, **payload)

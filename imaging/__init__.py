@@ -19,6 +19,8 @@ from ._decode import RawFrame as RawFrame
 from ._decode import decode_raw as decode_raw
 from ._decode import file_sha256 as file_sha256
 from ._errors import ImagingError as ImagingError
+from ._errors import ImagingWarning as ImagingWarning
+from ._errors import PhotosFailedError as PhotosFailedError
 from ._exposure import Exposure as Exposure
 from ._exposure import resolve_exposure as resolve_exposure
 from ._extract import ChannelStats as ChannelStats
@@ -51,6 +53,7 @@ from ._placement import face_polygon as face_polygon
 from ._placement import fit_camera_pose as fit_camera_pose
 from ._preview import render_preview as render_preview
 from ._preview import write_preview as write_preview
+from ._roi import MAX_ERODE_PX as MAX_ERODE_PX
 from ._roi import Polygon as Polygon
 from ._roi import RoiMask as RoiMask
 from ._roi import roi_mask as roi_mask

@@ -13,7 +13,6 @@ import json
 import math
 import multiprocessing
 import os
-import warnings
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -23,8 +22,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from ._cache import prune_previews, read_cache, write_cache
+from ._checks import low_signal_warnings, same_bytes_warnings
 from ._decode import CHANNELS, RawFrame, decode_raw, file_sha256
-from ._errors import ImagingError
+from ._errors import ImagingError, PhotosFailedError
 from ._exposure import Exposure, resolve_exposure
 from ._extract import ChannelStats, ExtractionSettings, roi_channel_stats
 from ._io import atomic_write_bytes
@@ -41,8 +42,12 @@ from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import Polygon, RoiMask, as_polygon, roi_mask
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 3
-"""Part of every cache key: bump it when a change to the code changes measured values."""
+TABLE_VERSION = 4
+"""Part of every cache key: bump it when a change to the code changes measured values.
+
+3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
+4: rows flagged below_black carry NaN (were negative values).
+"""
 
 
 def _named_polygons(
@@ -232,6 +237,13 @@ def _flags(s: ChannelStats, settings: ExtractionSettings) -> list[str]:
     return flags
 
 
+def _radiance(s: ChannelStats, scale: float, flags: list[str]) -> tuple[float, float]:
+    """(value, stderr) in relative radiance; NaN when below black (never a negative value)."""
+    if "below_black" in flags:
+        return math.nan, math.nan
+    return s.mean_dn * scale, s.stderr_dn * scale
+
+
 def measure_frame(
     frame: RawFrame, spec: PhotoSpec, settings: ExtractionSettings
 ) -> FrameMeasurement:
@@ -273,15 +285,16 @@ def measure_frame(
     for n, roi in rois.items():
         by_marker = roi.source == "markers" and placement is not None
         for c, s in enumerate(stats[n]):
-            value = s.mean_dn * exposure.scale
-            stderr = s.stderr_dn * exposure.scale
             flags = _flags(s, settings)
+            value, stderr = _radiance(s, exposure.scale, flags)
             normalised_by = ""
             if ref is not None and ref_flags is not None and n != spec.reference:
                 r = ref[c]
                 normalised_by = spec.reference or ""
                 flags += [f"reference-{f}" for f in ref_flags[c]]
-                if r.mean_dn > 0:
+                if "below_black" in flags:
+                    pass  # no ratio of a value below black: NaN, flagged
+                elif r.mean_dn > 0:
                     ratio = s.mean_dn / r.mean_dn
                     stderr = math.hypot(s.stderr_dn / r.mean_dn, ratio * r.stderr_dn / r.mean_dn)
                     value = ratio
@@ -444,7 +457,9 @@ def _measure_decoded(
             if spec.markers
             else None
         )
-        return e, partial(_write_previews, frame, {}, det, settings, [Path(preview)])
+        # for drawing roi_px by hand: the markers found, the given polygons, a pixel grid
+        job = partial(_write_previews, frame, {}, det, settings, [Path(preview)], dict(spec.rois))
+        return e, job
     if preview is None:
         return result.rows, None
     paths = [Path(preview)]
@@ -461,12 +476,30 @@ def _write_previews(
     detection: MarkerDetection | None,
     settings: ExtractionSettings,
     paths: Sequence[Path],
+    failed: dict[str, Polygon] | None = None,
 ) -> None:
-    """Render a photo's preview once and write it (atomically) to each of `paths`."""
+    """Render a photo's preview once and write it (atomically) to each of `paths`.
+
+    Only the first path is required; the others are cached copies, skipped when they cannot be
+    written (a read-only photo folder: the next run renders the preview again). `failed` (the
+    pixel polygons of a photo that could not be measured) draws those and a pixel grid.
+    """
     level = settings.saturation_level
-    png = preview_png(frame, rois, detection, saturation_level=level, max_size=PREVIEW_MAX_SIZE)
-    for path in paths:
-        atomic_write_bytes(path, png)
+    png = preview_png(
+        frame,
+        rois,
+        detection,
+        saturation_level=level,
+        max_size=PREVIEW_MAX_SIZE,
+        grid=failed is not None,
+        outlines=failed,
+    )
+    for k, path in enumerate(paths):
+        try:
+            atomic_write_bytes(path, png)
+        except OSError:
+            if k == 0:
+                raise
 
 
 def _measure_in_process(
@@ -524,8 +557,14 @@ def _measure_in_process(
 
 
 def preview_path(preview_dir: str | Path, spec: PhotoSpec) -> Path:
-    """Where `measure_photos` writes a photo's preview: `<preview_dir>/<name>.png`."""
-    return Path(preview_dir) / f"{spec.name}.png"
+    """Where `measure_photos` writes a photo's preview: `<preview_dir>/<name>.png`.
+
+    Always directly inside `preview_dir`: a name with folders (`raw/IMG_1.dng`) is flattened
+    to `raw__IMG_1.dng.png`, and `.`/`..` parts are dropped, so a photo's name can never place
+    its preview elsewhere.
+    """
+    parts = [p for p in spec.name.replace("\\", "/").split("/") if p not in ("", ".", "..")]
+    return Path(preview_dir) / f"{'__'.join(parts) or 'photo'}.png"
 
 
 def preview_cache_dir(cache: str | Path) -> Path:
@@ -565,23 +604,9 @@ def _cached_preview(folder: Path, rows: Sequence[MeasurementRow]) -> bytes | Non
     return png if png.startswith(_PNG_START) and png.endswith(_PNG_END) else None
 
 
-def _prune_preview_cache(folder: Path, table: MeasurementTable) -> None:
-    """Delete the cached previews of rows that are no longer in the cache file."""
-    if not folder.is_dir():
-        return
-    keep = {cached_preview_name(r.photo_sha256, r.settings_key) for r in table.rows}
-    for path in folder.glob("*.png"):
-        if path.name not in keep:
-            path.unlink(missing_ok=True)
-
-
 def _load_cache(cache: Path | None) -> dict[str, tuple[MeasurementRow, ...]]:
-    if cache is None or not cache.exists():
-        return {}
-    try:
-        table = MeasurementTable.read_csv(cache)
-    except ImagingError as e:
-        warnings.warn(f"ignoring the cache: {e}", stacklevel=3)
+    table = read_cache(cache, TABLE_VERSION)
+    if table is None:
         return {}
     return {p: table.for_photo(p) for p in table.photos()}
 
@@ -640,9 +665,11 @@ def measure_photos(
         The table, rows in the order of `specs`.
 
     Raises:
-        ImagingError: one or more photos failed; the message, one line, lists each (photo,
-            wedge, fix), photos that failed alike together. Rows of the photos that succeeded
-            are written to the cache first.
+        PhotosFailedError: one or more photos failed (an ImagingError; `failed_photos` names them);
+            the message, one line, lists each (photo, wedge, fix), photos that failed alike
+            together. Rows of the photos that succeeded are written to the cache first, and the
+            failed photos' previews (with `preview_dir`) show the markers found, their pixel
+            ROIs and a pixel grid.
     """
     settings = settings or ExtractionSettings()
     names = [s.name for s in specs]
@@ -691,42 +718,59 @@ def measure_photos(
                     ): spec
                     for spec in todo
                 }
-                for fut in as_completed(futures):
-                    spec = futures[fut]
-                    try:
-                        done[spec.name] = fut.result()
-                    except ImagingError as e:
-                        errors[spec.name] = str(e)
-                    except BrokenProcessPool as e:
-                        raise ImagingError(
-                            f"photo {spec.name!r}: a worker process died ({e}); it may have run "
-                            "out of memory, or measure_photos was called while a script was "
-                            "being imported (put the call under `if __name__ == '__main__':`). "
-                            "Retry with max_workers=1"
-                        ) from e
-                    bar.update(1)
+                try:
+                    _collect(futures, done, errors, bar)
+                except BaseException:  # an interruption: do not start the photos still queued
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    raise
     finally:
         bar.close()
     table = MeasurementTable(tuple(r for s in specs if s.name in done for r in done[s.name]))
-    if cache_path is not None:
-        table.write_csv(cache_path)
-        _prune_preview_cache(preview_cache_dir(cache_path), table)
+    if cache_path is not None and write_cache(cache_path, table, TABLE_VERSION):
+        keep = {cached_preview_name(r.photo_sha256, r.settings_key) for r in table.rows}
+        prune_previews(preview_cache_dir(cache_path), keep)
+    same_bytes_warnings(table)
+    low_signal_warnings(table)
     return _with_failures(table, [(n, errors[n]) for n in names if n in errors], raise_on_failure)
 
 
 def _with_failures(
     table: MeasurementTable, failures: list[tuple[str, str]], raise_on_failure: bool
 ) -> MeasurementTable:
-    """`measure_photos`'s result: the table, or an ImagingError listing the failures (one
+    """`measure_photos`'s result: the table, or a `PhotosFailedError` listing the failures (one
     line), or with `raise_on_failure=False` the table with the failures in `failed`."""
     if failures and raise_on_failure:
-        raise ImagingError(
+        raise PhotosFailedError(
             f"{len(failures)} of {len(table.photos()) + len(failures)} photos could not be "
-            f"measured: {_summarise_failures(failures)}"
+            f"measured: {_summarise_failures(failures)}",
+            tuple(n for n, _ in failures),
         )
     if not failures:
         return table
     return MeasurementTable(table.rows, tuple((n, " ".join(m.split())) for n, m in failures))
+
+
+def _collect(
+    futures: dict[Future, PhotoSpec],
+    done: dict[str, tuple[MeasurementRow, ...]],
+    errors: dict[str, str],
+    bar: tqdm,
+) -> None:
+    """Gather the worker processes' results into `done` and `errors` as they complete."""
+    for fut in as_completed(futures):
+        spec = futures[fut]
+        try:
+            done[spec.name] = fut.result()
+        except ImagingError as e:
+            errors[spec.name] = str(e)
+        except BrokenProcessPool as e:
+            raise ImagingError(
+                f"photo {spec.name!r}: a worker process died ({e}); it may have run "
+                "out of memory, or measure_photos was called while a script was "
+                "being imported (put the call under `if __name__ == '__main__':`). "
+                "Retry with max_workers=1"
+            ) from e
+        bar.update(1)
 
 
 def _summarise_failures(failures: Sequence[tuple[str, str]]) -> str:

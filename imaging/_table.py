@@ -29,7 +29,8 @@ class MeasurementRow:
         wedge: the ROI's name (a wedge, or the reference patch).
         channel: "R", "G" or "B".
         value: mean relative radiance (DN x N^2 / (t x ISO/100)), or, when `normalised_by` is
-            set, the ratio to that reference patch's mean (dimensionless). NaN if no pixels.
+            set, the ratio to that reference patch's mean (dimensionless). NaN if no pixels or
+            when flagged `below_black` (with `stderr`): never a negative radiance.
         stderr: standard error of `value` (block scatter; docs/imaging.md §Standard errors).
         n_pixels: unsaturated pixels averaged.
         n_blocks: non-empty blocks behind the standard error.

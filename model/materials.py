@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 
@@ -102,6 +103,52 @@ def refractive_index(
 ) -> Float[Array, "..."]:
     """`n(lambda) + delta_n` [conventions §7]: the learnable offset shifts the real part only."""
     return dispersion(wavelength_nm) + jnp.asarray(delta_n)
+
+
+# --- checks ---------------------------------------------------------------------------------
+
+
+def index_problem(
+    dispersion: Dispersion, wavelength_nm: ArrayLike, delta_n: float = 0.0
+) -> str | None:
+    """Why `dispersion + delta_n` is not a physical index at `wavelength_nm`, or None.
+
+    Physical means [conventions §6, §7]: finite, `Re n > 1`, `k >= 0` at every wavelength;
+    tabulated wavelengths strictly increasing (linear interpolation needs them sorted); no
+    Sellmeier resonance `C_i` (where n^2 diverges) inside the span of the wavelengths.
+    """
+    wl = np.atleast_1d(np.asarray(wavelength_nm, dtype=float))
+    if isinstance(dispersion, Tabulated):
+        table = np.asarray(dispersion.wavelength_nm, dtype=float)
+        if not (np.all(np.isfinite(table)) and np.all(np.diff(table) > 0)):
+            return "the tabulated wavelengths must increase strictly; sort the table"
+    if isinstance(dispersion, Sellmeier):
+        for b_i, c_i in zip(dispersion.b, dispersion.c_um, strict=True):
+            pole = abs(c_i) * 1e3
+            if b_i != 0 and wl.min() <= pole <= wl.max():
+                return (
+                    f"has a Sellmeier pole (C = {c_i:g} um) at {pole:g} nm, inside the "
+                    f"wavelengths used ({wl.min():g}-{wl.max():g} nm), where n is infinite or NaN"
+                )
+    n = np.asarray(dispersion(wl)) + delta_n
+    bad = ~np.isfinite(n) | ~(np.real(n) > 1.0) | (np.imag(n) < 0)
+    if np.any(bad):
+        k = int(np.argmax(bad))
+        return (
+            f"gives n({wl[k]:g} nm) = {complex(n[k]):.4g}; need a finite index with Re n > 1 "
+            f"and k >= 0 at every wavelength used ({wl.min():g}-{wl.max():g} nm)"
+        )
+    return None
+
+
+def extrapolated(dispersion: Dispersion, wavelength_nm: ArrayLike) -> np.ndarray:
+    """Which of `wavelength_nm` lie outside the model's validity range `valid_nm` (bool array).
+
+    Outside it a formula is extrapolated and a table is held at its end values.
+    """
+    wl = np.asarray(wavelength_nm, dtype=float)
+    lo, hi = dispersion.valid_nm
+    return (wl < lo) | (wl > hi)
 
 
 # --- datasets -------------------------------------------------------------------------------

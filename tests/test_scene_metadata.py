@@ -65,8 +65,9 @@ def test_metadata_that_is_not_a_table_is_refused(tmp_path: Path) -> None:
         load_scene(_scene_with(tmp_path, "MK4"))
 
 
-def test_input_files_are_the_photos_as_absolute_paths(tmp_path: Path) -> None:
+def test_input_files_are_the_scene_and_photos_as_absolute_paths(tmp_path: Path) -> None:
     path = tmp_path / "scene.toml"
     path.write_text(tomli_w.dumps(GOOD))
     files = load_scene(path).input_files()
-    assert files == (tmp_path.resolve() / "a.dng", tmp_path.resolve() / "b.dng")
+    root = tmp_path.resolve()
+    assert files == (root / "scene.toml", root / "a.dng", root / "b.dng")
