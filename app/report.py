@@ -16,11 +16,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from . import __version__
 from .figures import brdf_map, fixed_layout, log_y, reflected_colours, refractive_index, save
@@ -356,14 +353,15 @@ def _rel(path: Path, folder: Path) -> str:
     return f"figures/{path.relative_to(folder)}"
 
 
-def fit_per_wedge(outcome: FitOutcome) -> plt.Figure:
+def fit_per_wedge(outcome: FitOutcome) -> Figure:
     """Measured (error bars) and fitted radiance against the face-frame viewing angle, one
     panel per wedge and one colour per channel (like the paper's Fig. 9)."""
     fit, obs = outcome.selection.fit, outcome.observations
     wedges = outcome.scene.specimen.wedges
     ncol = min(3, len(wedges))
     nrow = int(np.ceil(len(wedges) / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(4.3 * ncol, 3.2 * nrow), squeeze=False)
+    fig = Figure(figsize=(4.3 * ncol, 3.2 * nrow))  # no pyplot: no global state (app/figures.py)
+    axes = fig.subplots(nrow, ncol, squeeze=False)
     colours = ("tab:red", "tab:green", "tab:blue")
     theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
     for k, wedge in enumerate(wedges):
@@ -405,12 +403,13 @@ def fit_per_wedge(outcome: FitOutcome) -> plt.Figure:
     return fig
 
 
-def residual_figure(outcome: FitOutcome) -> plt.Figure:
+def residual_figure(outcome: FitOutcome) -> Figure:
     """Whitened residuals against viewing angle per wedge, and their histogram vs N(0, 1)."""
     fit, obs = outcome.selection.fit, outcome.observations
     theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
     used = np.asarray(obs.use, bool)
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 3.6), gridspec_kw={"width_ratios": [2, 1]})
+    fig = Figure(figsize=(11, 3.6))
+    a1, a2 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [2, 1]})
     for k, wedge in enumerate(outcome.scene.specimen.wedges):
         sel = used & (obs.wedge_index == k)
         a1.plot(theta_o[sel], fit.residuals[sel], "o", ms=3, label=wedge.name)
@@ -427,9 +426,13 @@ def residual_figure(outcome: FitOutcome) -> plt.Figure:
     return fig
 
 
-def corner_figure(outcome: FitOutcome) -> plt.Figure:
+def corner_figure(outcome: FitOutcome) -> Figure:
     """Corner plot of the posterior samples (display units), titled with the median and the
-    16-84% interval in plain text (corner's own titles are mathtext, slow to set up)."""
+    16-84% interval in plain text (corner's own titles are mathtext, slow to set up).
+
+    Drawn on a plain `Figure` of corner's own size (`corner_size_in`), so that corner does not
+    create it through pyplot (which would pick an interactive backend where there is a display).
+    """
     import corner
 
     post = outcome.posterior
@@ -440,8 +443,10 @@ def corner_figure(outcome: FitOutcome) -> plt.Figure:
         f"{lab} = {value_with_errors(m, m - lo, hi - m)}"
         for lab, lo, m, hi in zip(labels, q16, q50, q84, strict=True)
     ]
+    size = corner_size_in(samples.shape[1])
     return corner.corner(
         samples,
+        fig=Figure(figsize=(size, size)),
         labels=list(labels),
         titles=titles,
         quantiles=(0.16, 0.5, 0.84),
@@ -449,6 +454,14 @@ def corner_figure(outcome: FitOutcome) -> plt.Figure:
         title_fmt=None,
         title_kwargs={"fontsize": "medium"},
     )
+
+
+def corner_size_in(n_params: int) -> float:
+    """The figure size (inches) `corner.corner` chooses for `n_params` parameters when it makes
+    the figure itself (corner 2.3 core.py: 2 inches per panel, gaps of 5%, margins 0.5 x 2 and
+    0.2 x 2 inches); its margins are fractions of that size, so the layout stays corner's."""
+    factor, whspace = 2.0, 0.05
+    return 0.5 * factor + factor * n_params + factor * (n_params - 1.0) * whspace + 0.2 * factor
 
 
 def value_with_errors(value: float, minus: float, plus: float) -> str:
