@@ -8,10 +8,10 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Protocol, TextIO
+from typing import Any, Protocol, TextIO
 
 import numpy as np
 
@@ -77,9 +77,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Evaluate and write; user mistakes raise UserError."""
-    import jax.numpy as jnp
+    """Evaluate and write; user mistakes raise UserError.
 
+    Each model evaluation is one compiled call (`_jit`): eager JAX would compile every
+    operation separately (about 40 small programs for one `--lobes` case, most of its
+    start-up; issue 14).
+    """
     from stairfit import model
 
     wedges = _ranges.check_range(
@@ -138,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
                 ]
             )
             B, N, T = np.meshgrid(b2, n_lam, np.deg2rad(theta_i), indexing="ij")
-            lobes = model.sharp_lobes(jnp.asarray(T), jnp.asarray(B), jnp.asarray(N))
+            lobes = _jit(model.sharp_lobes)(T, B, N)
             L = np.broadcast_to(lam[None, :, None], B.shape)
             for idx in np.ndindex(B.shape):
                 for k, name in enumerate(model.LOBE_NAMES):
@@ -149,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
                             _fn(N[idx]),
                             _f(np.rad2deg(T[idx])),
                             name,
-                            _f(np.rad2deg(float(lobes.theta_o[idx][k]))),
+                            _f(np.rad2deg(lobes.theta_o[idx][k])),
                             _f(lobes.weight[idx][k]),
                             _f(lobes.fresnel[idx][k]),
                             _f(lobes.ratio[idx][k]),
@@ -168,10 +171,13 @@ def run(args: argparse.Namespace) -> int:
                 ]
             )
             B, N, Th_o = np.meshgrid(b2, n_lam, np.deg2rad(theta_o), indexing="ij")
+            cosine = args.cosine_weighted
             if sharp:
-                D = model.diffuse_sharp(Th_o, B, N, cosine_weighted=args.cosine_weighted)
+                D = _jit(model.diffuse_sharp, "cosine_weighted")(Th_o, B, N, cosine_weighted=cosine)
             else:
-                D = model.diffuse_broadened(Th_o, B, N, sigma, cosine_weighted=args.cosine_weighted)
+                D = _jit(model.diffuse_broadened, "cosine_weighted")(
+                    Th_o, B, N, sigma, cosine_weighted=cosine
+                )
             L = np.broadcast_to(lam[None, :, None], B.shape)
             for idx in np.ndindex(B.shape):
                 w.writerow(
@@ -204,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
             if rounded:
                 R = _rounded_density(b2, n_lam, np.deg2rad(theta_i), np.deg2rad(theta_o), args)
             else:
-                R = model.brdf(T, Th_o, B, N, sigma)
+                R = _jit(model.brdf)(T, Th_o, B, N, sigma)
             L = np.broadcast_to(lam[None, :, None, None], B.shape)
             for idx in np.ndindex(B.shape):
                 w.writerow(
@@ -230,7 +236,9 @@ def _edge_radius(radius_um: float, wedges_deg: np.ndarray, layer_um: float) -> f
     """
     from stairfit import model
 
-    r_max = np.asarray(model.max_edge_radius(np.deg2rad(wedges_deg), layer_um), dtype=float)
+    if radius_um == 0.0:  # sharp edges fit every wedge; nothing to evaluate
+        return 0.0
+    r_max = _jit(model.max_edge_radius)(np.deg2rad(wedges_deg), layer_um)
     limit = int(np.argmin(r_max))
     valid = f"[0, {r_max[limit]:.6g}] um"
     # the same relative slack as model.check_edge_radius, so r = r_max itself is accepted
@@ -261,16 +269,15 @@ def _rounded_density(
     Fresnel factors once per wavelength (see `brdf_rounded`) [conventions §1, §4].
     """
     import jax
-    import jax.numpy as jnp
 
     from stairfit import model
 
     fn = jax.jit(model.brdf_rounded)
     rho = fn(
-        jnp.asarray(theta_i[None, None, :, None]),
-        jnp.asarray(theta_o[None, None, None, :]),
-        jnp.asarray(b2[:, None, None, None]),
-        jnp.asarray(n_lam[None, :, None, None]),
+        theta_i[None, None, :, None],
+        theta_o[None, None, None, :],
+        b2[:, None, None, None],
+        n_lam[None, :, None, None],
         np.deg2rad(args.sigma_deg),
         args.layer_um,
         args.edge_radius_um,
@@ -295,7 +302,6 @@ def _write_rounded_paths(
     unpolarised factor of the path; empty where the weight is 0) [conventions §3, §4].
     """
     import jax
-    import jax.numpy as jnp
 
     from stairfit import model
 
@@ -315,9 +321,9 @@ def _write_rounded_paths(
     )
     B, N, T = np.meshgrid(b2, n_lam, theta_i, indexing="ij")
     paths = jax.jit(model.rounded_paths)
-    p = paths(jnp.asarray(T), jnp.asarray(B), jnp.asarray(N), layer_um, radius_um)
+    p = paths(T, B, N, layer_um, radius_um)
     weight, ratio = np.asarray(p.weight), np.asarray(p.ratio)
-    direction = np.asarray(model.lobe_directions(jnp.asarray(T), jnp.asarray(B)))
+    direction = _jit(model.lobe_directions)(T, B)
     L = np.broadcast_to(lam[None, :, None], B.shape)
     for idx in np.ndindex(B.shape):
         for k, name in enumerate(model.PATH_NAMES):
@@ -354,11 +360,23 @@ def _index(args: argparse.Namespace, lam: np.ndarray) -> np.ndarray:
             disp = model.get_material(args.material)
         except ValueError as e:
             raise UserError(f"--material: {e}") from None
-        values = np.asarray(disp(lam))
+        values = _jit(model.refractive_index, "dispersion")(disp, lam)
     values = values + args.delta_n
     if np.any(np.real(values) <= 1.0):
         raise UserError("--delta-n: the resulting index must stay > 1")
     return values
+
+
+def _jit(fn: Callable[..., Any], *static: str) -> Callable[..., Any]:
+    """`fn` compiled as one program, returning NumPy arrays (the CSV loops index them)."""
+    import jax
+
+    compiled = jax.jit(fn, static_argnames=static)
+
+    def call(*args: Any, **kwargs: Any) -> Any:
+        return jax.tree.map(np.asarray, compiled(*args, **kwargs))
+
+    return call
 
 
 def _f(x: float) -> str:
