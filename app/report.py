@@ -236,6 +236,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         },
         "parameters": parameter_records(outcome),
         "fixed_parameters": fixed_parameters(outcome),
+        "spectral": spectral_record(outcome),
         "correlation": {"names": names, "matrix": corr},
         "diagnostics": {
             "least_squares": {
@@ -292,6 +293,31 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
     return _jsonable(result)
 
 
+def spectral_record(outcome: FitOutcome) -> dict[str, Any]:
+    """The camera model's channels for results.json [conventions §7, §8]: each channel's
+    effective wavelength (its sensitivity x illuminant weighted mean, `ChannelWeights.
+    effective_nm`; what the "effective" sampling evaluates) and the material's index there,
+    without `delta_n` (`index_n`, `index_k`)."""
+    from stairfit.model import materials, spectral
+
+    from .scene import CHANNELS
+
+    scene = outcome.scene
+    eff = spectral.channel_weights(scene.camera.sensitivity, scene.light.illuminant).effective_nm
+    index = np.asarray(materials.index_per_channel(scene.specimen.index.build(), eff[:, None]))[
+        :, 0
+    ]
+    return {
+        "camera": scene.camera.sensitivity,
+        "illuminant": scene.light.illuminant,
+        "sampling": outcome.options.preset.spectral,
+        "channels": list(CHANNELS[: eff.size]),
+        "effective_wavelength_nm": np.round(eff, 3),
+        "index_n": np.round(np.real(index), 8),
+        "index_k": np.round(np.imag(index), 8),
+    }
+
+
 # --- figures --------------------------------------------------------------------------------
 
 
@@ -314,7 +340,7 @@ def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
     wedges = [w.angle_deg for w in outcome.scene.specimen.wedges]
     pick = sorted({min(wedges), max(wedges)})
     sigma_deg = float(np.mean(p.sigma_rad)) / DEG
-    disp = outcome.scene.specimen.index.build()
+    disp = _along_wavelength(outcome.scene)
     lam = VISIBLE_NM  # the grid of reflected_colours: one compilation serves both figures
     n_lam = refractive_index(disp, lam, float(p.delta_n))
     n550 = complex(np.interp(550.0, lam, n_lam.real), np.interp(550.0, lam, np.imag(n_lam)))
@@ -347,6 +373,18 @@ def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
         folder,
     )
     return figs
+
+
+def _along_wavelength(scene: Any) -> Any:
+    """The scene's index as a function of wavelength for the figures: a dispersion model as
+    it is, a per-channel index through its channels' effective wavelengths."""
+    from stairfit.model import materials, spectral
+
+    index = scene.specimen.index.build()
+    if not isinstance(index, materials.PerChannel):
+        return index
+    cw = spectral.channel_weights(scene.camera.sensitivity, scene.light.illuminant)
+    return index.along_wavelength(cw.effective_nm)
 
 
 def _rel(path: Path, folder: Path) -> str:

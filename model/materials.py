@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 
@@ -88,6 +89,54 @@ class Tabulated(NamedTuple):
 
 
 Dispersion = ConstantIndex | Cauchy | Sellmeier | Tabulated
+
+
+class PerChannel(NamedTuple):
+    """One index per camera channel, in channel order (R, G, B), each constant across its
+    channel's band [conventions §7, §8]: for indices measured or fitted channel by channel.
+
+    Not a dispersion model (it has no wavelength dependence of its own): the fit reads it per
+    channel (`index_per_channel`), and pictures over wavelength use `along_wavelength`.
+    `k` is empty (no absorption) or one extinction coefficient per channel.
+    """
+
+    n: tuple[float, ...]
+    k: tuple[float, ...] = ()
+
+    def values(self) -> Array:
+        """(n_channels,) the complex index `n + i k` per channel (real when `k` is empty or 0)."""
+        n = jnp.asarray(self.n, dtype=float)
+        if not any(self.k):
+            return n
+        return n + 1j * jnp.asarray(self.k, dtype=float)
+
+    def along_wavelength(self, effective_nm: ArrayLike) -> Tabulated:
+        """A wavelength model through each channel's value at its effective wavelength (linear
+        between them, held beyond): for figures over the spectrum only."""
+        eff = np.asarray(effective_nm, float)
+        if eff.shape != (len(self.n),):
+            raise ValueError(f"need one effective wavelength per channel ({len(self.n)})")
+        order = np.argsort(eff)
+        n = np.asarray(self.n, float)[order]
+        k = tuple(np.asarray(self.k, float)[order].tolist()) if any(self.k) else None
+        return Tabulated(tuple(eff[order].tolist()), tuple(n.tolist()), k)
+
+
+def index_per_channel(
+    index: Dispersion | PerChannel, wavelength_nm: ArrayLike
+) -> Float[Array, "channels K"]:
+    """The index each channel sees at its wavelength samples `wavelength_nm` (n_channels, K)
+    [conventions §7]: a dispersion model evaluated there, or a `PerChannel` value per row
+    (ValueError when its length is not the number of channels)."""
+    wl = jnp.asarray(wavelength_nm)
+    if not isinstance(index, PerChannel):
+        return index(wl)
+    if len(index.n) != wl.shape[0] or (index.k and len(index.k) != len(index.n)):
+        raise ValueError(
+            f"a per-channel index needs one value per camera channel ({wl.shape[0]}, in R, G, "
+            f"B order); got n = {list(index.n)}" + (f", k = {list(index.k)}" if index.k else "")
+        )
+    return jnp.broadcast_to(index.values()[:, None], wl.shape)
 
 
 def _complex_if_absorbing(n: Array, k: float, like: Array) -> Array:
