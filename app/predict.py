@@ -83,8 +83,40 @@ def run(args: argparse.Namespace) -> int:
     operation separately (about 40 small programs for one `--lobes` case, most of its
     start-up; issue 14).
     """
-    from stairfit import model
+    wedges, lam, theta_i, theta_o = _grids(args)
+    if args.sigma_deg < 0 or not np.isfinite(args.sigma_deg):
+        raise UserError("--sigma-deg: must be >= 0 (0 means the sharp model)")
+    if args.layer_um <= 0:
+        raise UserError("--layer-um: the layer thickness must be > 0 um")
+    radius = _edge_radius(args.edge_radius_um, wedges, args.layer_um)
+    if radius > 0.0 and args.diffuse:
+        raise UserError(
+            "--edge-radius-um with --diffuse: the diffuse integral is only available for the "
+            "sharp model; drop --diffuse (density or --lobes) or use --edge-radius-um 0"
+        )
+    n_lam = _index(args, lam)
+    if args.sigma_deg == 0.0 and not (args.lobes or args.diffuse):
+        raise UserError(
+            "--sigma-deg 0: the model without broadening has no finite density; add --lobes "
+            "(delta lobes, or the rounded model's paths) or --diffuse (exact diffuse integral), "
+            "or give a broadening > 0"
+        )
+    b2, ti, to = np.deg2rad(wedges), np.deg2rad(theta_i), np.deg2rad(theta_o)
+    with _open_output(args.output, args.force) as out:
+        w = csv.writer(out, lineterminator="\n")
+        if args.lobes and radius > 0.0:
+            _write_rounded_paths(w, b2, lam, n_lam, ti, args.layer_um, radius)
+        elif args.lobes:
+            _write_lobes(w, b2, lam, n_lam, ti)
+        elif args.diffuse:
+            _write_diffuse(w, b2, lam, n_lam, to, args)
+        else:
+            _write_density(w, b2, lam, n_lam, ti, to, radius, args)
+    return 0
 
+
+def _grids(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Wedge angles (deg), wavelengths (nm), theta_i and theta_o (deg), each range-checked."""
     wedges = _ranges.check_range(
         _ranges.parse_values(args.wedge_deg, "--wedge-deg"), 0.01, 89.99, "--wedge-deg", "deg"
     )
@@ -101,131 +133,137 @@ def run(args: argparse.Namespace) -> int:
     theta_o = _ranges.check_range(
         _ranges.parse_values(args.theta_o_deg, "--theta-o-deg"), -90, 90, "--theta-o-deg", "deg"
     )
-    if args.sigma_deg < 0 or not np.isfinite(args.sigma_deg):
-        raise UserError("--sigma-deg: must be >= 0 (0 means the sharp model)")
-    if args.layer_um <= 0:
-        raise UserError("--layer-um: the layer thickness must be > 0 um")
-    radius = _edge_radius(args.edge_radius_um, wedges, args.layer_um)
-    rounded = radius > 0.0
-    if rounded and args.diffuse:
-        raise UserError(
-            "--edge-radius-um with --diffuse: the diffuse integral is only available for the "
-            "sharp model; drop --diffuse (density or --lobes) or use --edge-radius-um 0"
+    return wedges, lam, theta_i, theta_o
+
+
+def _write_lobes(
+    w: _RowWriter, b2: np.ndarray, lam: np.ndarray, n_lam: np.ndarray, theta_i: np.ndarray
+) -> None:
+    """The three sharp lobes of every (wedge, wavelength, theta_i) [conventions §3]."""
+    from stairfit import model
+
+    w.writerow(
+        [
+            "wedge_deg",
+            "wavelength_nm",
+            "n",
+            "theta_i_deg",
+            "lobe",
+            "theta_o_deg",
+            "weight",
+            "fresnel",
+            "ratio",
+        ]
+    )
+    B, N, T = np.meshgrid(b2, n_lam, theta_i, indexing="ij")
+    lobes = _jit(model.sharp_lobes)(T, B, N)
+    L = np.broadcast_to(lam[None, :, None], B.shape)
+    for idx in np.ndindex(B.shape):
+        for k, name in enumerate(model.LOBE_NAMES):
+            w.writerow(
+                [
+                    _f(np.rad2deg(B[idx])),
+                    _f(L[idx]),
+                    _fn(N[idx]),
+                    _f(np.rad2deg(T[idx])),
+                    name,
+                    _f(np.rad2deg(lobes.theta_o[idx][k])),
+                    _f(lobes.weight[idx][k]),
+                    _f(lobes.fresnel[idx][k]),
+                    _f(lobes.ratio[idx][k]),
+                ]
+            )
+
+
+def _write_diffuse(
+    w: _RowWriter,
+    b2: np.ndarray,
+    lam: np.ndarray,
+    n_lam: np.ndarray,
+    theta_o: np.ndarray,
+    args: argparse.Namespace,
+) -> None:
+    """The diffuse-lighting integral of every (wedge, wavelength, theta_o) [conventions §4]."""
+    from stairfit import model
+
+    w.writerow(
+        [
+            "wedge_deg",
+            "wavelength_nm",
+            "n",
+            "theta_o_deg",
+            "sigma_deg",
+            "cosine_weighted",
+            "diffuse",
+        ]
+    )
+    B, N, Th_o = np.meshgrid(b2, n_lam, theta_o, indexing="ij")
+    cosine = args.cosine_weighted
+    if args.sigma_deg == 0.0:
+        D = _jit(model.diffuse_sharp, "cosine_weighted")(Th_o, B, N, cosine_weighted=cosine)
+    else:
+        D = _jit(model.diffuse_broadened, "cosine_weighted")(
+            Th_o, B, N, np.deg2rad(args.sigma_deg), cosine_weighted=cosine
         )
-    n_lam = _index(args, lam)
-    sharp = args.sigma_deg == 0.0
-    if sharp and not (args.lobes or args.diffuse):
-        raise UserError(
-            "--sigma-deg 0: the model without broadening has no finite density; add --lobes "
-            "(delta lobes, or the rounded model's paths) or --diffuse (exact diffuse integral), "
-            "or give a broadening > 0"
+    L = np.broadcast_to(lam[None, :, None], B.shape)
+    for idx in np.ndindex(B.shape):
+        w.writerow(
+            [
+                _f(np.rad2deg(B[idx])),
+                _f(L[idx]),
+                _fn(N[idx]),
+                _f(np.rad2deg(Th_o[idx])),
+                _f(args.sigma_deg),
+                int(args.cosine_weighted),
+                _f(D[idx]),
+            ]
         )
-    sigma = np.deg2rad(args.sigma_deg)
-    b2 = np.deg2rad(wedges)
-    with _open_output(args.output, args.force) as out:
-        w = csv.writer(out, lineterminator="\n")
-        if args.lobes and rounded:
-            _write_rounded_paths(w, b2, lam, n_lam, np.deg2rad(theta_i), args.layer_um, radius)
-        elif args.lobes:
-            w.writerow(
-                [
-                    "wedge_deg",
-                    "wavelength_nm",
-                    "n",
-                    "theta_i_deg",
-                    "lobe",
-                    "theta_o_deg",
-                    "weight",
-                    "fresnel",
-                    "ratio",
-                ]
-            )
-            B, N, T = np.meshgrid(b2, n_lam, np.deg2rad(theta_i), indexing="ij")
-            lobes = _jit(model.sharp_lobes)(T, B, N)
-            L = np.broadcast_to(lam[None, :, None], B.shape)
-            for idx in np.ndindex(B.shape):
-                for k, name in enumerate(model.LOBE_NAMES):
-                    w.writerow(
-                        [
-                            _f(np.rad2deg(B[idx])),
-                            _f(L[idx]),
-                            _fn(N[idx]),
-                            _f(np.rad2deg(T[idx])),
-                            name,
-                            _f(np.rad2deg(lobes.theta_o[idx][k])),
-                            _f(lobes.weight[idx][k]),
-                            _f(lobes.fresnel[idx][k]),
-                            _f(lobes.ratio[idx][k]),
-                        ]
-                    )
-        elif args.diffuse:
-            w.writerow(
-                [
-                    "wedge_deg",
-                    "wavelength_nm",
-                    "n",
-                    "theta_o_deg",
-                    "sigma_deg",
-                    "cosine_weighted",
-                    "diffuse",
-                ]
-            )
-            B, N, Th_o = np.meshgrid(b2, n_lam, np.deg2rad(theta_o), indexing="ij")
-            cosine = args.cosine_weighted
-            if sharp:
-                D = _jit(model.diffuse_sharp, "cosine_weighted")(Th_o, B, N, cosine_weighted=cosine)
-            else:
-                D = _jit(model.diffuse_broadened, "cosine_weighted")(
-                    Th_o, B, N, sigma, cosine_weighted=cosine
-                )
-            L = np.broadcast_to(lam[None, :, None], B.shape)
-            for idx in np.ndindex(B.shape):
-                w.writerow(
-                    [
-                        _f(np.rad2deg(B[idx])),
-                        _f(L[idx]),
-                        _fn(N[idx]),
-                        _f(np.rad2deg(Th_o[idx])),
-                        _f(args.sigma_deg),
-                        int(args.cosine_weighted),
-                        _f(D[idx]),
-                    ]
-                )
-        else:
-            w.writerow(
-                [
-                    "wedge_deg",
-                    "wavelength_nm",
-                    "n",
-                    "theta_i_deg",
-                    "theta_o_deg",
-                    "sigma_deg",
-                    "edge_radius_um",
-                    "rho_per_rad",
-                ]
-            )
-            B, N, T, Th_o = np.meshgrid(
-                b2, n_lam, np.deg2rad(theta_i), np.deg2rad(theta_o), indexing="ij"
-            )
-            if rounded:
-                R = _rounded_density(b2, n_lam, np.deg2rad(theta_i), np.deg2rad(theta_o), args)
-            else:
-                R = _jit(model.brdf)(T, Th_o, B, N, sigma)
-            L = np.broadcast_to(lam[None, :, None, None], B.shape)
-            for idx in np.ndindex(B.shape):
-                w.writerow(
-                    [
-                        _f(np.rad2deg(B[idx])),
-                        _f(L[idx]),
-                        _fn(N[idx]),
-                        _f(np.rad2deg(T[idx])),
-                        _f(np.rad2deg(Th_o[idx])),
-                        _f(args.sigma_deg),
-                        _f(radius),
-                        _f(R[idx]),
-                    ]
-                )
-    return 0
+
+
+def _write_density(
+    w: _RowWriter,
+    b2: np.ndarray,
+    lam: np.ndarray,
+    n_lam: np.ndarray,
+    theta_i: np.ndarray,
+    theta_o: np.ndarray,
+    radius: float,
+    args: argparse.Namespace,
+) -> None:
+    """The broadened density rho (1/rad) on the full grid, sharp or rounded [conventions §4]."""
+    from stairfit import model
+
+    w.writerow(
+        [
+            "wedge_deg",
+            "wavelength_nm",
+            "n",
+            "theta_i_deg",
+            "theta_o_deg",
+            "sigma_deg",
+            "edge_radius_um",
+            "rho_per_rad",
+        ]
+    )
+    B, N, T, Th_o = np.meshgrid(b2, n_lam, theta_i, theta_o, indexing="ij")
+    if radius > 0.0:
+        R = _rounded_density(b2, n_lam, theta_i, theta_o, args)
+    else:
+        R = _jit(model.brdf)(T, Th_o, B, N, np.deg2rad(args.sigma_deg))
+    L = np.broadcast_to(lam[None, :, None, None], B.shape)
+    for idx in np.ndindex(B.shape):
+        w.writerow(
+            [
+                _f(np.rad2deg(B[idx])),
+                _f(L[idx]),
+                _fn(N[idx]),
+                _f(np.rad2deg(T[idx])),
+                _f(np.rad2deg(Th_o[idx])),
+                _f(args.sigma_deg),
+                _f(radius),
+                _f(R[idx]),
+            ]
+        )
 
 
 def _edge_radius(radius_um: float, wedges_deg: np.ndarray, layer_um: float) -> float:
