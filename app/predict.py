@@ -8,10 +8,10 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Protocol, TextIO
+from typing import Any, Protocol, TextIO
 
 import numpy as np
 
@@ -85,13 +85,45 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Evaluate and write; user mistakes raise UserError."""
-    import jax.numpy as jnp
+    """Evaluate and write; user mistakes raise UserError.
 
-    from stairfit import model
-
+    Each model evaluation is one compiled call (`_jit`): eager JAX would compile every
+    operation separately (about 40 small programs for one `--lobes` case, most of its
+    start-up; issue 14).
+    """
     check_combination(args)
     check_scalars(args)
+    wedges, lam, theta_i, theta_o = _grids(args)
+    _check_table_size(args, wedges, lam, theta_i, theta_o)
+    radius = _edge_radius(args.edge_radius_um, wedges, args.layer_um)
+    if radius > 0.0 and args.diffuse:
+        raise UserError(
+            "--edge-radius-um with --diffuse: the diffuse integral is only available for the "
+            "sharp model; drop --diffuse (density or --lobes) or use --edge-radius-um 0"
+        )
+    n_lam = _index(args, lam)
+    if args.sigma_deg == 0.0 and not (args.lobes or args.diffuse):
+        raise UserError(
+            "--sigma-deg 0: the model without broadening has no finite density; add --lobes "
+            "(delta lobes, or the rounded model's paths) or --diffuse (exact diffuse integral), "
+            "or give a broadening > 0"
+        )
+    b2, ti, to = np.deg2rad(wedges), np.deg2rad(theta_i), np.deg2rad(theta_o)
+    with _open_output(args.output, args.force) as out:
+        w = csv.writer(out, lineterminator="\n")
+        if args.lobes and radius > 0.0:
+            _write_rounded_paths(w, b2, lam, n_lam, ti, args.layer_um, radius)
+        elif args.lobes:
+            _write_lobes(w, b2, lam, n_lam, ti)
+        elif args.diffuse:
+            _write_diffuse(w, b2, lam, n_lam, to, args)
+        else:
+            _write_density(w, b2, lam, n_lam, ti, to, radius, args)
+    return 0
+
+
+def _grids(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Wedge angles (deg), wavelengths (nm), theta_i and theta_o (deg), each range-checked."""
     wedges = _ranges.check_range(
         _ranges.parse_values(args.wedge_deg, "--wedge-deg"), 0.01, 89.99, "--wedge-deg", "deg"
     )
@@ -108,128 +140,7 @@ def run(args: argparse.Namespace) -> int:
     theta_o = _ranges.check_range(
         _ranges.parse_values(args.theta_o_deg, "--theta-o-deg"), -90, 90, "--theta-o-deg", "deg"
     )
-    _check_table_size(args, wedges, lam, theta_i, theta_o)
-    radius = _edge_radius(args.edge_radius_um, wedges, args.layer_um)
-    rounded = radius > 0.0
-    if rounded and args.diffuse:
-        raise UserError(
-            "--edge-radius-um with --diffuse: the diffuse integral is only available for the "
-            "sharp model; drop --diffuse (density or --lobes) or use --edge-radius-um 0"
-        )
-    n_lam = _index(args, lam)
-    sharp = args.sigma_deg == 0.0
-    if sharp and not (args.lobes or args.diffuse):
-        raise UserError(
-            "--sigma-deg 0: the model without broadening has no finite density; add --lobes "
-            "(delta lobes, or the rounded model's paths) or --diffuse (exact diffuse integral), "
-            "or give a broadening > 0"
-        )
-    sigma = np.deg2rad(args.sigma_deg)
-    b2 = np.deg2rad(wedges)
-    with _open_output(args.output, args.force) as out:
-        w = csv.writer(out, lineterminator="\n")
-        if args.lobes and rounded:
-            _write_rounded_paths(w, b2, lam, n_lam, np.deg2rad(theta_i), args.layer_um, radius)
-        elif args.lobes:
-            w.writerow(
-                [
-                    "wedge_deg",
-                    "wavelength_nm",
-                    "n",
-                    "theta_i_deg",
-                    "lobe",
-                    "theta_o_deg",
-                    "weight",
-                    "fresnel",
-                    "ratio",
-                ]
-            )
-            B, N, T = np.meshgrid(b2, n_lam, np.deg2rad(theta_i), indexing="ij")
-            lobes = model.sharp_lobes(jnp.asarray(T), jnp.asarray(B), jnp.asarray(N))
-            lobes = type(lobes)(*(np.asarray(x) for x in lobes))  # NumPy: fast per-row reads
-            L = np.broadcast_to(lam[None, :, None], B.shape)
-            for idx in np.ndindex(B.shape):
-                for k, name in enumerate(model.LOBE_NAMES):
-                    w.writerow(
-                        [
-                            _f(np.rad2deg(B[idx])),
-                            _f(L[idx]),
-                            _fn(N[idx]),
-                            _f(np.rad2deg(T[idx])),
-                            name,
-                            _f(np.rad2deg(float(lobes.theta_o[idx][k]))),
-                            _f(lobes.weight[idx][k]),
-                            _f(lobes.fresnel[idx][k]),
-                            _f(lobes.ratio[idx][k]),
-                        ]
-                    )
-        elif args.diffuse:
-            w.writerow(
-                [
-                    "wedge_deg",
-                    "wavelength_nm",
-                    "n",
-                    "theta_o_deg",
-                    "sigma_deg",
-                    "cosine_weighted",
-                    "diffuse",
-                ]
-            )
-            B, N, Th_o = np.meshgrid(b2, n_lam, np.deg2rad(theta_o), indexing="ij")
-            if sharp:
-                D = model.diffuse_sharp(Th_o, B, N, cosine_weighted=args.cosine_weighted)
-            else:
-                D = model.diffuse_broadened(Th_o, B, N, sigma, cosine_weighted=args.cosine_weighted)
-            D = np.asarray(D)
-            L = np.broadcast_to(lam[None, :, None], B.shape)
-            for idx in np.ndindex(B.shape):
-                w.writerow(
-                    [
-                        _f(np.rad2deg(B[idx])),
-                        _f(L[idx]),
-                        _fn(N[idx]),
-                        _f(np.rad2deg(Th_o[idx])),
-                        _f(args.sigma_deg),
-                        int(args.cosine_weighted),
-                        _f(D[idx]),
-                    ]
-                )
-        else:
-            w.writerow(
-                [
-                    "wedge_deg",
-                    "wavelength_nm",
-                    "n",
-                    "theta_i_deg",
-                    "theta_o_deg",
-                    "sigma_deg",
-                    "edge_radius_um",
-                    "rho_per_rad",
-                ]
-            )
-            B, N, T, Th_o = np.meshgrid(
-                b2, n_lam, np.deg2rad(theta_i), np.deg2rad(theta_o), indexing="ij"
-            )
-            if rounded:
-                R = _rounded_density(b2, n_lam, np.deg2rad(theta_i), np.deg2rad(theta_o), args)
-            else:
-                R = model.brdf(T, Th_o, B, N, sigma)
-            R = np.asarray(R)  # a JAX array read element by element is ~100x slower
-            L = np.broadcast_to(lam[None, :, None, None], B.shape)
-            for idx in np.ndindex(B.shape):
-                w.writerow(
-                    [
-                        _f(np.rad2deg(B[idx])),
-                        _f(L[idx]),
-                        _fn(N[idx]),
-                        _f(np.rad2deg(T[idx])),
-                        _f(np.rad2deg(Th_o[idx])),
-                        _f(args.sigma_deg),
-                        _f(radius),
-                        _f(R[idx]),
-                    ]
-                )
-    return 0
+    return wedges, lam, theta_i, theta_o
 
 
 def _check_table_size(
@@ -250,6 +161,136 @@ def _check_table_size(
         check_size([*axes, ("theta_i", theta_i.size), ("theta_o", theta_o.size)], 1)
 
 
+def _write_lobes(
+    w: _RowWriter, b2: np.ndarray, lam: np.ndarray, n_lam: np.ndarray, theta_i: np.ndarray
+) -> None:
+    """The three sharp lobes of every (wedge, wavelength, theta_i) [conventions §3]."""
+    from stairfit import model
+
+    w.writerow(
+        [
+            "wedge_deg",
+            "wavelength_nm",
+            "n",
+            "theta_i_deg",
+            "lobe",
+            "theta_o_deg",
+            "weight",
+            "fresnel",
+            "ratio",
+        ]
+    )
+    B, N, T = np.meshgrid(b2, n_lam, theta_i, indexing="ij")
+    lobes = _jit(model.sharp_lobes)(T, B, N)
+    L = np.broadcast_to(lam[None, :, None], B.shape)
+    for idx in np.ndindex(B.shape):
+        for k, name in enumerate(model.LOBE_NAMES):
+            w.writerow(
+                [
+                    _f(np.rad2deg(B[idx])),
+                    _f(L[idx]),
+                    _fn(N[idx]),
+                    _f(np.rad2deg(T[idx])),
+                    name,
+                    _f(np.rad2deg(lobes.theta_o[idx][k])),
+                    _f(lobes.weight[idx][k]),
+                    _f(lobes.fresnel[idx][k]),
+                    _f(lobes.ratio[idx][k]),
+                ]
+            )
+
+
+def _write_diffuse(
+    w: _RowWriter,
+    b2: np.ndarray,
+    lam: np.ndarray,
+    n_lam: np.ndarray,
+    theta_o: np.ndarray,
+    args: argparse.Namespace,
+) -> None:
+    """The diffuse-lighting integral of every (wedge, wavelength, theta_o) [conventions §4]."""
+    from stairfit import model
+
+    w.writerow(
+        [
+            "wedge_deg",
+            "wavelength_nm",
+            "n",
+            "theta_o_deg",
+            "sigma_deg",
+            "cosine_weighted",
+            "diffuse",
+        ]
+    )
+    B, N, Th_o = np.meshgrid(b2, n_lam, theta_o, indexing="ij")
+    cosine = args.cosine_weighted
+    if args.sigma_deg == 0.0:
+        D = _jit(model.diffuse_sharp, "cosine_weighted")(Th_o, B, N, cosine_weighted=cosine)
+    else:
+        D = _jit(model.diffuse_broadened, "cosine_weighted")(
+            Th_o, B, N, np.deg2rad(args.sigma_deg), cosine_weighted=cosine
+        )
+    L = np.broadcast_to(lam[None, :, None], B.shape)
+    for idx in np.ndindex(B.shape):
+        w.writerow(
+            [
+                _f(np.rad2deg(B[idx])),
+                _f(L[idx]),
+                _fn(N[idx]),
+                _f(np.rad2deg(Th_o[idx])),
+                _f(args.sigma_deg),
+                int(args.cosine_weighted),
+                _f(D[idx]),
+            ]
+        )
+
+
+def _write_density(
+    w: _RowWriter,
+    b2: np.ndarray,
+    lam: np.ndarray,
+    n_lam: np.ndarray,
+    theta_i: np.ndarray,
+    theta_o: np.ndarray,
+    radius: float,
+    args: argparse.Namespace,
+) -> None:
+    """The broadened density rho (1/rad) on the full grid, sharp or rounded [conventions §4]."""
+    from stairfit import model
+
+    w.writerow(
+        [
+            "wedge_deg",
+            "wavelength_nm",
+            "n",
+            "theta_i_deg",
+            "theta_o_deg",
+            "sigma_deg",
+            "edge_radius_um",
+            "rho_per_rad",
+        ]
+    )
+    B, N, T, Th_o = np.meshgrid(b2, n_lam, theta_i, theta_o, indexing="ij")
+    if radius > 0.0:
+        R = _rounded_density(b2, n_lam, theta_i, theta_o, args)
+    else:
+        R = _jit(model.brdf)(T, Th_o, B, N, np.deg2rad(args.sigma_deg))
+    L = np.broadcast_to(lam[None, :, None, None], B.shape)
+    for idx in np.ndindex(B.shape):
+        w.writerow(
+            [
+                _f(np.rad2deg(B[idx])),
+                _f(L[idx]),
+                _fn(N[idx]),
+                _f(np.rad2deg(T[idx])),
+                _f(np.rad2deg(Th_o[idx])),
+                _f(args.sigma_deg),
+                _f(radius),
+                _f(R[idx]),
+            ]
+        )
+
+
 def _edge_radius(radius_um: float, wedges_deg: np.ndarray, layer_um: float) -> float:
     """The edge radius (um) if it fits every requested wedge, else a one-line UserError.
 
@@ -258,7 +299,9 @@ def _edge_radius(radius_um: float, wedges_deg: np.ndarray, layer_um: float) -> f
     """
     from stairfit import model
 
-    r_max = np.asarray(model.max_edge_radius(np.deg2rad(wedges_deg), layer_um), dtype=float)
+    if radius_um == 0.0:  # sharp edges fit every wedge; nothing to evaluate
+        return 0.0
+    r_max = _jit(model.max_edge_radius)(np.deg2rad(wedges_deg), layer_um)
     limit = int(np.argmin(r_max))
     valid = f"[0, {r_max[limit]:.6g}] um"
     # the same relative slack as model.check_edge_radius, so r = r_max itself is accepted
@@ -289,16 +332,15 @@ def _rounded_density(
     Fresnel factors once per wavelength (see `brdf_rounded`) [conventions §1, §4].
     """
     import jax
-    import jax.numpy as jnp
 
     from stairfit import model
 
     fn = jax.jit(model.brdf_rounded)
     rho = fn(
-        jnp.asarray(theta_i[None, None, :, None]),
-        jnp.asarray(theta_o[None, None, None, :]),
-        jnp.asarray(b2[:, None, None, None]),
-        jnp.asarray(n_lam[None, :, None, None]),
+        theta_i[None, None, :, None],
+        theta_o[None, None, None, :],
+        b2[:, None, None, None],
+        n_lam[None, :, None, None],
         np.deg2rad(args.sigma_deg),
         args.layer_um,
         args.edge_radius_um,
@@ -323,7 +365,6 @@ def _write_rounded_paths(
     unpolarised factor of the path; empty where the weight is 0) [conventions §3, §4].
     """
     import jax
-    import jax.numpy as jnp
 
     from stairfit import model
 
@@ -343,9 +384,9 @@ def _write_rounded_paths(
     )
     B, N, T = np.meshgrid(b2, n_lam, theta_i, indexing="ij")
     paths = jax.jit(model.rounded_paths)
-    p = paths(jnp.asarray(T), jnp.asarray(B), jnp.asarray(N), layer_um, radius_um)
+    p = paths(T, B, N, layer_um, radius_um)
     weight, ratio = np.asarray(p.weight), np.asarray(p.ratio)
-    direction = np.asarray(model.lobe_directions(jnp.asarray(T), jnp.asarray(B)))
+    direction = _jit(model.lobe_directions)(T, B)
     L = np.broadcast_to(lam[None, :, None], B.shape)
     for idx in np.ndindex(B.shape):
         for k, name in enumerate(model.PATH_NAMES):
@@ -377,15 +418,27 @@ def _index(args: argparse.Namespace, lam: np.ndarray) -> np.ndarray:
             disp = model.get_material(args.material)
         except ValueError as e:
             raise UserError(f"--material: {e}") from None
-        problem = model.materials.index_problem(disp, lam, args.delta_n)
+        values = _jit(model.refractive_index, "dispersion")(disp, lam)
+        problem = model.materials.index_problem(disp, lam, args.delta_n, values=values)
         if problem is not None:
             raise UserError(f"--material {args.material}, --delta-n {args.delta_n:g}: {problem}")
         extrapolation_warning(disp, args.material, lam, user="this prediction")
-        values = np.asarray(disp(lam))
     values = values + args.delta_n
     if np.any(np.real(values) <= 1.0):
         raise UserError("--delta-n: the resulting index must stay > 1")
     return values
+
+
+def _jit(fn: Callable[..., Any], *static: str) -> Callable[..., Any]:
+    """`fn` compiled as one program, returning NumPy arrays (the CSV loops index them)."""
+    import jax
+
+    compiled = jax.jit(fn, static_argnames=static)
+
+    def call(*args: Any, **kwargs: Any) -> Any:
+        return jax.tree.map(np.asarray, compiled(*args, **kwargs))
+
+    return call
 
 
 def _f(x: float) -> str:

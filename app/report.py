@@ -16,11 +16,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from . import __version__
 from .figures import brdf_map, fixed_layout, log_y, reflected_colours, refractive_index, save
@@ -243,6 +240,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         },
         "parameters": parameter_records(outcome),
         "fixed_parameters": fixed_parameters(outcome),
+        "spectral": spectral_record(outcome),
         "correlation": {"names": names, "matrix": corr},
         "diagnostics": {
             "least_squares": {
@@ -299,6 +297,31 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
     return _jsonable(result)
 
 
+def spectral_record(outcome: FitOutcome) -> dict[str, Any]:
+    """The camera model's channels for results.json [conventions §7, §8]: each channel's
+    effective wavelength (its sensitivity x illuminant weighted mean, `ChannelWeights.
+    effective_nm`; what the "effective" sampling evaluates) and the material's index there,
+    without `delta_n` (`index_n`, `index_k`)."""
+    from stairfit.model import materials, spectral
+
+    from .scene import CHANNELS
+
+    scene = outcome.scene
+    eff = spectral.channel_weights(scene.camera.sensitivity, scene.light.illuminant).effective_nm
+    index = np.asarray(materials.index_per_channel(scene.specimen.index.build(), eff[:, None]))[
+        :, 0
+    ]
+    return {
+        "camera": scene.camera.sensitivity,
+        "illuminant": scene.light.illuminant,
+        "sampling": outcome.options.preset.spectral,
+        "channels": list(CHANNELS[: eff.size]),
+        "effective_wavelength_nm": np.round(eff, 3),
+        "index_n": np.round(np.real(index), 8),
+        "index_k": np.round(np.imag(index), 8),
+    }
+
+
 # --- figures --------------------------------------------------------------------------------
 
 
@@ -321,7 +344,7 @@ def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
     wedges = [w.angle_deg for w in outcome.scene.specimen.wedges]
     pick = sorted({min(wedges), max(wedges)})
     sigma_deg = float(np.mean(p.sigma_rad)) / DEG
-    disp = outcome.scene.specimen.index.build()
+    disp = _along_wavelength(outcome.scene)
     lam = VISIBLE_NM  # the grid of reflected_colours: one compilation serves both figures
     n_lam = refractive_index(disp, lam, float(p.delta_n))
     n550 = complex(np.interp(550.0, lam, n_lam.real), np.interp(550.0, lam, np.imag(n_lam)))
@@ -356,18 +379,31 @@ def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
     return figs
 
 
+def _along_wavelength(scene: Any) -> Any:
+    """The scene's index as a function of wavelength for the figures: a dispersion model as
+    it is, a per-channel index through its channels' effective wavelengths."""
+    from stairfit.model import materials, spectral
+
+    index = scene.specimen.index.build()
+    if not isinstance(index, materials.PerChannel):
+        return index
+    cw = spectral.channel_weights(scene.camera.sensitivity, scene.light.illuminant)
+    return index.along_wavelength(cw.effective_nm)
+
+
 def _rel(path: Path, folder: Path) -> str:
     return f"figures/{path.relative_to(folder)}"
 
 
-def fit_per_wedge(outcome: FitOutcome) -> plt.Figure:
+def fit_per_wedge(outcome: FitOutcome) -> Figure:
     """Measured (error bars) and fitted radiance against the face-frame viewing angle, one
     panel per wedge and one colour per channel (like the paper's Fig. 9)."""
     fit, obs = outcome.selection.fit, outcome.observations
     wedges = outcome.scene.specimen.wedges
     ncol = min(3, len(wedges))
     nrow = int(np.ceil(len(wedges) / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(4.3 * ncol, 3.2 * nrow), squeeze=False)
+    fig = Figure(figsize=(4.3 * ncol, 3.2 * nrow))  # no pyplot: no global state (app/figures.py)
+    axes = fig.subplots(nrow, ncol, squeeze=False)
     colours = ("tab:red", "tab:green", "tab:blue")
     theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
     for k, wedge in enumerate(wedges):
@@ -409,12 +445,13 @@ def fit_per_wedge(outcome: FitOutcome) -> plt.Figure:
     return fig
 
 
-def residual_figure(outcome: FitOutcome) -> plt.Figure:
+def residual_figure(outcome: FitOutcome) -> Figure:
     """Whitened residuals against viewing angle per wedge, and their histogram vs N(0, 1)."""
     fit, obs = outcome.selection.fit, outcome.observations
     theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
     used = np.asarray(obs.use, bool)
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 3.6), gridspec_kw={"width_ratios": [2, 1]})
+    fig = Figure(figsize=(11, 3.6))
+    a1, a2 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [2, 1]})
     for k, wedge in enumerate(outcome.scene.specimen.wedges):
         sel = used & (obs.wedge_index == k)
         a1.plot(theta_o[sel], fit.residuals[sel], "o", ms=3, label=wedge.name)
@@ -431,9 +468,13 @@ def residual_figure(outcome: FitOutcome) -> plt.Figure:
     return fig
 
 
-def corner_figure(outcome: FitOutcome) -> plt.Figure:
+def corner_figure(outcome: FitOutcome) -> Figure:
     """Corner plot of the posterior samples (display units), titled with the median and the
-    16-84% interval in plain text (corner's own titles are mathtext, slow to set up)."""
+    16-84% interval in plain text (corner's own titles are mathtext, slow to set up).
+
+    Drawn on a plain `Figure` of corner's own size (`corner_size_in`), so that corner does not
+    create it through pyplot (which would pick an interactive backend where there is a display).
+    """
     import corner
 
     post = outcome.posterior
@@ -444,8 +485,10 @@ def corner_figure(outcome: FitOutcome) -> plt.Figure:
         f"{lab} = {value_with_errors(m, m - lo, hi - m)}"
         for lab, lo, m, hi in zip(labels, q16, q50, q84, strict=True)
     ]
+    size = corner_size_in(samples.shape[1])
     return corner.corner(
         samples,
+        fig=Figure(figsize=(size, size)),
         labels=list(labels),
         titles=titles,
         quantiles=(0.16, 0.5, 0.84),
@@ -453,6 +496,14 @@ def corner_figure(outcome: FitOutcome) -> plt.Figure:
         title_fmt=None,
         title_kwargs={"fontsize": "medium"},
     )
+
+
+def corner_size_in(n_params: int) -> float:
+    """The figure size (inches) `corner.corner` chooses for `n_params` parameters when it makes
+    the figure itself (corner 2.3 core.py: 2 inches per panel, gaps of 5%, margins 0.5 x 2 and
+    0.2 x 2 inches); its margins are fractions of that size, so the layout stays corner's."""
+    factor, whspace = 2.0, 0.05
+    return 0.5 * factor + factor * n_params + factor * (n_params - 1.0) * whspace + 0.2 * factor
 
 
 def value_with_errors(value: float, minus: float, plus: float) -> str:

@@ -23,13 +23,16 @@ SCENE_FILE = "scene.toml"
 SCENE_VERSION = 1
 Polygon = tuple[tuple[float, float], ...]
 MetadataValue = str | int | float
+CHANNELS = ("R", "G", "B")
+"""The camera channels, in the order of per-channel fields: `imaging.CHANNELS`, restated so that
+reading a scene file does not import the imaging stack (cv2, rawpy)."""
 
 
 @dataclass(frozen=True)
 class IndexSpec:
     """The dispersion model: a named material, or explicit parameters [conventions §7]."""
 
-    model: str  # "named", "constant", "cauchy", "sellmeier", "tabulated"
+    model: str  # "named", "constant", "cauchy", "sellmeier", "tabulated", "per_channel"
     name: str = "pla"
     params: tuple[tuple[str, Any], ...] = ()
 
@@ -48,6 +51,8 @@ class IndexSpec:
             )
         if self.model == "sellmeier":
             return materials.Sellmeier(c0=p.get("c0", 0.0), b=tuple(p["b"]), c_um=tuple(p["c_um"]))
+        if self.model == "per_channel":  # not a dispersion model: one index per channel
+            return materials.PerChannel(n=tuple(p["n"]), k=tuple(p["k"]) if any(p["k"]) else ())
         return materials.Tabulated(
             wavelength_nm=tuple(p["wavelength_nm"]),
             n=tuple(p["n"]),
@@ -435,6 +440,7 @@ def _index(r: _Reader, d: dict[str, Any], w: str) -> IndexSpec:
         "cauchy": (["a"], ["b_um2", "c_um4", "k"]),
         "sellmeier": (["b", "c_um"], ["c0"]),
         "tabulated": (["wavelength_nm", "n"], ["k"]),
+        "per_channel": (["n"], ["k"]),
     }
     if not isinstance(d, dict):
         r.fail(w, 'must be a table such as { model = "constant", n = 1.46 }')
@@ -464,6 +470,8 @@ def _index(r: _Reader, d: dict[str, Any], w: str) -> IndexSpec:
             r.fail(w, "wavelength_nm, n (and k) must have the same length")
     if model == "sellmeier" and len(params["b"]) != len(params["c_um"]):
         r.fail(w, "b and c_um must have the same length")
+    if model == "per_channel":
+        return _per_channel_index(r, params, w)
     spec = IndexSpec(model, params=tuple(sorted(params.items())))
     _check_physical_index(r, spec, w)
     return spec
@@ -476,6 +484,26 @@ def _check_physical_index(r: _Reader, spec: IndexSpec, where: str) -> None:
     problem = materials.index_problem(spec.build(), spectral.VISIBLE_NM)
     if problem is not None:
         r.fail(where, f"{problem}; fix the {spec.model} coefficients")
+
+
+def _per_channel_index(r: _Reader, params: dict[str, Any], w: str) -> IndexSpec:
+    """One index per camera channel, in R, G, B order; `k` one for all or one per channel
+    [conventions §6, §7]."""
+    n, k = params["n"], params.get("k", 0.0)
+    if not isinstance(n, tuple) or len(n) != len(CHANNELS):
+        r.fail(
+            f"{w}.n",
+            "must list one index per camera channel, in R, G, B order, e.g. n = [1.47, 1.46, 1.45]",
+        )
+    k = k if isinstance(k, tuple) else (k,) * len(CHANNELS)
+    if len(k) != len(CHANNELS):
+        r.fail(f"{w}.k", "must be one number for every channel, or 3 numbers in R, G, B order")
+    for name, n_c, k_c in zip(CHANNELS, n, k, strict=True):
+        if not (math.isfinite(n_c) and n_c > 1.0):
+            r.fail(f"{w}.n", f"{n_c:g} for channel {name}; each index must be > 1 (e.g. 1.46)")
+        if not (math.isfinite(k_c) and k_c >= 0.0):
+            r.fail(f"{w}.k", f"{k_c:g} for channel {name}; the extinction k must be >= 0")
+    return IndexSpec("per_channel", params=(("k", k), ("n", n)))
 
 
 def _light(r: _Reader, d: dict[str, Any]) -> Light:

@@ -383,7 +383,7 @@ class Spectral(NamedTuple):
 
 
 def spectral_setup(
-    material: str | _materials.Dispersion = "pla",
+    material: str | _materials.Dispersion | _materials.PerChannel = "pla",
     camera: str = "ideal",
     illuminant: str = "D65",
     sampling: str = "full",
@@ -391,7 +391,8 @@ def spectral_setup(
 ) -> Spectral:
     """The spectral setup for a fit [conventions §7, §8].
 
-    `material` is a name from `stairfit.model.MATERIALS` or a dispersion model; `camera` and
+    `material` is a name from `stairfit.model.MATERIALS`, a dispersion model, or one index per
+    camera channel (`materials.PerChannel`, constant across each band); `camera` and
     `illuminant` name a sensitivity set and a CIE illuminant (`stairfit.model.spectral`).
     `sampling="full"` keeps every 5 nm sample (K = 81); `"effective"` collapses each channel to
     its weighted mean wavelength (K = 1). `channels` selects camera channels (e.g. `(1,)` for a
@@ -410,7 +411,10 @@ def spectral_setup(
     else:
         wl = np.broadcast_to(cw.wavelength_nm, cw.weights.shape).copy()
         weights = np.asarray(cw.weights, float)
-    n_base = np.asarray(disp(wl))
+    try:  # a dispersion model at each sample, or a per-channel index per row
+        n_base = np.asarray(_materials.index_per_channel(disp, wl))
+    except ValueError as exc:
+        raise FitInputError(str(exc)) from None
     if channels is not None:
         idx = np.asarray(channels, dtype=int)
         if idx.ndim != 1 or idx.size == 0 or idx.min() < 0 or idx.max() >= weights.shape[0]:

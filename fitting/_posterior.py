@@ -17,7 +17,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import emcee
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -232,6 +231,8 @@ def sample_posterior(
     the chain in that file from its last walker positions and random state (the file must
     belong to the same fit; the seed recorded there is kept).
     """
+    import emcee  # here, not at import: emcee imports scipy.stats (0.5-2 s; issue 14)
+
     t_start = time.perf_counter()
     if not fit.success or fit.covariance_z is None or fit.problem is None or fit.spec is None:
         raise FitError(
