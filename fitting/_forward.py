@@ -19,15 +19,12 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from stairfit import model
 from stairfit.model import _rounded
 
 from ._params import N_MIN, to_physical
-
-HALF_PI = np.pi / 2
 
 
 class Static(NamedTuple):
@@ -124,8 +121,8 @@ def _rounded_impl(sigma_k: Array, dn: Array, radius_um: Array, cfg: tuple, g: Ro
     `(R, T, C)`."""
     aperture, resolution = cfg
     di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
-    ti = jnp.clip(g.r_ti[:, None] + di, -HALF_PI, HALF_PI)  # (R, M)
-    to = jnp.clip(g.r_to[:, None, :] + do[None, :, None], -HALF_PI, HALF_PI)  # (R|1, M, T)
+    ti = model.node_angles(g.r_ti, di)  # (R, M)
+    to = jnp.swapaxes(model.node_angles(g.r_to, do), -1, -2)  # (R|1, M, T)
     n = _clamp_index(g.r_n + dn).reshape(-1)  # (C K): every channel's samples on one axis
     res = _rounded.ROUNDED_RESOLUTION if resolution is None else resolution
     # geometry once per distinct (theta_i, beta2, layer) (G of them), then gathered to the keys
@@ -194,8 +191,8 @@ def _sharp_grid_impl(sigma_k: Array, dn: Array, aperture: model.Aperture, g: Rou
     theta_o) and are shared by the channels; only the Fresnel factors depend on the channel.
     """
     di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
-    ti = jnp.clip(g.r_ti[:, None] + di, -HALF_PI, HALF_PI)  # (R, M)
-    to = jnp.clip(g.r_to[:, :, None] + do, -HALF_PI, HALF_PI)  # (R|1, T, M)
+    ti = model.node_angles(g.r_ti, di)  # (R, M)
+    to = model.node_angles(g.r_to, do)  # (R|1, T, M)
     b2 = g.r_b2[:, None]
     weight = model.lobe_weights(ti, b2)  # (R, M, 3)
     kernel = model.hemisphere_gaussian(

@@ -238,8 +238,7 @@ def rounded_grid(
 def _geometry_keys(grid: dict, aperture: model.Aperture) -> dict:
     """Distinct (theta_i at each aperture node, beta2, layer_um) of the rounded keys: the
     rounded geometry depends on nothing else, so a fit computes it once per entry."""
-    di = aperture.nodes()[0]
-    ti = np.clip(np.asarray(grid["r_ti"], float)[:, None] + di, -np.pi / 2, np.pi / 2)  # (R, M)
+    ti = np.asarray(model.node_angles(np.asarray(grid["r_ti"], float), aperture.nodes()[0]))
     shape = ti.shape
     b2 = np.broadcast_to(np.asarray(grid["r_b2"], float)[:, None], shape)
     layer = np.broadcast_to(np.asarray(grid["r_layer"], float)[:, None], shape)

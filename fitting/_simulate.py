@@ -122,9 +122,8 @@ def _rounded_rows(
 ) -> np.ndarray:
     """Rounded-model band density per row, straight from `stairfit.model.brdf_rounded`."""
     di, do, dw = (aperture or model.Aperture()).nodes()
-    half = np.pi / 2
-    ti = np.clip(obs.theta_i_rad[:, None] + di, -half, half)[..., None]  # (N, M, 1)
-    to = np.clip(obs.theta_o_rad[:, None] + do, -half, half)[..., None]
+    ti = model.node_angles(obs.theta_i_rad, di)[..., None]  # (N, M, 1)
+    to = model.node_angles(obs.theta_o_rad, do)[..., None]
     kwargs = {} if resolution is None else {"resolution": resolution}
     rho = model.brdf_rounded(  # type: ignore[attr-defined]
         ti,

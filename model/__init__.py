@@ -27,6 +27,7 @@ from ._measurement import band_density as band_density
 from ._measurement import band_density_derivatives as band_density_derivatives
 from ._measurement import band_kernel as band_kernel
 from ._measurement import band_ratio as band_ratio
+from ._measurement import node_angles as node_angles
 from ._measurement import radiance as radiance
 from .materials import MATERIALS as MATERIALS
 from .materials import get_material as get_material
