@@ -41,12 +41,15 @@ from .spectral import xyz_weights as xyz_weights
 from ._rounded import ARC_LOBE_NAMES as ARC_LOBE_NAMES
 from ._rounded import PATH_NAMES as PATH_NAMES
 from ._rounded import ROUNDED_RESOLUTION as ROUNDED_RESOLUTION
+from ._rounded import RoundedGeometry as RoundedGeometry
 from ._rounded import RoundedPaths as RoundedPaths
 from ._rounded import RoundedStructure as RoundedStructure
 from ._rounded import brdf_rounded as brdf_rounded
+from ._rounded import brdf_rounded_from_geometry as brdf_rounded_from_geometry
 from ._rounded import check_edge_radius as check_edge_radius
 from ._rounded import max_edge_radius as max_edge_radius
 from ._rounded import rounded_binned as rounded_binned
+from ._rounded import rounded_geometry as rounded_geometry
 from ._rounded import rounded_paths as rounded_paths
 from ._rounded import rounded_structure as rounded_structure
 from ._rounded import rounded_total as rounded_total

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._broadening import HALF_PI, hemisphere_mass
+from ._broadening import HALF_PI, hemisphere_gaussian
 from ._lobes import sharp_lobes
 from ._shapes import with_rank
 
@@ -99,9 +99,9 @@ def diffuse_broadened(
     pick = with_rank(jnp.eye(3, dtype=dtype)[:, None, :], nodes.ndim + 1)  # window k: lobe k
     ratio = jnp.sum(lobes.ratio * pick, axis=-1)
     centre = jnp.sum(lobes.theta_o * pick, axis=-1)
-    s_n = sigma[..., None, None]
-    z = (nodes - c[..., None]) / s_n
-    gauss = jnp.exp(-0.5 * z * z) / (jnp.sqrt(2.0 * jnp.pi) * s_n * hemisphere_mass(centre, s_n))
+    # the lobe's truncated Gaussian at theta_o, centred on its direction from each node
+    # [conventions §5]: as a function of theta_i, a normal density around the source angle c
+    gauss = hemisphere_gaussian(theta_o[..., None, None], centre, sigma[..., None, None])
     integrand = ratio * gauss
     if cosine_weighted:
         integrand = integrand * jnp.cos(nodes)
