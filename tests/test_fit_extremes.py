@@ -63,7 +63,7 @@ def assert_honest(fit, truth=TRUTH, names=None):
             continue
         assert np.isfinite(e.value), e
         assert e.stderr is not None and np.isfinite(e.stderr) and e.stderr > 0, e
-        z = (e.value - getattr(truth, e.name)) / e.stderr
+        z = (e.value - getattr(truth, e.param)) / e.stderr
         assert abs(z) < Z_MAX, (e, z, fit.report())
 
 

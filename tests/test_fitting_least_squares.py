@@ -59,13 +59,11 @@ TRUTHS = [
 def _truth_vector(fit: fitting.FitResult, truth: fitting.Params) -> np.ndarray:
     out = []
     sig = truth.sigma_per_wedge(len(fit.params.sigma_rad))
-    for name in fit.names:
-        if name.startswith("sigma_rad["):
-            out.append(sig[int(name.split("[")[1].split(":")[0])])
-        elif name == "sigma_rad":
-            out.append(sig[0])
+    for e in fit.estimates:
+        if e.param == "sigma_rad":
+            out.append(sig[0 if e.wedge is None else e.wedge])
         else:
-            out.append(getattr(truth, name))
+            out.append(getattr(truth, e.param))
     return np.asarray(out, float)
 
 
@@ -94,7 +92,7 @@ def test_least_squares_recovers_fitted_model_error():
     obs = fitting.simulate_observations(
         truth, fitting.standard_design(), spec, fitting.Noise(0.01), seed=4
     )
-    clean = fitting.predict(truth, obs, spec)
+    clean = fitting.model_radiance(truth, obs, spec)
     rng = np.random.default_rng(4)
     value = clean * (
         1 + 0.05 * rng.standard_normal(clean.shape)

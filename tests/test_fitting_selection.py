@@ -12,9 +12,6 @@ import pytest
 from stairfit import fitting
 
 DEG = np.pi / 180
-NEEDS_ROUNDED = pytest.mark.skipif(
-    not fitting.rounded_model_available(), reason="rounded model not merged yet"
-)
 
 
 SHARP_LADDER = tuple(v for v in fitting.DEFAULT_LADDER if "edge_radius_um" not in v.free)
@@ -73,8 +70,6 @@ def test_selection_table_reason_and_report(ladder):
     assert sel.chosen in sel.reason and "BIC" in sel.reason
     text = sel.report()
     assert sel.reason in text and "sharp+delta_n+floor" in text
-    if not fitting.rounded_model_available():
-        assert "skipped: rounded-edge model not available" in text
 
 
 def test_selection_can_be_forced():
@@ -87,7 +82,6 @@ def test_selection_can_be_forced():
         _select(fitting.Params(sigma_rad=6 * DEG, scale=1.0), 8, 0.02, force="nonsense")
 
 
-@NEEDS_ROUNDED
 @pytest.mark.slow  # the rounded model's Jacobian takes about a minute to compile (XLA)
 @pytest.mark.parametrize(("radius_frac", "expect_rounded"), [(0.0, False), (0.3, True)])
 def test_selection_with_and_without_edge_rounding(radius_frac, expect_rounded):
