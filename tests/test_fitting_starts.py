@@ -11,16 +11,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import zoo
 
 from stairfit import fitting
 
-LADDER = {v.name: v for v in fitting.DEFAULT_LADDER}
+LADDER = zoo.LADDER
 TRUTH = fitting.Params(sigma_rad=np.deg2rad(6.0), scale=2.0e6, floor=4000.0)
 
 
 @pytest.fixture(scope="module")
 def floor_dominated():
-    spec = fitting.spectral_setup("pla", sampling="effective", channels=(1,))
+    spec = zoo.grey()
     # base-frame light at -10 deg, views -80 .. 20 deg: face angles as `stairfit simulate` makes
     wedges = fitting.STANDARD_WEDGES_DEG
     views = np.linspace(-80.0, 20.0, 7)
