@@ -46,23 +46,22 @@ class Static(NamedTuple):
 class Data(NamedTuple):
     """Arrays of one fit (traced; changing them never recompiles).
 
-    Per row (N): angles (rad), `beta2`, `layer_um`, `wedge`, `value`, `stderr`, `use` (1.0 or
-    0.0). Both models are evaluated on a grid whose lobe geometry and broadening do not depend
-    on the channel: per key (R; distinct (theta_i, wedge), or (theta_i, wedge, theta_o), see
-    `_problem.evaluation_grid`) `r_ti`, `r_b2`, `r_layer`, `r_wedge`, and the viewing angles
-    `r_to` either as a grid shared by all keys `(1, T)` or one per key `(R, 1)`; every key is
-    evaluated for all channels, `r_n` and `r_w` `(C, K)`; each row reads `[r_key, r_t, r_c]`.
-    Distinct (theta_i at each aperture node, beta2, layer_um) (G): `g_ti`, `g_b2`, `g_layer`,
-    indexed by `r_geo` (key, node). Per slot of `z` (P): `free`, `x_fixed` (physical values of
-    fixed slots). Per wedge (W): `sigma_source` (slot holding that wedge's width). `r_max_um`:
-    upper bound of the edge radius.
+    Per row (N): angles (rad), `beta2`, `layer_um` (read only by a posterior's fingerprint),
+    `value`, `stderr`, `use` (1.0 or 0.0). Both models are evaluated on a grid whose lobe
+    geometry and broadening do not depend on the channel: per key (R; distinct (theta_i, wedge),
+    or (theta_i, wedge, theta_o), see `_problem.evaluation_grid`) `r_ti`, `r_b2`, `r_wedge`, and
+    the viewing angles `r_to` either as a grid shared by all keys `(1, T)` or one per key
+    `(R, 1)`; every key is evaluated for all channels, `r_n` and `r_w` `(C, K)`; each row reads
+    `[r_key, r_t, r_c]`. Distinct (theta_i at each aperture node, beta2, layer_um) (G): `g_ti`,
+    `g_b2`, `g_layer`, indexed by `r_geo` (key, node). Per slot of `z` (P): `free`, `x_fixed`
+    (physical values of fixed slots). Per wedge (W): `sigma_source` (slot holding that wedge's
+    width). `r_max_um`: upper bound of the edge radius.
     """
 
     theta_i: Float[Array, " N"]
     theta_o: Float[Array, " N"]
     beta2: Float[Array, " N"]
     layer_um: Float[Array, " N"]
-    wedge: Int[Array, " N"]
     value: Float[Array, " N"]
     stderr: Float[Array, " N"]
     use: Float[Array, " N"]
@@ -71,7 +70,6 @@ class Data(NamedTuple):
     r_c: Int[Array, " N"]
     r_ti: Float[Array, " R"]
     r_b2: Float[Array, " R"]
-    r_layer: Float[Array, " R"]
     r_wedge: Int[Array, " R"]
     r_n: Array
     r_w: Float[Array, "C K"]
@@ -99,7 +97,6 @@ class EvaluationGrid(NamedTuple):
 
     r_ti: Array
     r_b2: Array
-    r_layer: Array
     r_n: Array
     r_w: Array
     r_to: Array
@@ -232,7 +229,7 @@ def _sharp_grid_jvp(
 
 def _grid(data: Data) -> EvaluationGrid:
     return EvaluationGrid(
-        data.r_ti, data.r_b2, data.r_layer, data.r_n, data.r_w, data.r_to,
+        data.r_ti, data.r_b2, data.r_n, data.r_w, data.r_to,
         data.r_geo, data.g_ti, data.g_b2, data.g_layer,
     )  # fmt: skip
 
