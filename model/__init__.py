@@ -22,9 +22,7 @@ from ._lobes import lobe_fresnel as lobe_fresnel
 from ._lobes import lobe_weights as lobe_weights
 from ._lobes import sharp_lobes as sharp_lobes
 from ._measurement import Aperture as Aperture
-from ._measurement import BandDerivatives as BandDerivatives
 from ._measurement import band_density as band_density
-from ._measurement import band_density_derivatives as band_density_derivatives
 from ._measurement import band_kernel as band_kernel
 from ._measurement import band_ratio as band_ratio
 from ._measurement import node_angles as node_angles

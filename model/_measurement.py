@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -133,57 +132,6 @@ def band_density(
     kernel = band_kernel(theta_i, theta_o, beta2, sigma, aperture)
     _, _, dw = _aperture_angles(theta_i, theta_o, aperture)
     return jnp.sum(ratio * kernel, axis=-1) @ dw
-
-
-class BandDerivatives(NamedTuple):
-    """`band_density` and its derivatives for each observation [conventions §4, §5, §8].
-
-    `d_sigma` is per radian of a uniform change of `sigma`; `d_delta_n` is with respect to a
-    uniform offset added to every entry of `n` (the fitted index offset, conventions §7).
-    """
-
-    density: Float[Array, " n_obs"]
-    d_sigma: Float[Array, " n_obs"]
-    d_delta_n: Float[Array, " n_obs"]
-
-
-def band_density_derivatives(
-    theta_i: ArrayLike,
-    theta_o: ArrayLike,
-    beta2: ArrayLike,
-    n: ArrayLike,
-    spectral_weight: ArrayLike,
-    sigma: ArrayLike,
-    aperture: Aperture | None = None,
-) -> BandDerivatives:
-    """`band_density` with its derivatives in `sigma` and a uniform index offset, in one pass.
-
-    The density is `sum(ratio * kernel) @ node_weight` over lobes and aperture nodes, where
-    only `band_ratio` depends on the index and only `band_kernel` on `sigma`. Each factor is
-    differentiated by one forward-mode `jax.jvp` and the product rule combines them, so the
-    Fresnel factors, by far the largest part of the work, are evaluated once with their
-    derivative instead of once per parameter.
-    Arguments as in `band_density`; the result equals `jax.jacfwd` of `band_density` to
-    rounding (tests/test_band_derivatives.py).
-    """
-    theta_i, theta_o, beta2, sigma = same_rank(theta_i, theta_o, beta2, sigma)
-    n = jnp.asarray(n)
-    ratio, d_ratio = jax.jvp(
-        lambda nn: band_ratio(theta_i, beta2, nn, spectral_weight, aperture),
-        (n,),
-        (jnp.ones_like(n),),
-    )
-    kernel, d_kernel = jax.jvp(
-        lambda s: band_kernel(theta_i, theta_o, beta2, s, aperture),
-        (sigma,),
-        (jnp.ones_like(sigma),),
-    )
-    _, _, dw = _aperture_angles(theta_i, theta_o, aperture)
-    return BandDerivatives(
-        density=jnp.sum(ratio * kernel, axis=-1) @ dw,
-        d_sigma=jnp.sum(ratio * d_kernel, axis=-1) @ dw,
-        d_delta_n=jnp.sum(d_ratio * kernel, axis=-1) @ dw,
-    )
 
 
 def radiance(
