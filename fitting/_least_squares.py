@@ -17,7 +17,7 @@ import optimistix as optx
 from stairfit import model
 
 from ._core import CoreFit, fit_core, make_solver
-from ._errors import FitError, FitInputError, FitWarning, emit
+from ._errors import FitError, FitInputError, FitWarning, emit, with_overrides
 from ._identify import IDENTIFIABILITY_THRESHOLD, PROFILE_DELTA, apply_fix, on_bound, unidentified
 from ._observations import Observations, Spectral
 from ._params import DEFAULTS, SIMPLEST, Params, Priors, Variant
@@ -52,14 +52,8 @@ class LeastSquaresOptions(NamedTuple):
     emit_warnings: bool = True
 
     def updated(self, **overrides: Any) -> LeastSquaresOptions:
-        """A copy with `overrides` (field names; a clear error for an unknown one)."""
-        unknown = set(overrides) - set(self._fields)
-        if unknown:
-            raise TypeError(
-                f"unknown least-squares option(s) {sorted(unknown)}; the options are "
-                f"{', '.join(self._fields)}"
-            )
-        return self._replace(**overrides)
+        """A copy with `overrides` (field names; a `TypeError` for an unknown one)."""
+        return with_overrides(self, "least-squares", overrides)
 
     def validated(self) -> LeastSquaresOptions:
         """Self, or `FitInputError` naming the bad option and the fix."""

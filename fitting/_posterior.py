@@ -24,7 +24,7 @@ import numpy as np
 from jaxtyping import Array
 
 from ._chain import ChainBackend, ChainInfo
-from ._errors import FitError, FitInputError, FitWarning, emit
+from ._errors import FitError, FitInputError, FitWarning, emit, with_overrides
 from ._forward import Data, Static, log_likelihood_z, physical
 from ._params import SIN, Parameter, PriorSpec, in_support, log_prior_z
 from ._result import FitResult
@@ -93,14 +93,8 @@ class PosteriorOptions(NamedTuple):
     ball_scale: float = 1e-2
 
     def updated(self, **overrides: Any) -> PosteriorOptions:
-        """A copy with `overrides` (field names; a clear error for an unknown one)."""
-        unknown = set(overrides) - set(self._fields)
-        if unknown:
-            raise TypeError(
-                f"unknown posterior option(s) {sorted(unknown)}; the options are "
-                f"{', '.join(self._fields)}"
-            )
-        return self._replace(**overrides)
+        """A copy with `overrides` (field names; a `TypeError` for an unknown one)."""
+        return with_overrides(self, "posterior", overrides)
 
 
 @dataclass(frozen=True)
