@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -167,7 +168,7 @@ def _next_step(
     core: CoreFit,
     checked: set[FreeSpec],
     opts: LeastSquaresOptions,
-    solve: Any,  # Callable[[FreeSpec], CoreFit]
+    solve: Callable[[FreeSpec], CoreFit],
 ) -> _Step:
     """What the refinement loop does after `core`: the active set first, then the
     identifiability rule (see `_refine`)."""
@@ -195,7 +196,9 @@ def _next_step(
     return _Step(new_spec, warning=rec, unidentified=rec.parameter or fix.parameter.label())
 
 
-def _near_bound_step(core: CoreFit, at_bound_spec: FreeSpec, name: str, solve: Any) -> _Step:
+def _near_bound_step(
+    core: CoreFit, at_bound_spec: FreeSpec, name: str, solve: Callable[[FreeSpec], CoreFit]
+) -> _Step:
     """Refit with the parameter on its bound; keep the bound when `-2 log L` rises by less than
     `PROFILE_DELTA` (the bound is inside the 68% profile-likelihood interval)."""
     at_bound = solve(at_bound_spec)
