@@ -495,8 +495,6 @@ def select(observations: Any, spectral: Any, aperture: Any, options: FitOptions)
     if options.model is not None:
         check_model_name(options.model)
         ladder = fitting.DEFAULT_LADDER
-    if not fitting.rounded_model_available():
-        ladder = tuple(v for v in ladder if "edge_radius_um" not in v.free)
     rounded = [v for v in ladder if "edge_radius_um" in v.free]
     policy = options.preset.rounded_rungs
     gated = options.model is None and bool(rounded) and policy == "when_needed"

@@ -44,35 +44,39 @@ PACKAGES = (
 # --- parameters at the edge ---------------------------------------------------------------
 
 
-def display_name(name: str) -> tuple[str, float]:
-    """Name and factor for files and screens: radians become degrees."""
-    if name.startswith("sigma_rad"):
-        return name.replace("sigma_rad", "sigma_deg", 1), 1.0 / DEG
-    return name, 1.0
+def display_name(p: Any) -> tuple[str, float]:
+    """Name and factor for files and screens of a parameter (a `fitting.Estimate` or
+    `fitting.Parameter`): widths become degrees (`sigma_deg`, `sigma_deg[2: 30 deg]`)."""
+    if p.param == "sigma_rad":
+        return p.label("sigma_deg"), 1.0 / DEG
+    return p.label(), 1.0
 
 
-def display_unit(name: str, unit: str) -> str:
-    """Unit for files and screens."""
-    return "deg" if name.startswith("sigma_rad") else unit
+def display_unit(p: Any) -> str:
+    """Unit for files and screens of a parameter (see `display_name`)."""
+    return "deg" if p.param == "sigma_rad" else p.unit
 
 
 def parameter_records(outcome: FitOutcome) -> list[dict[str, Any]]:
     """One record per free parameter: least-squares and posterior estimates, display units."""
     fit, post = outcome.selection.fit, outcome.posterior
     records = []
+    sampled = [] if post is None else [(p.param, p.wedge) for p in post.parameters]
     for i, e in enumerate(fit.estimates):
-        name, f = display_name(e.name)
+        name, f = display_name(e)
         rec: dict[str, Any] = {
             "name": name,
-            "unit": display_unit(e.name, e.unit),
+            "parameter": e.param,
+            "wedge": e.wedge,
+            "unit": display_unit(e),
             "least_squares": {
                 "value": e.value * f,
                 "stderr": None if e.stderr is None else e.stderr * f,
                 "at_bound": e.at_bound,
             },
         }
-        if post is not None and e.name in post.names:
-            j = post.names.index(e.name)
+        if (e.param, e.wedge) in sampled:
+            j = sampled.index((e.param, e.wedge))
             rec["posterior"] = {
                 "median": float(post.median[j]) * f,
                 "p16": float(post.p16[j]) * f,
@@ -186,7 +190,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         outcome.posterior,
         outcome.scene,
     )
-    names = [display_name(n)[0] for n in fit.names]
+    names = [display_name(e)[0] for e in fit.estimates]
     corr = None if fit.correlation is None else np.round(fit.correlation, 6)
     versions = {}
     for pkg in PACKAGES:
@@ -478,7 +482,7 @@ def corner_figure(outcome: FitOutcome) -> Figure:
     import corner
 
     post = outcome.posterior
-    labels, factors = zip(*(display_name(n) for n in post.names), strict=True)
+    labels, factors = zip(*(display_name(p) for p in post.parameters), strict=True)
     samples = post.samples * np.asarray(factors)[None, :]
     q16, q50, q84 = np.quantile(samples, (0.16, 0.5, 0.84), axis=0)
     titles = [

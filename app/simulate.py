@@ -1,9 +1,10 @@
 """`stairfit simulate OUT`: a synthetic photo folder (real DNGs, scene file, truth) from known
 physical parameters.
 
-The model predicts each wedge face's relative radiance in every photo (`stairfit.fitting.predict`
-at the face angles of the scene geometry, conventions §1 and §9); `stairfit.imaging.synthetic`
-renders and writes the RAW photos. The truth goes to `truth.json`, apart from the photos.
+The model predicts each wedge face's relative radiance in every photo
+(`stairfit.fitting.model_radiance` at the face angles of the scene geometry, conventions §1 and
+§9); `stairfit.imaging.synthetic` renders and writes the RAW photos. The truth goes to
+`truth.json`, apart from the photos.
 """
 
 from __future__ import annotations
@@ -247,7 +248,7 @@ def face_radiance(settings: SimulationSettings) -> np.ndarray:
         5,
     )
     if t.edge_radius_um > 0:
-        values = fitting.predict(params, obs, spectral, aperture=aperture)
+        values = fitting.model_radiance(params, obs, spectral, aperture=aperture)
     else:  # the same model, compiled once: about 10x faster than evaluating op by op
         values = np.asarray(_sharp_values(obs, spectral, params, aperture))
     return values.reshape(len(settings.views_deg), len(settings.wedges_deg), 3)
