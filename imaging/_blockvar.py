@@ -18,10 +18,14 @@ plane fit's loss of degrees of freedom, which biases kernel (HAC) estimators low
 is accounted for exactly rather than by a K / (K - 3) factor that holds for white noise only.
 The same estimator applied to two channels' residuals gives their covariance.
 
-The block size: starting from the finest level with at most MAX_BLOCKS blocks, the residual
-products at the second ring of neighbours (Chebyshev distance 2) are compared with what the
-fitted 1-dependent model predicts for them; a significant excess (z > RING2_Z in any channel)
-means correlation reaching further than one block, and the next coarser level is tried.
+The block size: starting from the finest level with at most MAX_BLOCKS blocks, coarser levels
+are tried until the fitted correlation of edge neighbours is at most MAX_EDGE_RHO along both
+axes (mean over the channels). For a separable Gaussian texture correlation
+`exp(-r^2 / ell^2)` that happens at a block side of 1.67 ell, where the block and its 8
+neighbours hold 99.5% of the texture's contribution to the variance of the mean (the rest is
+what a 1-dependent model misses); for an exponential correlation `exp(-r / ell)` at 2.66 ell,
+95%. Levels with fewer
+than MIN_FIT_BLOCKS blocks are not fitted.
 
 The estimate's own uncertainty is summarised by Satterthwaite's effective degrees of freedom
 `nu = 2 E[V]^2 / Var(V)` (Var of the quadratic form for Gaussian data under the fitted
@@ -221,6 +225,13 @@ def _class_of(lag: tuple[int, int]) -> int:
     return 1 + (LAGS.index(lag) if lag in LAGS else LAGS.index(neg))
 
 
+def _model_gamma(gamma: np.ndarray) -> np.ndarray:
+    """The gammas of the working covariance: gamma_0 >= 0, neighbour correlations in [0, 1]."""
+    g0 = max(float(gamma[0]), 0.0)
+    rho = np.clip(np.asarray(gamma[1:]) / g0, 0.0, 1.0) if g0 > 0 else np.zeros(len(LAGS))
+    return np.concatenate([[g0], g0 * rho])
+
+
 def _sigma_band(gamma: np.ndarray, f: _Fit) -> np.ndarray:
     """The fitted 1-dependent covariance of one channel's block sums: (9, H, W) over _BAND_LAGS.
 
@@ -228,9 +239,7 @@ def _sigma_band(gamma: np.ndarray, f: _Fit) -> np.ndarray:
     are clipped to [0, 1]: a noisy negative estimate would make the estimate look more precise
     than it is (texture and noise correlate neighbours positively or not at all).
     """
-    g0 = max(float(gamma[0]), 0.0)
-    rho = np.clip(np.asarray(gamma[1:]) / g0, 0.0, 1.0) if g0 > 0 else np.zeros(len(LAGS))
-    coef = np.concatenate([[g0], g0 * rho])
+    coef = _model_gamma(gamma)
     p, shape = _pad(f.r, 1), f.r.shape
     return np.stack([coef[_class_of(lag)] * f.r * _view(p, *lag, 1, shape) for lag in _BAND_LAGS])
 
@@ -311,15 +320,18 @@ def _dof(f: _Fit, lv: _ChannelLevel) -> float:
     """Satterthwaite's nu = 2 E[V]^2 / Var(V) for V = c'q, under the fitted covariance.
 
     Var(e'Qe) = 2 tr(Q Sigma Q Sigma) for Gaussian residuals (the projection's O(1/K) effect
-    on the variance is neglected).
+    on the variance is neglected). E[V] and Var(V) are both taken under the working covariance
+    (`_model_gamma`), so that nu depends on the estimated correlations only, not on the chance
+    scatter of V itself (a V low by chance would otherwise look imprecise).
     """
     if lv.v <= 0:
         return 0.0
     act = _active(lv.s)
     c = np.zeros(len(lv.s))  # V N^2 = c' q
     c[act] = np.linalg.solve(lv.g[np.ix_(act, act)].T, lv.s[act])
+    model = _model_gamma(lv.gamma)
     var_v = 2 * _quad_form_var(c, _sigma_band(lv.gamma, f))
-    return 2 * lv.v**2 / var_v if var_v > 0 else 0.0
+    return 2 * float(lv.s @ model) ** 2 / var_v if var_v > 0 else 0.0
 
 
 def _start_factor(base: Blocks) -> int:

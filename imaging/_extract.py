@@ -1,26 +1,23 @@
-"""Per-ROI, per-channel statistics straight from the raw mosaic: mean, block standard error.
+"""Per-ROI, per-channel statistics straight from the raw mosaic: mean and standard errors.
 
 Each colour's pixels inside the eroded ROI are averaged after subtracting their black level;
 saturated pixels are left out: `mean = sum_b S_b / N`, with S_b and n_b the sum and count of the
-channel's unsaturated pixels in block b (square blocks of `block_px` raw pixels aligned to the
-image origin) and N = sum_b n_b.
+channel's unsaturated pixels in block b (square blocks aligned to the image origin, whole CFA
+tiles) and N = sum_b n_b.
 
-The standard error comes from the scatter of the K block means m_b = S_b / n_b, not of single
-pixels, so that texture and noise correlated within a block count fully:
+The standard error comes from the scatter of block sums, not of single pixels, so that texture
+and noise correlated over several pixels count fully (`_blockvar`): a plane is fitted to the
+block means (smooth, deterministic variation across the ROI adds no error to the mean); the
+covariances of the residual block sums with themselves and their 8 neighbours are estimated
+without bias, at a block size chosen from the data so that blocks further apart are
+uncorrelated; their sum is the variance of the mean, with Satterthwaite degrees of freedom.
+The same moments of two channels give the R, G, B covariance of the ROI.
 
-1. a plane a + b x + c y is fitted to the block means (weights n_b, centroids of each block's
-   pixels); its intercept is the mean itself. Smooth, deterministic variation across the ROI
-   (vignetting, the change of the BRDF across a face) adds no error to the mean, so it is
-   removed rather than counted as scatter;
-2. with block residuals e_b = n_b (m_b - plane_b), the variance of the mean is the spatial
-   Bartlett-kernel (HAC) estimate over the block grid,
-   `var = K / (K - 3) * sum_b sum_b' w(b - b') e_b e_b' / N^2`, with w = 1 for the block
-   itself, 1/2 for its 4 edge neighbours and 1/4 for its 4 corner neighbours. The neighbour
-   terms take in correlation that reaches across block borders; the weights make the estimate
-   never negative.
+The white-noise part of the error (shot, read and quantisation noise, which differ between
+photos) comes from the differences of neighbouring same-colour pixels
+(`_Accumulator.noise_variance`).
 
-It covers pixel noise and texture correlated over less than about a block; see
-docs/imaging.md §Standard errors for the checks and for what it does not cover.
+See docs/imaging.md §Standard errors for the checks and for what it does not cover.
 """
 
 from __future__ import annotations
@@ -43,15 +40,18 @@ class ExtractionSettings:
 
     Attributes:
         erode_px: ROI erosion radius in pixels (>= 0).
-        block_px: side of the square blocks (raw pixels) whose means give the standard error;
-            rounded up to a multiple of the CFA tile (2 for Bayer) so that every block holds
-            whole tiles. Choose it at least 4 times the correlation length of the texture.
+        block_px: the smallest side of the square blocks (raw pixels) whose sums give the
+            standard error, rounded up to a multiple of the CFA tile (2 for Bayer) so that
+            every block holds whole tiles. Larger blocks are chosen from the data where the
+            texture needs them (docs/imaging.md §Standard errors); the default, one tile,
+            lets small ROIs of fine texture keep the most blocks.
         saturation_level: a raw value at or above black + saturation_level * (white - black)
             counts as saturated and is left out (per pixel, with that pixel's black level).
         max_saturated_fraction: an ROI channel with a larger saturated fraction is flagged
             "saturated".
-        min_blocks: an ROI channel with fewer non-empty blocks is flagged "few_blocks" (its
-            standard error rests on too few independent values to be trusted).
+        min_blocks: an ROI channel whose standard error has fewer degrees of freedom
+            (`ChannelStats.dof`: effectively independent blocks) is flagged "few_blocks": the
+            ROI is too small for its texture to estimate its error.
     """
 
     erode_px: int = 8
