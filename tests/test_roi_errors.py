@@ -188,7 +188,7 @@ def test_texture_correlated_across_blocks_is_covered(textured: dict[str, np.ndar
     sd here was 1.22 (it would pass with probability ~5%).
     """
     ok = ~textured["flagged"]
-    assert 0.7 < ok.mean() < 1.0  # a few ROIs are too small for this texture
+    assert 0.6 < ok.mean() < 1.0  # some ROIs are too small for this texture (24% of rows)
     pulls = textured["total"][ok]
     assert 0.87 <= np.std(pulls, ddof=1) <= 1.13
     assert abs(np.mean(pulls)) < 0.2
@@ -234,3 +234,32 @@ def test_rois_too_small_for_their_texture_are_flagged() -> None:
     assert coarse["flagged"].mean() > 0.95
     white = _measure(rf.Cell("none", 0.0, 20, False), 60, seed=8)
     assert white["flagged"].mean() < 0.05
+
+
+@pytest.mark.slow
+def test_every_cell_of_the_study_grid_is_calibrated() -> None:
+    """The full grid of benchmarks/bench_roi_errors.py at 300 ROIs per cell (~1 h).
+
+    Every cell with at least 30 unflagged ROIs has a total pull sd in [0.9, 1.1], widened by
+    2.5 times its bootstrap Monte Carlo error (0.013-0.04 at 300 ROIs; the benchmark's 1000
+    ROIs per cell make [0.9, 1.1] itself the test). Cells of pure noise are never flagged.
+    """
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_roi_errors as bench
+
+    bad = []
+    for k, cell in enumerate(bench.grid()):
+        row = bench.summarise(cell, bench.measure_cell(cell, 300, seed=5000 + k))
+        if cell.texture == "none":
+            assert row["flagged"] < 0.05, cell.label()
+        if row["evaluated"] < bench.MIN_EVALUATED:
+            continue
+        lo, hi = (
+            b + s * 2.5 * row["sd_err"] for b, s in zip(bench.PASS_RANGE, (-1, 1), strict=True)
+        )
+        if not lo <= row["sd"] <= hi:
+            bad.append(f"{cell.label()}: {row['sd']:.3f} +- {row['sd_err']:.3f}")
+    assert not bad, bad
