@@ -52,6 +52,10 @@ MAX_BLOCKS = 1024
 MAX_EDGE_RHO = 0.25
 """Largest mean correlation of edge neighbours (either axis) accepted at a level."""
 
+MIN_FIT_BLOCKS = 30
+"""Levels with fewer non-empty blocks are not tried: 5 covariances fitted to fewer block
+products are too noisy to say whether the correlation stays within the neighbours."""
+
 
 class Blocks(NamedTuple):
     """Per-block sums of the three channels on one grid (arrays of shape (3, H, W)).
@@ -264,11 +268,6 @@ def _quad_form_var(c: np.ndarray, sigma: np.ndarray) -> float:
     return float(
         sum(np.sum(f[index[d]] * _view(fp[index[(-d[0], -d[1])]], *d, 2, shape)) for d in lags2)
     )
-
-
-MIN_FIT_BLOCKS = 30
-"""Levels with fewer non-empty blocks are not tried: 5 covariances fitted to fewer block
-products are too noisy to say whether the correlation stays within the neighbours."""
 
 
 class _ChannelLevel(NamedTuple):
