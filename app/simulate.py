@@ -1,9 +1,10 @@
 """`stairfit simulate OUT`: a synthetic photo folder (real DNGs, scene file, truth) from known
 physical parameters.
 
-The model predicts each wedge face's relative radiance in every photo (`stairfit.fitting.predict`
-at the face angles of the scene geometry, conventions §1 and §9); `stairfit.imaging.synthetic`
-renders and writes the RAW photos. The truth goes to `truth.json`, apart from the photos.
+The model predicts each wedge face's relative radiance in every photo
+(`stairfit.fitting.model_radiance` at the face angles of the scene geometry, conventions §1 and
+§9); `stairfit.imaging.synthetic` renders and writes the RAW photos. The truth goes to
+`truth.json`, apart from the photos.
 """
 
 from __future__ import annotations
@@ -11,25 +12,41 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import secrets
-import shutil
-from collections.abc import Iterator, Sequence
+import multiprocessing
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from . import __version__
+from . import __version__, _ranges
 from ._layout import SpecimenLayout, camera_for
 from .errors import UserError
+from .outputs import staged_folder as staged_folder
 from .scene import SCENE_FILE, SCENE_VERSION
 
 DEG = np.pi / 180
 TRUTH_FILE = "truth.json"
+MIN_MEGAPIXELS = 0.3
+"""Smaller photos make the 60-degree face at -80 degrees too small for the default erosion."""
+
+MARKER_STYLES: tuple[str, ...] = ("quiet-zone", "no-quiet-zone")
+"""ArUco markers printed on white paper with a one-cell white margin, or straight on the dark
+base plate (their black border touches the plate)."""
+
+MARKER_WHITE_PER_SCALE = 0.003
+"""Relative radiance of the markers' white paper per unit of the truth's `scale`: a Lambertian
+white that, like every diffuse surface under the fixed light, has the same radiance in every
+photo (6000 at the default scale, 1.5 times the default floor). Exposures are chosen for the
+wedges, so in the bright specular views the markers come out dark, as in a real session."""
+
+MARKER_INK = 0.04
+"""Radiance of the markers' black ink, as a fraction of the white paper."""
+
+BASE_PLATE = 0.10
+"""Radiance of the dark base plate the wedges and markers sit on, as a fraction of the paper."""
 
 
 @dataclass(frozen=True)
@@ -60,6 +77,8 @@ class SimulationSettings:
     seed: int = 1
     workers: int = 1
     truth: Truth = field(default_factory=Truth)
+    exposure_tags: str = "exif"  # where the DNGs carry the exposure (imaging.synthetic)
+    markers: str = "quiet-zone"  # MARKER_STYLES
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -97,6 +116,19 @@ def add_truth_options(p: argparse.ArgumentParser, seed_and_workers: bool = True)
         default=len(s.views_deg),
         help="number of photos (viewing angles from -80 to 20 deg, base frame)",
     )
+    p.add_argument(
+        "--exposure-tags",
+        default=s.exposure_tags,
+        choices=("exif", "ifd0", "both", "none"),
+        help="where the DNGs carry ExposureTime/FNumber/ISO: the EXIF IFD, IFD0 (TIFF/EP), both,"
+        " or none (the scene file then gives them as overrides)",
+    )
+    p.add_argument(
+        "--markers",
+        default=s.markers,
+        choices=MARKER_STYLES,
+        help="ArUco markers in a white quiet zone, or printed straight on the dark base plate",
+    )
     if seed_and_workers:
         p.add_argument("--seed", type=int, default=s.seed, help="seed of texture and noise")
         p.add_argument("--workers", type=int, default=s.workers, help="processes for rendering")
@@ -114,12 +146,14 @@ def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
         raise UserError(f"--delta-n: {args.delta_n} is outside [-0.3, 0.5]")
     if args.floor < 0:
         raise UserError("--floor: must be >= 0")
-    if not 0.05 <= args.megapixels <= 60:
-        raise UserError(f"--megapixels: {args.megapixels} is outside [0.05, 60]")
+    if not MIN_MEGAPIXELS <= args.megapixels <= 60:
+        raise UserError(
+            f"--megapixels: {args.megapixels} is outside [{MIN_MEGAPIXELS}, 60] (below "
+            f"{MIN_MEGAPIXELS} the steepest face is smaller than the ROI erosion)"
+        )
     if not 3 <= args.views <= 200:
         raise UserError(f"--views: {args.views} is outside [3, 200]")
-    if args.workers < 1:
-        raise UserError("--workers: must be >= 1")
+    _ranges.check_workers(args.workers)
     if args.seed < 0:
         raise UserError(f"--seed: {args.seed} is negative; give an integer >= 0")
     base = SimulationSettings()
@@ -131,6 +165,8 @@ def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
         seed=args.seed,
         workers=args.workers,
         truth=truth,
+        exposure_tags=getattr(args, "exposure_tags", base.exposure_tags),
+        markers=getattr(args, "markers", base.markers),
     )
     _check_edge_radius(settings)
     return settings
@@ -156,53 +192,10 @@ def _check_edge_radius(s: SimulationSettings) -> None:
 def run(args: argparse.Namespace) -> int:
     """`stairfit simulate OUT`."""
     settings = settings_from_args(args)
-    with staged_folder(args.out, args.force) as tmp:
+    with staged_folder(args.out, args.force, option="OUT") as tmp:
         simulate(tmp, settings, progress=not args.quiet)
     print(f"wrote {len(settings.views_deg)} photos, {SCENE_FILE} and {TRUTH_FILE} to {args.out}")
     return 0
-
-
-@contextmanager
-def staged_folder(out: Path, force: bool) -> Iterator[Path]:
-    """Build a folder under a temporary name next to `out` and move it into place on success.
-
-    A crash leaves no folder named `out`; an existing `out` is only replaced with `force`.
-    """
-    out = Path(out)
-    if out.exists() and not force:
-        raise UserError(
-            f"{out}: already exists; choose another folder or add --force to replace it"
-        )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _fresh_partial_folder(out)
-    try:
-        yield tmp
-        if out.exists():
-            trash = out.with_name(f".{out.name}.old-{os.getpid()}")
-            out.rename(trash)
-            tmp.rename(out)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-def _fresh_partial_folder(out: Path) -> Path:
-    """A new, empty hidden folder `.NAME.XXXXXXXX.partial` next to `out`.
-
-    Made with `mkdir`, so it gets the user's umask like any folder they create (tempfile.mkdtemp
-    would make it private, 0700, and the finished results would stay that way).
-    """
-    for _ in range(100):
-        tmp = out.with_name(f".{out.name}.{secrets.token_hex(4)}.partial")
-        try:
-            tmp.mkdir()
-        except FileExistsError:
-            continue
-        return tmp
-    raise FileExistsError(f"{out.parent}: cannot find a free name for a temporary folder")
 
 
 def image_size(megapixels: float) -> tuple[int, int]:
@@ -255,7 +248,7 @@ def face_radiance(settings: SimulationSettings) -> np.ndarray:
         5,
     )
     if t.edge_radius_um > 0:
-        values = fitting.predict(params, obs, spectral, aperture=aperture)
+        values = fitting.model_radiance(params, obs, spectral, aperture=aperture)
     else:  # the same model, compiled once: about 10x faster than evaluating op by op
         values = np.asarray(_sharp_values(obs, spectral, params, aperture))
     return values.reshape(len(settings.views_deg), len(settings.wedges_deg), 3)
@@ -278,27 +271,19 @@ def _sharp_values(obs: Any, spectral: Any, params: Any, aperture: Any) -> Any:
 def simulate(folder: Path, settings: SimulationSettings, progress: bool = False) -> dict[str, Any]:
     """Render every photo into `folder` and write the scene file and the truth."""
     import tomli_w
-    from tqdm import tqdm
 
     layout = SpecimenLayout(settings.wedges_deg)
     radiance = face_radiance(settings)
     size = image_size(settings.megapixels)
     jobs = [
-        _PhotoJob(folder, p, view, size, layout, radiance[p], settings.seed * 1000 + p)
+        _PhotoJob(
+            folder, p, view, size, layout, radiance[p], settings.seed * 1000 + p,
+            settings.exposure_tags, settings.markers,
+            MARKER_WHITE_PER_SCALE * settings.truth.scale,
+        )
         for p, view in enumerate(settings.views_deg)
-    ]
-    photos: list[dict[str, Any]] = []
-    bar = tqdm(total=len(jobs), desc="rendering photos", unit="photo", disable=not progress)
-    if settings.workers > 1:
-        with ProcessPoolExecutor(max_workers=settings.workers) as pool:
-            for entry in pool.map(_render, jobs):
-                photos.append(entry)
-                bar.update()
-    else:
-        for job in jobs:
-            photos.append(_render(job))
-            bar.update()
-    bar.close()
+    ]  # fmt: skip
+    photos = _render_all(jobs, settings.workers, progress)
     scene = _scene_dict(settings, layout, photos)
     text = _compact_arrays(tomli_w.dumps(scene))
     (folder / SCENE_FILE).write_text(_SCENE_HEADER + text, encoding="utf-8")
@@ -321,6 +306,33 @@ def simulate(folder: Path, settings: SimulationSettings, progress: bool = False)
     return truth
 
 
+def _render_all(jobs: Sequence[_PhotoJob], workers: int, progress: bool) -> list[dict[str, Any]]:
+    """Render every photo (in `workers` spawned processes when > 1), with a progress bar.
+
+    The bar is closed (its line ended) and queued jobs are cancelled however this ends, so an
+    interruption's one-line message starts on a line of its own.
+    """
+    from tqdm import tqdm
+
+    photos: list[dict[str, Any]] = []
+    with tqdm(total=len(jobs), desc="rendering photos", unit="photo", disable=not progress) as bar:
+        if workers <= 1:
+            for job in jobs:
+                photos.append(_render(job))
+                bar.update()
+            return photos
+        # "spawn": never fork a process that has run JAX
+        ctx = multiprocessing.get_context("spawn")
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+        try:
+            for entry in pool.map(_render, jobs):
+                photos.append(entry)
+                bar.update()
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+    return photos
+
+
 @dataclass(frozen=True)
 class _PhotoJob:
     folder: Path
@@ -330,6 +342,9 @@ class _PhotoJob:
     layout: SpecimenLayout
     radiance: np.ndarray  # (n_wedges, 3)
     seed: int
+    exposure_tags: str = "exif"
+    markers: str = "quiet-zone"
+    paper: float = 6000.0  # relative radiance of the markers' white paper
 
 
 def _render(job: _PhotoJob) -> dict[str, Any]:
@@ -353,29 +368,32 @@ def _render(job: _PhotoJob) -> dict[str, Any]:
     import cv2
 
     h, _ = cv2.findHomography(src, dst)
-    background = np.full(3, 0.02 * peak)
     photo = synthetic.render_photo(
         job.size,
         faces,
         {n: job.radiance[k] for k, n in enumerate(names)},
         exposure,
-        background=background,
+        background=np.full(3, BASE_PLATE * job.paper),
         sensor=sensor,
         markers=MarkerLayout({i: c.tolist() for i, c in markers_mm.items()}),
         plane_to_image=h,
-        marker_white=np.full(3, 0.3 * peak),
-        marker_black=np.full(3, 0.01 * peak),
+        marker_white=np.full(3, job.paper),
+        marker_black=np.full(3, MARKER_INK * job.paper),
+        marker_quiet_zone_cells=1.0 if job.markers == "quiet-zone" else 0.0,
         vignetting=0.0,  # as if flat-field corrected: the pipeline does not correct vignetting
         seed=job.seed,
     )
     name = f"IMG_{job.index + 1:04d}.dng"
-    photo.write_dng(job.folder / name)
-    return {
+    photo.write_dng(job.folder / name, exposure_tags=job.exposure_tags)
+    entry = {
         "file": name,
         "light_deg": None,  # filled in by _scene_dict (same light for every photo)
         "view_deg": round(job.view_deg, 6),
-        "roi_px": {n: [[round(x, 2), round(y, 2)] for x, y in faces[n]] for n in names},
     }
+    if job.exposure_tags == "none":  # the scene file gives what the files lack
+        entry |= {"exposure_time_s": t, "f_number": f_number, "iso": iso}
+    entry["roi_px"] = {n: [[round(x, 2), round(y, 2)] for x, y in faces[n]] for n in names}
+    return entry
 
 
 def _compact_arrays(toml_text: str) -> str:

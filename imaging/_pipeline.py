@@ -13,7 +13,6 @@ import json
 import math
 import multiprocessing
 import os
-import warnings
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -23,18 +22,34 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from ._cache import prune_previews, read_cache, write_cache
+from ._checks import low_signal_warnings, same_bytes_warnings
 from ._decode import CHANNELS, RawFrame, decode_raw, file_sha256
-from ._errors import ImagingError
+from ._errors import ImagingError, PhotosFailedError
 from ._exposure import Exposure, resolve_exposure
 from ._extract import ChannelStats, ExtractionSettings, roi_channel_stats
 from ._io import atomic_write_bytes
-from ._markers import MarkerDetection, MarkerLayout, Placement, detect_markers, fit_placement
+from ._markers import MarkerDetection, MarkerLayout, detect_markers
+from ._placement import (
+    CameraPose,
+    PinholeCamera,
+    check_in_image,
+    face_polygon,
+    fit_camera_pose,
+    hidden_fraction,
+)
 from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import Polygon, RoiMask, as_polygon, roi_mask
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 3
-"""Part of every cache key: bump it when a change to the code changes measured values."""
+TABLE_VERSION = 5
+"""Part of every cache key: bump it when a change to the code changes measured values.
+
+3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
+4: rows flagged below_black carry NaN (were negative values).
+5: standard errors from the 1-dependent block covariance at a block size chosen from the data;
+   the stderr_noise, stderr_dof, block_px, corr_rg, corr_rb and corr_gb columns (issue 13).
+"""
 
 
 def _named_polygons(
@@ -65,6 +80,15 @@ class PhotoSpec:
         markers: the marker layout, needed when some name is only in `faces_mm`.
         reference: the name (in `rois` or `faces_mm`) of a reference patch: every other ROI's
             value is divided by the reference's value in the same photo and channel.
+        face_angles_deg: the wedge angle beta2 (deg) of faces in `faces_mm`, name -> angle: the
+            face rises along +x from its outline's foot and is placed in 3-D (docs/imaging.md
+            §3-D placement). A face without an angle lies on the base.
+        view_deg: the camera's direction from the base normal, a rotation about the layer lines
+            (y; positive: the uphill side), base frame; needed to place rising faces without
+            `camera`.
+        camera: pinhole intrinsics (`PinholeCamera`), or None for an affine camera.
+        occluders_mm: (name, outline on the base, beta2) of every wedge that may hide a placed
+            face from the camera (default: the placed faces themselves).
     """
 
     path: Path
@@ -76,6 +100,10 @@ class PhotoSpec:
     faces_mm: tuple[tuple[str, Polygon], ...] = ()
     markers: MarkerLayout | None = None
     reference: str | None = None
+    face_angles_deg: tuple[tuple[str, float], ...] = ()
+    view_deg: float | None = None
+    camera: PinholeCamera | None = None
+    occluders_mm: tuple[tuple[str, Polygon, float], ...] = ()
 
     def __post_init__(self) -> None:
         path = Path(self.path)
@@ -86,6 +114,7 @@ class PhotoSpec:
         object.__setattr__(
             self, "faces_mm", _named_polygons(self.faces_mm, f"photo {name!r}, face_mm")
         )
+        _check_geometry_fields(self)
         names = self.roi_names()
         if not names:
             raise ImagingError(f"photo {name!r}: no ROIs; give pixel polygons or faces in mm")
@@ -112,6 +141,35 @@ class PhotoSpec:
         px = {n for n, _ in self.rois}
         return tuple(n for n, _ in self.faces_mm if n not in px)
 
+    def occluders(self) -> tuple[tuple[str, Polygon, float], ...]:
+        """The wedges that may hide a face: `occluders_mm`, else every face with an angle."""
+        if self.occluders_mm:
+            return self.occluders_mm
+        angles = dict(self.face_angles_deg)
+        return tuple((n, p, angles[n]) for n, p in self.faces_mm if n in angles)
+
+
+def _check_geometry_fields(spec: PhotoSpec) -> None:
+    """Normalise and check `face_angles_deg`, `view_deg` and `occluders_mm` of a PhotoSpec."""
+    name = spec.name
+    angles = tuple((str(n), float(a)) for n, a in dict(spec.face_angles_deg).items())
+    faces = {n for n, _ in spec.faces_mm}
+    for n, a in angles:
+        if n not in faces:
+            raise ImagingError(f"photo {name!r}: face_angles_deg names {n!r}, not in faces_mm")
+        if not (math.isfinite(a) and 0 <= a < 90):
+            raise ImagingError(f"photo {name!r}, face {n!r}: the wedge angle {a} is not in [0, 90)")
+    view = spec.view_deg
+    if view is not None and not (math.isfinite(float(view)) and abs(float(view)) < 89.9):
+        raise ImagingError(f"photo {name!r}: view_deg = {view!r} must be in (-89.9, 89.9)")
+    occ = tuple(
+        (str(n), as_polygon(p, f"photo {name!r}, occluder {n!r}"), float(a))
+        for n, p, a in spec.occluders_mm
+    )
+    object.__setattr__(spec, "face_angles_deg", angles)
+    object.__setattr__(spec, "view_deg", None if view is None else float(view))
+    object.__setattr__(spec, "occluders_mm", occ)
+
 
 @dataclass(frozen=True, eq=False)
 class FrameMeasurement:
@@ -121,7 +179,7 @@ class FrameMeasurement:
     rois: dict[str, RoiMask]
     exposure: Exposure
     detection: MarkerDetection | None
-    placement: Placement | None
+    placement: CameraPose | None
 
 
 def cache_key(spec: PhotoSpec, settings: ExtractionSettings) -> str:
@@ -131,6 +189,14 @@ def cache_key(spec: PhotoSpec, settings: ExtractionSettings) -> str:
         "rois": spec.rois,
         "faces_mm": spec.faces_mm,
         "markers": asdict(spec.markers) if spec.markers and spec.placed_names() else None,
+        "geometry": [
+            spec.face_angles_deg,
+            spec.view_deg,
+            asdict(spec.camera) if spec.camera else None,
+            spec.occluders_mm,
+        ]
+        if spec.placed_names()
+        else None,
         "reference": spec.reference,
         "exposure": [spec.exposure_time_s, spec.f_number, spec.iso],
         "settings": asdict(settings),
@@ -174,17 +240,18 @@ def _flags(s: ChannelStats, settings: ExtractionSettings) -> list[str]:
 
 
 def _scaled(
-    s: ChannelStats, r: ChannelStats | None, scale: float
+    s: ChannelStats, r: ChannelStats | None, scale: float, below_black: bool
 ) -> tuple[float, float, float, float]:
     """A row's value, stderr, stderr_noise and dof: exposure-scaled, or the ratio to `r`.
 
     The ROIs do not overlap, so the ratio's error adds the two relative errors in quadrature;
-    its dof is the smaller of the two (docs/imaging.md §Reference patch).
+    its dof is the smaller of the two (docs/imaging.md §Reference patch). NaN below black
+    (never a negative value) and for a reference mean <= 0.
     """
+    if below_black or (r is not None and not r.mean_dn > 0):
+        return math.nan, math.nan, math.nan, s.dof
     if r is None:
         return s.mean_dn * scale, s.stderr_dn * scale, s.stderr_noise_dn * scale, s.dof
-    if not r.mean_dn > 0:
-        return math.nan, math.nan, math.nan, s.dof
     ratio = s.mean_dn / r.mean_dn
 
     def err(se: float, se_ref: float) -> float:
@@ -210,15 +277,8 @@ def measure_frame(
     photo = spec.name
     exposure = resolve_exposure(frame, spec.exposure_time_s, spec.f_number, spec.iso)
     polygons: dict[str, tuple[Polygon, str]] = {n: (p, "polygon") for n, p in spec.rois}
-    detection = placement = None
-    placed = spec.placed_names()
-    if placed:
-        assert spec.markers is not None  # checked by PhotoSpec
-        detection = detect_markers(frame, spec.markers.dictionary)
-        placement = fit_placement(detection, spec.markers, photo=photo, wedges=placed)
-        faces = dict(spec.faces_mm)
-        for n in placed:
-            polygons[n] = (placement.polygon(faces[n]), "markers")
+    detection, placement, placed_polygons = place_faces(frame, spec)
+    polygons |= {n: (p, "markers") for n, p in placed_polygons.items()}
     rois = {
         n: roi_mask(
             polygons[n][0],
@@ -230,6 +290,8 @@ def measure_frame(
         )
         for n in spec.roi_names()
     }
+    if placement is not None:  # before the overlap check: a hidden face overlaps its hider
+        _check_hidden(spec, placement, rois)
     _check_overlaps(rois, photo)
     key = cache_key(spec, settings)
     black = frame.black_level_per_channel()
@@ -246,9 +308,9 @@ def measure_frame(
                 r = ref[c]
                 normalised_by = spec.reference or ""
                 flags += [f"reference-{f}" for f in ref_flags[c]]
-                if not r.mean_dn > 0:
+                if "below_black" not in flags and not r.mean_dn > 0:
                     flags.append("reference-nonpositive")
-            value, stderr, noise, dof = _scaled(s, r, exposure.scale)
+            value, stderr, noise, dof = _scaled(s, r, exposure.scale, "below_black" in flags)
             rows.append(
                 MeasurementRow(
                     photo=photo,
@@ -273,15 +335,84 @@ def measure_frame(
                     exposure_time_s=exposure.exposure_time_s,
                     f_number=exposure.f_number,
                     iso=exposure.iso,
+                    exposure_source=exposure.source,
                     black_level=black[c],
                     white_level=frame.white_level,
                     roi_source=roi.source,
                     reprojection_error_px=placement.rms_error_px if by_marker else None,  # type: ignore[union-attr]
                     n_markers=len(placement.ids) if by_marker else None,  # type: ignore[union-attr]
                     camera=frame.camera,
+                    **_marker_columns(placement if by_marker else None, detection),
                 )
             )
     return FrameMeasurement(tuple(rows), rois, exposure, detection, placement)
+
+
+def place_faces(
+    frame: RawFrame, spec: PhotoSpec
+) -> tuple[MarkerDetection | None, CameraPose | None, dict[str, Polygon]]:
+    """Detect the markers and place the faces of `spec.placed_names()`: (detection, camera,
+    image polygons by name); (None, None, {}) when nothing is placed from markers.
+
+    Faces with a wedge angle are placed in 3-D (docs/imaging.md §3-D placement).
+
+    Raises:
+        ImagingError: too few markers, an inconsistent camera, or a face outside the image.
+    """
+    placed = spec.placed_names()
+    if not placed:
+        return None, None, {}
+    layout = spec.markers
+    assert layout is not None  # checked by PhotoSpec
+    ids = [m for m, _ in layout.markers]
+    detection = detect_markers(frame, layout.dictionary, layout.detector, expected_ids=ids)
+    angles = dict(spec.face_angles_deg)
+    size = (frame.width, frame.height)
+    pose = fit_camera_pose(
+        detection,
+        layout,
+        photo=spec.name,
+        image_size=size,
+        rising=any(angles.get(n, 0.0) > 0 for n in placed),
+        view_deg=spec.view_deg,
+        camera=spec.camera,
+        wedges=placed,
+    )
+    faces = dict(spec.faces_mm)
+    polygons = {}
+    for n in placed:
+        polygons[n] = face_polygon(pose, faces[n], angles.get(n, 0.0))
+        check_in_image(polygons[n], size, photo=spec.name, wedge=n)
+    return detection, pose, polygons
+
+
+def _check_hidden(spec: PhotoSpec, pose: CameraPose, rois: dict[str, RoiMask]) -> None:
+    """ImagingError when another wedge hides part of a placed face's eroded ROI."""
+    faces, angles = dict(spec.faces_mm), dict(spec.face_angles_deg)
+    occluders = spec.occluders()
+    for n in spec.placed_names():
+        others = [o for o in occluders if o[0] != n]
+        if not others:
+            continue
+        fraction, by = hidden_fraction(pose, faces[n], angles.get(n, 0.0), others, rois[n])
+        if fraction > 0:
+            raise ImagingError(
+                f"photo {spec.name!r}, wedge {n!r}: {100 * fraction:.0f}% of the face's ROI is "
+                f"hidden behind wedge {by!r} from this view; give a roi_px polygon for {n!r} in "
+                "this photo that keeps to the visible part, or leave the photo out"
+            )
+
+
+def _marker_columns(pose: CameraPose | None, detection: MarkerDetection | None) -> dict:
+    """The marker columns of a row: ids used, their smallest cell (px) and the camera model."""
+    if pose is None or detection is None:
+        return {"marker_ids": "", "marker_cell_px": None, "placement": ""}
+    cells = dict(zip(detection.ids, detection.cell_px, strict=True))
+    return {
+        "marker_ids": " ".join(str(i) for i in pose.ids),
+        "marker_cell_px": min(cells[i] for i in pose.ids),
+        "placement": pose.model,
+    }
 
 
 def measure_photo(
@@ -332,8 +463,19 @@ def _measure_decoded(
     except ImagingError as e:
         if preview is None:
             raise
-        det = detect_markers(frame, spec.markers.dictionary) if spec.markers else None
-        return e, partial(_write_previews, frame, {}, det, settings, [Path(preview)])
+        det = (
+            detect_markers(
+                frame,
+                spec.markers.dictionary,
+                spec.markers.detector,
+                expected_ids=[m for m, _ in spec.markers.markers],
+            )
+            if spec.markers
+            else None
+        )
+        # for drawing roi_px by hand: the markers found, the given polygons, a pixel grid
+        job = partial(_write_previews, frame, {}, det, settings, [Path(preview)], dict(spec.rois))
+        return e, job
     if preview is None:
         return result.rows, None
     paths = [Path(preview)]
@@ -350,12 +492,30 @@ def _write_previews(
     detection: MarkerDetection | None,
     settings: ExtractionSettings,
     paths: Sequence[Path],
+    failed: dict[str, Polygon] | None = None,
 ) -> None:
-    """Render a photo's preview once and write it (atomically) to each of `paths`."""
+    """Render a photo's preview once and write it (atomically) to each of `paths`.
+
+    Only the first path is required; the others are cached copies, skipped when they cannot be
+    written (a read-only photo folder: the next run renders the preview again). `failed` (the
+    pixel polygons of a photo that could not be measured) draws those and a pixel grid.
+    """
     level = settings.saturation_level
-    png = preview_png(frame, rois, detection, saturation_level=level, max_size=PREVIEW_MAX_SIZE)
-    for path in paths:
-        atomic_write_bytes(path, png)
+    png = preview_png(
+        frame,
+        rois,
+        detection,
+        saturation_level=level,
+        max_size=PREVIEW_MAX_SIZE,
+        grid=failed is not None,
+        outlines=failed,
+    )
+    for k, path in enumerate(paths):
+        try:
+            atomic_write_bytes(path, png)
+        except OSError:
+            if k == 0:
+                raise
 
 
 def _measure_in_process(
@@ -413,8 +573,14 @@ def _measure_in_process(
 
 
 def preview_path(preview_dir: str | Path, spec: PhotoSpec) -> Path:
-    """Where `measure_photos` writes a photo's preview: `<preview_dir>/<name>.png`."""
-    return Path(preview_dir) / f"{spec.name}.png"
+    """Where `measure_photos` writes a photo's preview: `<preview_dir>/<name>.png`.
+
+    Always directly inside `preview_dir`: a name with folders (`raw/IMG_1.dng`) is flattened
+    to `raw__IMG_1.dng.png`, and `.`/`..` parts are dropped, so a photo's name can never place
+    its preview elsewhere.
+    """
+    parts = [p for p in spec.name.replace("\\", "/").split("/") if p not in ("", ".", "..")]
+    return Path(preview_dir) / f"{'__'.join(parts) or 'photo'}.png"
 
 
 def preview_cache_dir(cache: str | Path) -> Path:
@@ -454,23 +620,9 @@ def _cached_preview(folder: Path, rows: Sequence[MeasurementRow]) -> bytes | Non
     return png if png.startswith(_PNG_START) and png.endswith(_PNG_END) else None
 
 
-def _prune_preview_cache(folder: Path, table: MeasurementTable) -> None:
-    """Delete the cached previews of rows that are no longer in the cache file."""
-    if not folder.is_dir():
-        return
-    keep = {cached_preview_name(r.photo_sha256, r.settings_key) for r in table.rows}
-    for path in folder.glob("*.png"):
-        if path.name not in keep:
-            path.unlink(missing_ok=True)
-
-
 def _load_cache(cache: Path | None) -> dict[str, tuple[MeasurementRow, ...]]:
-    if cache is None or not cache.exists():
-        return {}
-    try:
-        table = MeasurementTable.read_csv(cache)
-    except ImagingError as e:
-        warnings.warn(f"ignoring the cache: {e}", stacklevel=3)
+    table = read_cache(cache, TABLE_VERSION)
+    if table is None:
         return {}
     return {p: table.for_photo(p) for p in table.photos()}
 
@@ -501,6 +653,7 @@ def measure_photos(
     preview_dir: str | Path | None = None,
     progress: bool = False,
     max_workers: int | None = None,
+    raise_on_failure: bool = True,
 ) -> MeasurementTable:
     """Measure a set of photos: the measurement table, one row per photo x ROI x channel.
 
@@ -520,14 +673,19 @@ def measure_photos(
         max_workers: worker processes; default min(2, CPU count, photos to decode). With 1,
             photos are measured in this process. Each worker holds one photo at a time, so
             memory stays bounded by a few photos.
+        raise_on_failure: False returns the rows of the photos that succeeded, with the
+            failures in the table's `failed` ((photo, one-line reason) pairs), instead of
+            raising (`stairfit measure` reports them).
 
     Returns:
         The table, rows in the order of `specs`.
 
     Raises:
-        ImagingError: one or more photos failed; the message, one line, lists each (photo,
-            wedge, fix), photos that failed alike together. Rows of the photos that succeeded
-            are written to the cache first.
+        PhotosFailedError: one or more photos failed (an ImagingError; `failed_photos` names them);
+            the message, one line, lists each (photo, wedge, fix), photos that failed alike
+            together. Rows of the photos that succeeded are written to the cache first, and the
+            failed photos' previews (with `preview_dir`) show the markers found, their pixel
+            ROIs and a pixel grid.
     """
     settings = settings or ExtractionSettings()
     names = [s.name for s in specs]
@@ -576,32 +734,59 @@ def measure_photos(
                     ): spec
                     for spec in todo
                 }
-                for fut in as_completed(futures):
-                    spec = futures[fut]
-                    try:
-                        done[spec.name] = fut.result()
-                    except ImagingError as e:
-                        errors[spec.name] = str(e)
-                    except BrokenProcessPool as e:
-                        raise ImagingError(
-                            f"photo {spec.name!r}: a worker process died ({e}); it may have run "
-                            "out of memory, or measure_photos was called while a script was "
-                            "being imported (put the call under `if __name__ == '__main__':`). "
-                            "Retry with max_workers=1"
-                        ) from e
-                    bar.update(1)
+                try:
+                    _collect(futures, done, errors, bar)
+                except BaseException:  # an interruption: do not start the photos still queued
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    raise
     finally:
         bar.close()
     table = MeasurementTable(tuple(r for s in specs if s.name in done for r in done[s.name]))
-    if cache_path is not None:
-        table.write_csv(cache_path)
-        _prune_preview_cache(preview_cache_dir(cache_path), table)
-    if errors:
-        raise ImagingError(
-            f"{len(errors)} of {len(specs)} photos could not be measured: "
-            + _summarise_failures([(n, errors[n]) for n in names if n in errors])
+    if cache_path is not None and write_cache(cache_path, table, TABLE_VERSION):
+        keep = {cached_preview_name(r.photo_sha256, r.settings_key) for r in table.rows}
+        prune_previews(preview_cache_dir(cache_path), keep)
+    same_bytes_warnings(table)
+    low_signal_warnings(table)
+    return _with_failures(table, [(n, errors[n]) for n in names if n in errors], raise_on_failure)
+
+
+def _with_failures(
+    table: MeasurementTable, failures: list[tuple[str, str]], raise_on_failure: bool
+) -> MeasurementTable:
+    """`measure_photos`'s result: the table, or a `PhotosFailedError` listing the failures (one
+    line), or with `raise_on_failure=False` the table with the failures in `failed`."""
+    if failures and raise_on_failure:
+        raise PhotosFailedError(
+            f"{len(failures)} of {len(table.photos()) + len(failures)} photos could not be "
+            f"measured: {_summarise_failures(failures)}",
+            tuple(n for n, _ in failures),
         )
-    return table
+    if not failures:
+        return table
+    return MeasurementTable(table.rows, tuple((n, " ".join(m.split())) for n, m in failures))
+
+
+def _collect(
+    futures: dict[Future, PhotoSpec],
+    done: dict[str, tuple[MeasurementRow, ...]],
+    errors: dict[str, str],
+    bar: tqdm,
+) -> None:
+    """Gather the worker processes' results into `done` and `errors` as they complete."""
+    for fut in as_completed(futures):
+        spec = futures[fut]
+        try:
+            done[spec.name] = fut.result()
+        except ImagingError as e:
+            errors[spec.name] = str(e)
+        except BrokenProcessPool as e:
+            raise ImagingError(
+                f"photo {spec.name!r}: a worker process died ({e}); it may have run "
+                "out of memory, or measure_photos was called while a script was "
+                "being imported (put the call under `if __name__ == '__main__':`). "
+                "Retry with max_workers=1"
+            ) from e
+        bar.update(1)
 
 
 def _summarise_failures(failures: Sequence[tuple[str, str]]) -> str:
