@@ -10,6 +10,7 @@ end runs it at fewer ROIs per cell.
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -162,47 +163,50 @@ def _measure(cell: rf.Cell, n_rois: int, seed: int) -> dict[str, np.ndarray]:
 
 
 def test_white_noise_in_small_rois_gives_unit_pulls() -> None:
-    """35-block ROIs of shot + read noise: pull sd in [0.94, 1.06].
+    """35-block ROIs of shot + read noise: pull sd in [0.93, 1.07].
 
-    500 ROIs x 3 independent channels = 1500 pulls, so the sd is known to ~0.019 (1 sigma).
-    The old estimator's variance was x0.81 here (pull sd >= 1.11): it would pass with
-    probability below 1% (z = -2.5); a calibrated one fails with probability ~0.1%.
+    300 ROIs x 3 independent channels = 900 pulls, so the sd is known to ~0.024 (1 sigma); the
+    bounds are ~3 of those (a calibrated estimator fails with probability ~0.3%). The old
+    estimator's variance was x0.81 here (pull sd >= 1.11): it would pass with probability
+    ~5% (z = -1.7); its bias itself is caught exactly by the moment test above. The slow grid
+    test runs this cell with more ROIs.
     """
-    res = _measure(rf.Cell("none", 0.0, 35, False), 500, seed=4)
+    res = _measure(rf.Cell("none", 0.0, 35, False), 300, seed=4)
     assert not res["flagged"].any()
-    assert 0.94 <= np.std(res["total"], ddof=1) <= 1.06
+    assert 0.93 <= np.std(res["total"], ddof=1) <= 1.07
     assert abs(np.mean(res["total"])) < 0.1
 
 
 @pytest.fixture(scope="module")
 def textured() -> dict[str, np.ndarray]:
-    """300 ROIs of 200 blocks, 3% multiplicative texture correlated over 4 px, graded light."""
-    return _measure(rf.Cell("mult", 4.0, 200, True), 300, seed=5)
+    """200 ROIs of 200 blocks, 3% multiplicative texture correlated over 4 px, graded light."""
+    return _measure(rf.Cell("mult", 4.0, 200, True), 200, seed=5)
 
 
 def test_texture_correlated_across_blocks_is_covered(textured: dict[str, np.ndarray]) -> None:
-    """Pulls against the untextured truth: sd in [0.87, 1.13] over the unflagged ROIs.
+    """Pulls against the untextured truth: sd in [0.83, 1.17] over the unflagged ROIs.
 
-    The three channels share one texture, so ~250 unflagged ROIs give ~250 independent pulls:
-    the sd is known to ~0.045 (1 sigma); the bounds are ~3 of those. The old estimator's pull
-    sd here was 1.22 (it would pass with probability ~5%).
+    The three channels share one texture, so ~150 unflagged ROIs give ~150 independent pulls:
+    the sd is known to ~0.057 (1 sigma); the bounds are ~3 of those. The old estimator's pull
+    sd here was 1.22 (it would pass with probability ~20%: this cheap test guards against
+    gross errors; the slow grid test and the benchmark's 1000 ROIs per cell hold [0.9, 1.1]).
     """
     ok = ~textured["flagged"]
     assert 0.6 < ok.mean() < 1.0  # some ROIs are too small for this texture (24% of rows)
     pulls = textured["total"][ok]
-    assert 0.87 <= np.std(pulls, ddof=1) <= 1.13
+    assert 0.83 <= np.std(pulls, ddof=1) <= 1.17
     assert abs(np.mean(pulls)) < 0.2
 
 
 def test_noise_part_is_the_photo_to_photo_scatter(textured: dict[str, np.ndarray]) -> None:
     """stderr_noise against the noise-free mean of the same textured surface: unit pulls.
 
-    The noise pulls of the three channels are independent: ~750 pulls, sd known to ~0.026;
-    the bounds are ~3.5 of those (from below, 0.1 more: the neighbour-difference estimate
+    The noise pulls of the three channels are independent: ~450 pulls, sd known to ~0.033;
+    the bounds are ~3.5 of those (from below, 0.09 more: the neighbour-difference estimate
     counts a little texture as noise, 2-3% of its variance at this correlation length).
     """
     pulls = textured["noise"][~textured["flagged"]]
-    assert 0.82 <= np.std(pulls, ddof=1) <= 1.09
+    assert 0.79 <= np.std(pulls, ddof=1) <= 1.12
 
 
 def test_channel_correlation_matches_the_joint_scatter(textured: dict[str, np.ndarray]) -> None:
@@ -234,6 +238,32 @@ def test_rois_too_small_for_their_texture_are_flagged() -> None:
     assert coarse["flagged"].mean() > 0.95
     white = _measure(rf.Cell("none", 0.0, 20, False), 60, seed=8)
     assert white["flagged"].mean() < 0.05
+
+
+# --- the table: caches written before these columns are stale --------------------------------
+
+NEW_COLUMNS = ("stderr_noise", "stderr_dof", "block_px", "corr_rg", "corr_rb", "corr_gb")
+
+
+def test_a_cache_written_by_table_version_4_is_measured_again(tmp_path) -> None:
+    """A verified cache of the previous table (version 4, without the error columns) is stale.
+
+    Its checksum is valid for version 4, so only the version decides: the cache is ignored with
+    one warning naming both versions, and every photo is measured again.
+    """
+    from stairfit.imaging._cache import read_cache, table_digest
+    from stairfit.imaging._pipeline import TABLE_VERSION
+    from stairfit.imaging._table import COLUMNS
+
+    assert set(NEW_COLUMNS) <= set(COLUMNS)
+    cache = tmp_path / "measurements.csv"
+    old = ",".join(c for c in COLUMNS if c not in NEW_COLUMNS) + "\n"
+    cache.write_bytes(old.encode())
+    check = {"table_version": 4, "sha256": table_digest(old.encode(), 4)}
+    (tmp_path / "measurements.checksum.json").write_text(json.dumps(check))
+    assert TABLE_VERSION > 4
+    with pytest.warns(imaging.ImagingWarning, match="version 4, this stairfit writes version"):
+        assert read_cache(cache, TABLE_VERSION) is None
 
 
 @pytest.mark.slow
