@@ -42,11 +42,13 @@ from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import Polygon, RoiMask, as_polygon, roi_mask
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 4
+TABLE_VERSION = 5
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
 4: rows flagged below_black carry NaN (were negative values).
+5: standard errors from the 1-dependent block covariance at a block size chosen from the data;
+   the stderr_noise, stderr_dof, block_px, corr_rg, corr_rb and corr_gb columns (issue 13).
 """
 
 
@@ -229,7 +231,7 @@ def _flags(s: ChannelStats, settings: ExtractionSettings) -> list[str]:
         flags.append("no_pixels")
     elif s.saturated_fraction > settings.max_saturated_fraction or s.n_pixels == 0:
         flags.append("saturated")
-    if s.n_pixels > 0 and s.n_blocks < settings.min_blocks:
+    if s.n_pixels > 0 and not s.dof >= settings.min_blocks:  # also when dof is NaN
         flags.append("few_blocks")
     if s.mean_dn < -5 * s.stderr_dn:
         # E[raw - black] >= 0 with a correct black level; 5 sigma below is a wrong black level
@@ -237,11 +239,26 @@ def _flags(s: ChannelStats, settings: ExtractionSettings) -> list[str]:
     return flags
 
 
-def _radiance(s: ChannelStats, scale: float, flags: list[str]) -> tuple[float, float]:
-    """(value, stderr) in relative radiance; NaN when below black (never a negative value)."""
-    if "below_black" in flags:
-        return math.nan, math.nan
-    return s.mean_dn * scale, s.stderr_dn * scale
+def _scaled(
+    s: ChannelStats, r: ChannelStats | None, scale: float, below_black: bool
+) -> tuple[float, float, float, float]:
+    """A row's value, stderr, stderr_noise and dof: exposure-scaled, or the ratio to `r`.
+
+    The ROIs do not overlap, so the ratio's error adds the two relative errors in quadrature;
+    its dof is the smaller of the two (docs/imaging.md §Reference patch). NaN below black
+    (never a negative value) and for a reference mean <= 0.
+    """
+    if below_black or (r is not None and not r.mean_dn > 0):
+        return math.nan, math.nan, math.nan, s.dof
+    if r is None:
+        return s.mean_dn * scale, s.stderr_dn * scale, s.stderr_noise_dn * scale, s.dof
+    ratio = s.mean_dn / r.mean_dn
+
+    def err(se: float, se_ref: float) -> float:
+        return math.hypot(se / r.mean_dn, ratio * se_ref / r.mean_dn)
+
+    noise = err(s.stderr_noise_dn, r.stderr_noise_dn)
+    return ratio, err(s.stderr_dn, r.stderr_dn), noise, min(s.dof, r.dof)
 
 
 def measure_frame(
@@ -286,21 +303,14 @@ def measure_frame(
         by_marker = roi.source == "markers" and placement is not None
         for c, s in enumerate(stats[n]):
             flags = _flags(s, settings)
-            value, stderr = _radiance(s, exposure.scale, flags)
-            normalised_by = ""
+            normalised_by, r = "", None
             if ref is not None and ref_flags is not None and n != spec.reference:
                 r = ref[c]
                 normalised_by = spec.reference or ""
                 flags += [f"reference-{f}" for f in ref_flags[c]]
-                if "below_black" in flags:
-                    pass  # no ratio of a value below black: NaN, flagged
-                elif r.mean_dn > 0:
-                    ratio = s.mean_dn / r.mean_dn
-                    stderr = math.hypot(s.stderr_dn / r.mean_dn, ratio * r.stderr_dn / r.mean_dn)
-                    value = ratio
-                else:
+                if "below_black" not in flags and not r.mean_dn > 0:
                     flags.append("reference-nonpositive")
-                    value = stderr = math.nan
+            value, stderr, noise, dof = _scaled(s, r, exposure.scale, "below_black" in flags)
             rows.append(
                 MeasurementRow(
                     photo=photo,
@@ -314,6 +324,12 @@ def measure_frame(
                     n_blocks=s.n_blocks,
                     saturated_fraction=float(s.saturated_fraction),
                     channel_corr=float(s.channel_corr),
+                    stderr_noise=float(noise),
+                    stderr_dof=float(dof),
+                    block_px=int(s.block_px),
+                    corr_rg=float(s.channel_corrs[0]),
+                    corr_rb=float(s.channel_corrs[1]),
+                    corr_gb=float(s.channel_corrs[2]),
                     flag=";".join(flags),
                     normalised_by=normalised_by,
                     exposure_time_s=exposure.exposure_time_s,
