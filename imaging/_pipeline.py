@@ -23,10 +23,12 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from ._calibration import Calibration, CalibrationSpec, build_calibration, combined_sha256
 from ._decode import CHANNELS, RawFrame, decode_raw, file_sha256
 from ._errors import ImagingError
 from ._exposure import Exposure, resolve_exposure
 from ._extract import ChannelStats, ExtractionSettings, roi_channel_stats
+from ._hdr import BracketMember, Radiometry, prepare_radiometry
 from ._io import atomic_write_bytes
 from ._markers import MarkerDetection, MarkerLayout, Placement, detect_markers, fit_placement
 from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
@@ -65,6 +67,10 @@ class PhotoSpec:
         markers: the marker layout, needed when some name is only in `faces_mm`.
         reference: the name (in `rois` or `faces_mm`) of a reference patch: every other ROI's
             value is divided by the reference's value in the same photo and channel.
+        bracket: further exposures of the same view (an HDR bracket; `path` is the first and
+            the reference: values are expressed at its exposure). docs/imaging.md §HDR brackets.
+        calibration: flat-field photos and dark frames to correct with (docs/imaging.md §Flat
+            fields and dark frames), or None.
     """
 
     path: Path
@@ -76,9 +82,15 @@ class PhotoSpec:
     faces_mm: tuple[tuple[str, Polygon], ...] = ()
     markers: MarkerLayout | None = None
     reference: str | None = None
+    bracket: tuple[BracketMember, ...] = ()
+    calibration: CalibrationSpec | None = None
 
     def __post_init__(self) -> None:
         path = Path(self.path)
+        object.__setattr__(
+            self, "bracket", tuple(m if isinstance(m, BracketMember) else BracketMember(m)
+                                   for m in self.bracket)
+        )  # fmt: skip
         name = self.name or path.name
         object.__setattr__(self, "path", path)
         object.__setattr__(self, "name", name)
@@ -135,6 +147,12 @@ def cache_key(spec: PhotoSpec, settings: ExtractionSettings) -> str:
         "exposure": [spec.exposure_time_s, spec.f_number, spec.iso],
         "settings": asdict(settings),
     }
+    if spec.bracket:  # added only when used, so that other photos keep their cache keys
+        payload["bracket"] = [
+            [m.path.name, m.exposure_time_s, m.f_number, m.iso] for m in spec.bracket
+        ]
+    if spec.calibration is not None:
+        payload["calibration"] = spec.calibration.key()
     text = json.dumps(payload, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -174,13 +192,18 @@ def _flags(s: ChannelStats, settings: ExtractionSettings) -> list[str]:
 
 
 def measure_frame(
-    frame: RawFrame, spec: PhotoSpec, settings: ExtractionSettings
+    frame: RawFrame,
+    spec: PhotoSpec,
+    settings: ExtractionSettings,
+    radiometry: Radiometry | None = None,
 ) -> FrameMeasurement:
     """Measure every ROI of `spec` in a decoded photo.
 
     Places marker-based ROIs (when there are any), rasterises and erodes every ROI, resolves the
     exposure, computes the per-channel statistics, flags, and the optional reference
-    normalisation.
+    normalisation. With `radiometry` (`prepare_radiometry` of the photo's exposures: dark, flat,
+    bracket), the statistics come from its corrected image, the calibration frames' noise is
+    added to the standard errors, and the markers are found in the exposure that shows them best.
 
     Raises:
         ImagingError: exposure unknown, ROI outside the image or empty after erosion, ROIs
@@ -193,7 +216,11 @@ def measure_frame(
     placed = spec.placed_names()
     if placed:
         assert spec.markers is not None  # checked by PhotoSpec
-        detection = detect_markers(frame, spec.markers.dictionary)
+        detection = (
+            radiometry.detect_markers(spec.markers)
+            if radiometry is not None
+            else detect_markers(frame, spec.markers.dictionary)
+        )
         placement = fit_placement(detection, spec.markers, photo=photo, wedges=placed)
         faces = dict(spec.faces_mm)
         for n in placed:
@@ -211,8 +238,10 @@ def measure_frame(
     }
     _check_overlaps(rois, photo)
     key = cache_key(spec, settings)
-    black = frame.black_level_per_channel()
-    stats = {n: roi_channel_stats(frame, roi, settings) for n, roi in rois.items()}
+    black = frame.black_level_per_channel() if radiometry is None else radiometry.black_per_channel
+    stats_frame = frame if radiometry is None else radiometry.frame
+    stats = {n: roi_channel_stats(stats_frame, roi, settings) for n, roi in rois.items()}
+    common = {n: _common_stderr(radiometry, roi, stats[n]) for n, roi in rois.items()}
     ref = stats[spec.reference] if spec.reference else None
     ref_flags = [_flags(s, settings) for s in ref] if ref else None
     rows = []
@@ -220,7 +249,7 @@ def measure_frame(
         by_marker = roi.source == "markers" and placement is not None
         for c, s in enumerate(stats[n]):
             value = s.mean_dn * exposure.scale
-            stderr = s.stderr_dn * exposure.scale
+            stderr = math.hypot(s.stderr_dn, common[n][c]) * exposure.scale
             flags = _flags(s, settings)
             normalised_by = ""
             if ref is not None and ref_flags is not None and n != spec.reference:
@@ -237,7 +266,7 @@ def measure_frame(
             rows.append(
                 MeasurementRow(
                     photo=photo,
-                    photo_sha256=frame.sha256,
+                    photo_sha256=stats_frame.sha256,
                     settings_key=key,
                     wedge=n,
                     channel=CHANNELS[c],
@@ -258,9 +287,58 @@ def measure_frame(
                     reprojection_error_px=placement.rms_error_px if by_marker else None,  # type: ignore[union-attr]
                     n_markers=len(placement.ids) if by_marker else None,  # type: ignore[union-attr]
                     camera=frame.camera,
+                    radiometry=radiometry.description if radiometry is not None else "",
                 )
             )
     return FrameMeasurement(tuple(rows), rois, exposure, detection, placement)
+
+
+def _common_stderr(
+    radiometry: Radiometry | None, roi: RoiMask, stats: Sequence[ChannelStats]
+) -> tuple[float, float, float]:
+    """The calibration frames' part of an ROI's standard errors (DN), zero without them."""
+    if radiometry is None:
+        return (0.0, 0.0, 0.0)
+    return radiometry.common_stderr_dn(roi, stats)
+
+
+def decode_view(spec: PhotoSpec) -> tuple[RawFrame, ...]:
+    """Decode a photo's file and its bracket members (the reference first)."""
+    first = decode_raw(spec.path, spec.name)
+    return (first, *(decode_raw(m.path, m.path.name) for m in spec.bracket))
+
+
+def view_radiometry(
+    frames: Sequence[RawFrame],
+    spec: PhotoSpec,
+    settings: ExtractionSettings,
+    calibration: Calibration | None,
+) -> Radiometry | None:
+    """`prepare_radiometry` of a decoded view, or None when it is one uncalibrated file."""
+    if len(frames) == 1 and calibration is None:
+        return None
+    exposures = [resolve_exposure(frames[0], spec.exposure_time_s, spec.f_number, spec.iso)]
+    for frame, m in zip(frames[1:], spec.bracket, strict=True):
+        try:
+            exposures.append(resolve_exposure(frame, m.exposure_time_s, m.f_number, m.iso))
+        except ImagingError as e:
+            text = (
+                str(e)
+                .replace(f"photo {frame.name!r}: ", "", 1)
+                .replace(
+                    "this photo's [[photos]] entry",
+                    "this photo's [[photos]] entry (one value per file)",
+                )
+            )
+            raise ImagingError(
+                f"photo {spec.name!r}, bracket file {frame.name!r}: {text}"
+            ) from None
+    return prepare_radiometry(frames, exposures, calibration, settings, spec.name)
+
+
+def photo_digest(spec: PhotoSpec) -> str:
+    """SHA-256 of a photo's file, or the combined digest of a bracket's files (as in the rows)."""
+    return combined_sha256([file_sha256(p) for p in (spec.path, *(m.path for m in spec.bracket))])
 
 
 def measure_photo(
@@ -269,8 +347,9 @@ def measure_photo(
     preview: str | Path | None = None,
     *,
     preview_cache: str | Path | None = None,
+    calibration: Calibration | None = None,
 ) -> tuple[MeasurementRow, ...]:
-    """Decode one photo, measure it, and optionally write its preview PNG.
+    """Decode one photo (all files of a bracket), measure it, and optionally write its preview.
 
     When the measurement fails after decoding, the preview is still written (with the markers
     found, if a layout was given) so that the failure can be looked at; then the error is raised.
@@ -281,9 +360,13 @@ def measure_photo(
         preview_cache: a folder (`preview_cache_dir` of a measurement cache) where a copy of
             the preview of a successful measurement is kept under `cached_preview_name`, so
             that `measure_photos` can reuse it with the cached rows. Only used with `preview`.
+        calibration: the built calibration frames of `spec.calibration` (`build_calibration`);
+            built here when `spec.calibration` is set and this is None.
     """
-    frame = decode_raw(spec.path, spec.name)
-    outcome, write = _measure_decoded(frame, spec, settings, preview, preview_cache)
+    if spec.calibration is not None and calibration is None:
+        calibration = build_calibration(spec.calibration, settings.saturation_level)
+    frames = decode_view(spec)
+    outcome, write = _measure_decoded(frames, spec, settings, preview, preview_cache, calibration)
     if write is not None:
         write()
     if isinstance(outcome, ImagingError):
@@ -295,19 +378,22 @@ _PreviewJob = Callable[[], None]
 
 
 def _measure_decoded(
-    frame: RawFrame,
+    frames: Sequence[RawFrame],
     spec: PhotoSpec,
     settings: ExtractionSettings,
     preview: str | Path | None,
     preview_cache: str | Path | None,
+    calibration: Calibration | None = None,
 ) -> tuple[tuple[MeasurementRow, ...] | ImagingError, _PreviewJob | None]:
     """`measure_photo` of a decoded photo, the preview left to the caller: (rows or error, job).
 
-    The job (None without `preview`) renders the preview and writes it (and its cached copy
-    after a success); it holds the frame until it has run.
+    The job (None without `preview`) renders the preview (of the reference exposure) and writes
+    it (and its cached copy after a success); it holds the frame until it has run.
     """
+    frame = frames[0]
     try:
-        result = measure_frame(frame, spec, settings)
+        radiometry = view_radiometry(frames, spec, settings, calibration)
+        result = measure_frame(frame, spec, settings, radiometry)
     except ImagingError as e:
         if preview is None:
             raise
@@ -317,7 +403,7 @@ def _measure_decoded(
         return result.rows, None
     paths = [Path(preview)]
     if preview_cache is not None:
-        name = cached_preview_name(frame.sha256, cache_key(spec, settings))
+        name = cached_preview_name(result.rows[0].photo_sha256, cache_key(spec, settings))
         paths.append(Path(preview_cache) / name)
     job = partial(_write_previews, frame, result.rois, result.detection, settings, paths)
     return result.rows, job
@@ -343,6 +429,7 @@ def _measure_in_process(
     pdir: Path | None,
     pcache: Path | None,
     bar: tqdm,
+    calibrations: Mapping[CalibrationSpec, Calibration],
 ) -> tuple[dict[str, tuple[MeasurementRow, ...]], dict[str, str]]:
     """Measure photos one after the other in this process: (rows by photo, errors by photo).
 
@@ -367,17 +454,18 @@ def _measure_in_process(
         ThreadPoolExecutor(max_workers=1, thread_name_prefix="stairfit-decode") as reader,
         ThreadPoolExecutor(max_workers=1, thread_name_prefix="stairfit-preview") as writer,
     ):
-        upcoming = [reader.submit(decode_raw, todo[0].path, todo[0].name)] if todo else []
+        upcoming = [reader.submit(decode_view, todo[0])] if todo else []
         for k, spec in enumerate(todo):
             if k + 1 < len(todo):
-                upcoming.append(reader.submit(decode_raw, todo[k + 1].path, todo[k + 1].name))
+                upcoming.append(reader.submit(decode_view, todo[k + 1]))
             pv = preview_path(pdir, spec) if pdir else None
+            calib = calibrations.get(spec.calibration) if spec.calibration else None
             try:
-                frame = upcoming.pop(0).result()
-                outcome, job = _measure_decoded(frame, spec, settings, pv, pcache)
+                frames = upcoming.pop(0).result()
+                outcome, job = _measure_decoded(frames, spec, settings, pv, pcache, calib)
             except ImagingError as e:
                 outcome, job = e, None
-            frame = None  # the preview job holds it if it needs it
+            frames = None  # the preview job holds the reference frame if it needs it
             if isinstance(outcome, ImagingError):
                 errors[spec.name] = str(outcome)
             else:
@@ -466,7 +554,7 @@ def _cached_rows(
     key = cache_key(spec, settings)
     if any(r.settings_key != key for r in rows):
         return None
-    sha = file_sha256(spec.path)
+    sha = photo_digest(spec)
     if any(r.photo_sha256 != sha for r in rows):
         return None
     return rows
@@ -537,8 +625,11 @@ def measure_photos(
     workers = max_workers or min(2, os.cpu_count() or 1)
     workers = max(1, min(workers, len(todo)))
     try:
+        calibrations = _build_calibrations(todo, settings)
         if workers == 1:
-            serial_done, serial_errors = _measure_in_process(todo, settings, pdir, pcache, bar)
+            serial_done, serial_errors = _measure_in_process(
+                todo, settings, pdir, pcache, bar, calibrations
+            )
             done |= serial_done
             errors |= serial_errors
         else:
@@ -552,6 +643,9 @@ def measure_photos(
                         settings,
                         preview_path(pdir, spec) if pdir else None,
                         preview_cache=pcache,
+                        calibration=calibrations.get(spec.calibration)
+                        if spec.calibration
+                        else None,
                     ): spec
                     for spec in todo
                 }
@@ -581,6 +675,18 @@ def measure_photos(
             + _summarise_failures([(n, errors[n]) for n in names if n in errors])
         )
     return table
+
+
+def _build_calibrations(
+    todo: Sequence[PhotoSpec], settings: ExtractionSettings
+) -> dict[CalibrationSpec, Calibration]:
+    """The calibration frames the photos to decode need, each set built once.
+
+    Raises:
+        ImagingError: a calibration frame is unusable (one line naming it; no photo measured).
+    """
+    specs = dict.fromkeys(s.calibration for s in todo if s.calibration is not None)
+    return {c: build_calibration(c, settings.saturation_level) for c in specs}
 
 
 def _summarise_failures(failures: Sequence[tuple[str, str]]) -> str:

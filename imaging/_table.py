@@ -47,6 +47,8 @@ class MeasurementRow:
         reprojection_error_px: RMS marker reprojection error (px) for marker-placed ROIs.
         n_markers: markers used for the placement, for marker-placed ROIs.
         camera: camera make and model from EXIF ("" when absent).
+        radiometry: the corrections applied, e.g. "dark(8)+flat(2)+bracket(3)" ("" for none:
+            the black level subtracted, no flat field, one file); docs/imaging.md.
     """
 
     photo: str
@@ -71,6 +73,7 @@ class MeasurementRow:
     reprojection_error_px: float | None
     n_markers: int | None
     camera: str
+    radiometry: str = ""
 
 
 COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(MeasurementRow))
