@@ -150,14 +150,16 @@ def run(args: argparse.Namespace) -> int:
 
 
 def check_photos(scene: Scene) -> None:
-    """Every listed photo exists (a one-line error names the missing one)."""
-    for k, photo in enumerate(scene.photos):
-        path = scene.folder / photo.file
+    """Every listed file (photos, bracket members, calibration frames) exists; a one-line error
+    names the missing one."""
+    for where, name, path in scene.input_fields():
         if not path.is_file():
-            raise UserError(
-                f"{scene.path}: photos[{k}].file: {photo.file!r} is not in {scene.folder}; fix "
-                "the name or remove the [[photos]] entry"
+            fix = (
+                "fix the name or remove the [[photos]] entry"
+                if where.endswith(".file")
+                else "fix the name or remove it from the list"
             )
+            raise UserError(f"{scene.path}: {where}: {name!r} is not in {scene.folder}; {fix}")
 
 
 @dataclass
@@ -231,6 +233,7 @@ def photo_specs(scene: Scene) -> list[Any]:
             scene.markers.dictionary,
             scene.markers.min_markers,
         )
+    calibration = calibration_spec(scene)
     specs = []
     for photo in scene.photos:
         per_photo = dict(photo.roi_px)
@@ -263,9 +266,38 @@ def photo_specs(scene: Scene) -> list[Any]:
                 faces_mm=tuple(faces.items()),
                 markers=layout if faces else None,
                 reference=reference,
+                bracket=tuple(
+                    imaging.BracketMember(
+                        scene.folder / b.file, b.exposure_time_s, b.f_number, b.iso
+                    )
+                    for b in photo.bracket
+                ),
+                calibration=calibration,
             )
         )
     return specs
+
+
+def calibration_spec(scene: Scene) -> Any:
+    """The scene's `[calibration]` frames as an `imaging.CalibrationSpec` (None without any).
+
+    Reads each file's SHA-256 (the cache key depends on the frames' contents).
+    """
+    from stairfit import imaging
+
+    c = scene.calibration
+    if c is None:
+        return None
+    folder = scene.folder
+    return imaging.calibration_spec(
+        flat_field=[
+            (f"calibration.flat_field[{j}]", folder / f) for j, f in enumerate(c.flat_field)
+        ],
+        dark_frames=[
+            (f"calibration.dark_frames[{j}]", folder / f) for j, f in enumerate(c.dark_frames)
+        ],
+        flat_degree=c.flat_degree,
+    )
 
 
 def measure(scene: Scene, out: Path, options: FitOptions) -> Any:

@@ -115,8 +115,23 @@ class Reference:
 
 
 @dataclass(frozen=True)
+class BracketFile:
+    """A further exposure of a photo's view (an HDR bracket), with its own exposure overrides."""
+
+    file: str
+    exposure_time_s: float | None = None
+    f_number: float | None = None
+    iso: float | None = None
+
+
+@dataclass(frozen=True)
 class Photo:
-    """One photograph: its file, geometry and optional overrides."""
+    """One photograph: its file, geometry and optional overrides.
+
+    `file` is the photo's (first) file and its name in the results; an HDR bracket (`file` a
+    list in the scene file) has its further exposures in `bracket`. The overrides here are the
+    first file's.
+    """
 
     file: str
     light_deg: float
@@ -125,6 +140,21 @@ class Photo:
     f_number: float | None = None
     iso: float | None = None
     roi_px: tuple[tuple[str, Polygon], ...] = ()
+    bracket: tuple[BracketFile, ...] = ()
+
+    @property
+    def files(self) -> tuple[str, ...]:
+        """Every file of this view: the photo's file, then the bracket's further exposures."""
+        return (self.file, *(b.file for b in self.bracket))
+
+
+@dataclass(frozen=True)
+class CalibrationFrames:
+    """Flat-field photos and dark frames (file names in the scene's folder); docs/scene.md."""
+
+    flat_field: tuple[str, ...] = ()
+    dark_frames: tuple[str, ...] = ()
+    flat_degree: int = 8
 
 
 @dataclass(frozen=True)
@@ -150,11 +180,35 @@ class Scene:
     markers: Markers | None = None
     reference: Reference | None = None
     extraction: Extraction = field(default_factory=Extraction)
+    calibration: CalibrationFrames | None = None
 
     @property
     def folder(self) -> Path:
         """The photo folder (the scene file's folder)."""
         return self.path.parent
+
+    def input_fields(self) -> tuple[tuple[str, str, Path], ...]:
+        """Every file the scene reads: (scene field, name as written, absolute resolved path).
+
+        Photos and their bracket members (`photos[k].file`, `photos[k].file[j]`), then the
+        calibration frames (`calibration.flat_field[j]`, `calibration.dark_frames[j]`).
+        """
+        out = []
+        for k, photo in enumerate(self.photos):
+            if not photo.bracket:
+                out.append((f"photos[{k}].file", photo.file))
+            else:
+                out += [(f"photos[{k}].file[{j}]", f) for j, f in enumerate(photo.files)]
+        if self.calibration is not None:
+            c = self.calibration
+            out += [(f"calibration.flat_field[{j}]", f) for j, f in enumerate(c.flat_field)]
+            out += [(f"calibration.dark_frames[{j}]", f) for j, f in enumerate(c.dark_frames)]
+        return tuple((where, name, (self.folder / name).resolve()) for where, name in out)
+
+    def input_files(self) -> tuple[Path, ...]:
+        """Every file the scene reads (photos, bracket members, flat fields, dark frames),
+        as absolute resolved paths."""
+        return tuple(path for _, _, path in self.input_fields())
 
     def face_angles_deg(self, photo: Photo, wedge: Wedge) -> tuple[float, float]:
         """(theta_i, theta_o) of this photo in this wedge's face frame, degrees.
@@ -217,6 +271,7 @@ def parse_scene(raw: dict[str, Any], path: Path) -> Scene:
             "markers",
             "reference",
             "extraction",
+            "calibration",
         ],
     )
     version = r.get(top, "version", int, "", default=SCENE_VERSION)
@@ -232,7 +287,12 @@ def parse_scene(raw: dict[str, Any], path: Path) -> Scene:
     reference = _reference(r, top["reference"], "reference") if "reference" in top else None
     extraction = _extraction(r, r.opt_table(top, "extraction", ""))
     photos = _photos(r, top, specimen)
-    scene = Scene(path, relative, specimen, light, camera, photos, markers, reference, extraction)
+    calibration = _calibration(r, top["calibration"]) if "calibration" in top else None
+    scene = Scene(
+        path, relative, specimen, light, camera, photos, markers, reference, extraction,
+        calibration,
+    )  # fmt: skip
+    _check_files_unique(r, scene)
     _check_geometry(r, scene)
     _check_rois(r, scene)
     return scene
@@ -493,24 +553,81 @@ def _photos(r: _Reader, top: dict[str, Any], specimen: Specimen) -> tuple[Photo,
                 )
                 r.fail(f"{w}.roi_px.{name}", f"no such wedge; {hint}")
             roi_items.append((name, r.polygon(rois, name, f"{w}.roi_px")))
+        files = _file_list(r, p, "file", w)
+        overrides = _exposure_overrides(r, p, w, len(files))
         photos.append(
             Photo(
-                file=r.get(p, "file", str, w),
+                file=files[0],
                 light_deg=r.get(p, "light_deg", float, w, lo=-90, hi=90),
                 view_deg=r.get(p, "view_deg", float, w, lo=-90, hi=90),
-                exposure_time_s=r.get(
-                    p, "exposure_time_s", float, w, default=None, lo=1e-6, hi=3600
-                ),
-                f_number=r.get(p, "f_number", float, w, default=None, lo=0.5, hi=256),
-                iso=r.get(p, "iso", float, w, default=None, lo=1, hi=1e7),
+                exposure_time_s=overrides[0][0],
+                f_number=overrides[0][1],
+                iso=overrides[0][2],
                 roi_px=tuple(roi_items),
+                bracket=tuple(
+                    BracketFile(f, *o) for f, o in zip(files[1:], overrides[1:], strict=True)
+                ),
             )
         )
-    files = [p.file for p in photos]
-    dup = {f for f in files if files.count(f) > 1}
-    if dup:
-        r.fail("photos", f"file(s) listed twice: {sorted(dup)}")
     return tuple(photos)
+
+
+_OVERRIDES = (("exposure_time_s", 1e-6, 3600.0), ("f_number", 0.5, 256.0), ("iso", 1.0, 1e7))
+
+
+def _file_list(r: _Reader, d: dict[str, Any], key: str, where: str) -> tuple[str, ...]:
+    """A file name, or a non-empty list of them (an HDR bracket of one view)."""
+    name = _join(where, key)
+    if key not in d:
+        r.fail(name, f'missing; add {key} = "IMG_0001.dng" (or a list of files for a bracket)')
+    v = d[key]
+    items = v if isinstance(v, list) else [v]
+    if not items or not all(isinstance(x, str) and x.strip() for x in items):
+        r.fail(
+            name, f'must be a file name or a list of file names, e.g. ["a.dng", "b.dng"], not {v!r}'
+        )
+    return tuple(items)
+
+
+def _exposure_overrides(
+    r: _Reader, d: dict[str, Any], where: str, n_files: int
+) -> list[tuple[float | None, float | None, float | None]]:
+    """Per file (exposure_time_s, f_number, iso) overrides: a number applies to every file of
+    a bracket, a list gives one value per file."""
+    per_key = []
+    for key, lo, hi in _OVERRIDES:
+        v = d.get(key)
+        if isinstance(v, list):
+            if len(v) != n_files:
+                r.fail(
+                    _join(where, key),
+                    f"lists {len(v)} values for {n_files} files; give one per file in 'file'",
+                )
+            vals = [r.get({key: x}, key, float, where, lo=lo, hi=hi) for x in v]
+        else:
+            vals = [r.get(d, key, float, where, default=None, lo=lo, hi=hi)] * n_files
+        per_key.append(vals)
+    return list(zip(*per_key, strict=True))
+
+
+def _calibration(r: _Reader, d: Any) -> CalibrationFrames:
+    w = "calibration"
+    r.table(d, w, ["flat_field", "dark_frames", "flat_degree"])
+    flat = _file_list(r, d, "flat_field", w) if "flat_field" in d else ()
+    dark = _file_list(r, d, "dark_frames", w) if "dark_frames" in d else ()
+    if not flat and not dark:
+        r.fail(w, "give flat_field (flat-field photos) and/or dark_frames (see docs/scene.md)")
+    degree = r.get(d, "flat_degree", int, w, default=8, lo=2, hi=16)
+    return CalibrationFrames(flat, dark, degree)
+
+
+def _check_files_unique(r: _Reader, scene: Scene) -> None:
+    """No file is listed twice (as two photos, twice in a bracket, or as photo and calibration)."""
+    seen: dict[Path, str] = {}
+    for where, name, path in scene.input_fields():
+        if path in seen:
+            r.fail(where, f"{name!r} is listed twice (also as {seen[path]}); list every file once")
+        seen[path] = where
 
 
 VISIBILITY_LIMIT_DEG = 89.0
