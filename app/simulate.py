@@ -44,6 +44,32 @@ class Truth:
 
 
 @dataclass(frozen=True)
+class SessionEffects:
+    """The real-world effects a synthetic session can have (`stairfit simulate` options).
+
+    Attributes:
+        vignetting: the lens's fall-off in the image corners (0.15: 15% darker), cos^4 law.
+        flat_frames: flat-field photos to write (a uniform target, same lens) and declare in
+            `[calibration] flat_field`; 0 for none (then vignetting stays uncorrected).
+        dark_frames: dark frames to write and declare in `[calibration] dark_frames`.
+        black_error_dn: the sensor's true dark level above the black level its files declare
+            (DN); only dark frames measure it.
+        bracket: exposures per view (an HDR bracket, each 4 times the previous; the shortest is
+            the reference, listed first).
+        fixed_exposure: one exposure (or bracket) for every view, set by the brightest face of
+            the whole session, as a real session would use; otherwise each view is exposed for
+            its own brightest face.
+    """
+
+    vignetting: float = 0.0
+    flat_frames: int = 0
+    dark_frames: int = 0
+    black_error_dn: float = 0.0
+    bracket: int = 1
+    fixed_exposure: bool = False
+
+
+@dataclass(frozen=True)
 class SimulationSettings:
     """Everything about a synthetic scene other than the physics."""
 
@@ -60,6 +86,7 @@ class SimulationSettings:
     seed: int = 1
     workers: int = 1
     truth: Truth = field(default_factory=Truth)
+    effects: SessionEffects = field(default_factory=SessionEffects)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -100,6 +127,58 @@ def add_truth_options(p: argparse.ArgumentParser, seed_and_workers: bool = True)
     if seed_and_workers:
         p.add_argument("--seed", type=int, default=s.seed, help="seed of texture and noise")
         p.add_argument("--workers", type=int, default=s.workers, help="processes for rendering")
+    add_effect_options(p)
+
+
+def add_effect_options(p: argparse.ArgumentParser) -> None:
+    """Real-world effects of a session (`SessionEffects`), shared by `simulate` and `demo`."""
+    e = SessionEffects()
+    g = p.add_argument_group("real-world effects (docs/imaging.md)")
+    g.add_argument(
+        "--vignetting", type=float, default=e.vignetting,
+        help="lens fall-off in the image corners (0.15 = 15%% darker)",
+    )  # fmt: skip
+    g.add_argument(
+        "--flat-field", type=int, default=e.flat_frames, metavar="N",
+        help="write N flat-field photos and declare them in [calibration]",
+    )  # fmt: skip
+    g.add_argument(
+        "--dark-frames", type=int, default=e.dark_frames, metavar="N",
+        help="write N dark frames and declare them in [calibration]",
+    )  # fmt: skip
+    g.add_argument(
+        "--black-error-dn", type=float, default=e.black_error_dn,
+        help="true dark level above the black level the files declare (DN)",
+    )  # fmt: skip
+    g.add_argument(
+        "--bracket", type=int, default=e.bracket, metavar="N",
+        help="exposures per view (an HDR bracket, 2 stops apart)",
+    )  # fmt: skip
+    g.add_argument(
+        "--fixed-exposure", action="store_true",
+        help="one exposure for every view (set by the brightest face of the session)",
+    )  # fmt: skip
+
+
+def effects_from_args(args: argparse.Namespace) -> SessionEffects:
+    """Validated `SessionEffects` from the command line (user mistakes raise UserError)."""
+    if not (math.isfinite(args.vignetting) and 0.0 <= args.vignetting <= 0.6):
+        raise UserError(f"--vignetting: {args.vignetting} is outside [0, 0.6]")
+    for option in ("flat_field", "dark_frames"):
+        if not 0 <= getattr(args, option) <= 64:
+            raise UserError(f"--{option.replace('_', '-')}: give 0 to 64 frames")
+    if not (math.isfinite(args.black_error_dn) and abs(args.black_error_dn) <= 100):
+        raise UserError(f"--black-error-dn: {args.black_error_dn} is outside [-100, 100] DN")
+    if not 1 <= args.bracket <= 5:
+        raise UserError(f"--bracket: {args.bracket} is outside [1, 5] exposures per view")
+    return SessionEffects(
+        vignetting=args.vignetting,
+        flat_frames=args.flat_field,
+        dark_frames=args.dark_frames,
+        black_error_dn=args.black_error_dn,
+        bracket=args.bracket,
+        fixed_exposure=args.fixed_exposure,
+    )
 
 
 def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
@@ -131,6 +210,7 @@ def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
         seed=args.seed,
         workers=args.workers,
         truth=truth,
+        effects=effects_from_args(args),
     )
     _check_edge_radius(settings)
     return settings
@@ -276,17 +356,22 @@ def _sharp_values(obs: Any, spectral: Any, params: Any, aperture: Any) -> Any:
 
 
 def simulate(folder: Path, settings: SimulationSettings, progress: bool = False) -> dict[str, Any]:
-    """Render every photo into `folder` and write the scene file and the truth."""
+    """Render every photo (and any calibration frames) into `folder`; write scene and truth."""
     import tomli_w
     from tqdm import tqdm
 
     layout = SpecimenLayout(settings.wedges_deg)
     radiance = face_radiance(settings)
     size = image_size(settings.megapixels)
+    exposures = view_exposures(settings, radiance)
     jobs = [
-        _PhotoJob(folder, p, view, size, layout, radiance[p], settings.seed * 1000 + p)
+        _PhotoJob(
+            folder, p, view, size, layout, radiance[p], settings.seed * 1000 + p, exposures[p],
+            settings.effects,
+            float(radiance.max() if settings.effects.fixed_exposure else radiance[p].max()),
+        )
         for p, view in enumerate(settings.views_deg)
-    ]
+    ]  # fmt: skip
     photos: list[dict[str, Any]] = []
     bar = tqdm(total=len(jobs), desc="rendering photos", unit="photo", disable=not progress)
     if settings.workers > 1:
@@ -299,7 +384,8 @@ def simulate(folder: Path, settings: SimulationSettings, progress: bool = False)
             photos.append(_render(job))
             bar.update()
     bar.close()
-    scene = _scene_dict(settings, layout, photos)
+    calibration = write_calibration_frames(folder, settings, size, exposures[0][0])
+    scene = _scene_dict(settings, layout, photos, calibration)
     text = _compact_arrays(tomli_w.dumps(scene))
     (folder / SCENE_FILE).write_text(_SCENE_HEADER + text, encoding="utf-8")
     truth = {
@@ -321,6 +407,74 @@ def simulate(folder: Path, settings: SimulationSettings, progress: bool = False)
     return truth
 
 
+SENSOR_BLACK_DN = 1024
+"""The black level the synthetic camera's files declare."""
+
+
+def _sensor(effects: SessionEffects) -> Any:
+    from stairfit.imaging import synthetic
+
+    return synthetic.SensorModel(
+        bits=14, black_level=SENSOR_BLACK_DN, gain_e_per_dn=1.0, read_noise_dn=2.0,
+        bias_dn=effects.black_error_dn,
+    )  # fmt: skip
+
+
+def view_exposures(settings: SimulationSettings, radiance: np.ndarray) -> list[tuple[Any, ...]]:
+    """Per view, its exposures (one, or a bracket): a photographer's choice.
+
+    The (first, shortest) exposure puts the brightest face of the view (with `fixed_exposure`:
+    of the whole session) at about half of the raw range, at f/5.6 and ISO 100, rounded down to
+    a third of a stop; a bracket adds exposures 4, 16, ... times longer.
+    """
+    from stairfit.imaging import Exposure
+
+    e = settings.effects
+    sensor = _sensor(e)
+    f_number, iso = 5.6, 100.0
+    full = sensor.white - sensor.black_level
+    out = []
+    for p in range(radiance.shape[0]):
+        peak = float(radiance.max() if e.fixed_exposure else radiance[p].max())
+        t = _third_stop(0.5 * full * f_number**2 / (iso / 100.0) / peak)
+        out.append(tuple(Exposure(t * 4.0**k, f_number, iso) for k in range(e.bracket)))
+    return out
+
+
+def write_calibration_frames(
+    folder: Path, settings: SimulationSettings, size: tuple[int, int], exposure: Any
+) -> dict[str, list[str]]:
+    """Write the session's flat-field photos and dark frames; the scene's [calibration] table.
+
+    Flat fields: a uniform target at about half of the raw range seen through the same lens
+    (its vignetting), 0.2% texture. Dark frames: the lens capped, at the first view's exposure.
+    """
+    from stairfit.imaging import synthetic
+
+    e = settings.effects
+    sensor = _sensor(e)
+    table: dict[str, list[str]] = {}
+    half = 0.5 * (sensor.white - sensor.black_level) * exposure.scale
+    for kind, n, level in (
+        ("flat_field", e.flat_frames, half),
+        ("dark_frames", e.dark_frames, 0.0),
+    ):
+        names = []
+        for k in range(n):
+            photo = synthetic.render_photo(
+                size, {}, {}, exposure, background=np.full(3, level), sensor=sensor,
+                texture_amplitude=0.002 if level > 0 else 0.0,
+                vignetting=e.vignetting if level > 0 else 0.0,
+                seed=settings.seed * 1000 + (900 if level > 0 else 950) + k,
+            )  # fmt: skip
+            name = f"{'FLAT' if level > 0 else 'DARK'}_{k + 1:02d}.dng"
+            photo.write_dng(folder / name)
+            names.append(name)
+        if names:
+            table[kind] = names
+    return table
+
+
 @dataclass(frozen=True)
 class _PhotoJob:
     folder: Path
@@ -330,48 +484,49 @@ class _PhotoJob:
     layout: SpecimenLayout
     radiance: np.ndarray  # (n_wedges, 3)
     seed: int
+    exposures: tuple[Any, ...]  # imaging.Exposure, the reference (shortest) first
+    effects: SessionEffects
+    peak: float  # the brightest face the exposure was set for (sets background and markers)
 
 
 def _render(job: _PhotoJob) -> dict[str, Any]:
-    """Render and write one photo; returns its [[photos]] entry for the scene file."""
-    from stairfit.imaging import Exposure, MarkerLayout, synthetic
+    """Render and write one view (every exposure of a bracket); its [[photos]] entry."""
+    from stairfit.imaging import MarkerLayout, synthetic
 
     names = [_wedge_name(b) for b in job.layout.wedges_deg]
     cam = camera_for(job.layout, job.view_deg, *job.size)
     faces = {n: cam.project(job.layout.face_corners_mm(k)).tolist() for k, n in enumerate(names)}
-    sensor = synthetic.SensorModel(bits=14, black_level=1024, gain_e_per_dn=1.0, read_noise_dn=2.0)
-    peak = float(job.radiance.max())
-    # A photographer's exposure: the brightest face at about half of the raw range.
-    f_number, iso = 5.6, 100.0
-    full = sensor.white - sensor.black_level
-    t = 0.5 * full * f_number**2 / (iso / 100.0) / peak
-    t = _third_stop(t)
-    exposure = Exposure(t, f_number, iso)
+    sensor = _sensor(job.effects)
+    peak = job.peak
     markers_mm = dict(job.layout.markers_mm())
     src = np.array([c for m in markers_mm.values() for c in m], float)
     dst = cam.project_base(src)
     import cv2
 
     h, _ = cv2.findHomography(src, dst)
-    background = np.full(3, 0.02 * peak)
-    photo = synthetic.render_photo(
-        job.size,
-        faces,
-        {n: job.radiance[k] for k, n in enumerate(names)},
-        exposure,
-        background=background,
-        sensor=sensor,
-        markers=MarkerLayout({i: c.tolist() for i, c in markers_mm.items()}),
-        plane_to_image=h,
-        marker_white=np.full(3, 0.3 * peak),
-        marker_black=np.full(3, 0.01 * peak),
-        vignetting=0.0,  # as if flat-field corrected: the pipeline does not correct vignetting
-        seed=job.seed,
-    )
-    name = f"IMG_{job.index + 1:04d}.dng"
-    photo.write_dng(job.folder / name)
+    files = []
+    for k, exposure in enumerate(job.exposures):
+        photo = synthetic.render_photo(
+            job.size,
+            faces,
+            {n: job.radiance[k_w] for k_w, n in enumerate(names)},
+            exposure,
+            background=np.full(3, 0.02 * peak),
+            sensor=sensor,
+            markers=MarkerLayout({i: c.tolist() for i, c in markers_mm.items()}),
+            plane_to_image=h,
+            marker_white=np.full(3, 0.3 * peak),
+            marker_black=np.full(3, 0.01 * peak),
+            # the pipeline corrects vignetting only with a flat field (SessionEffects)
+            vignetting=job.effects.vignetting,
+            seed=job.seed if k == 0 else job.seed + 100_000 * k,
+            texture_seed=None if len(job.exposures) == 1 else job.seed,
+        )
+        name = f"IMG_{job.index + 1:04d}.dng" if k == 0 else f"IMG_{job.index + 1:04d}_{k}.dng"
+        photo.write_dng(job.folder / name)
+        files.append(name)
     return {
-        "file": name,
+        "file": files[0] if len(files) == 1 else files,
         "light_deg": None,  # filled in by _scene_dict (same light for every photo)
         "view_deg": round(job.view_deg, 6),
         "roi_px": {n: [[round(x, 2), round(y, 2)] for x, y in faces[n]] for n in names},
@@ -379,7 +534,7 @@ def _render(job: _PhotoJob) -> dict[str, Any]:
 
 
 def _compact_arrays(toml_text: str) -> str:
-    """Put numeric arrays (and arrays of them, e.g. polygons) on one line each.
+    """Put numeric and string arrays (and arrays of them, e.g. polygons) on one line each.
 
     tomli_w writes every element of a nested array on its own line; the document's meaning is
     unchanged (checked by `load_scene` reading it back in the tests).
@@ -387,7 +542,7 @@ def _compact_arrays(toml_text: str) -> str:
     import re
 
     number = r"-?[0-9][0-9_.eE+-]*"
-    flat = re.compile(rf"\[\s*((?:{number},\s*)+)\]")
+    flat = re.compile(rf"\[\s*((?:(?:{number}|\"[^\"\n]*\"),\s*)+)\]")
     nested = re.compile(r"\[\s*((?:\[[^\[\]\n]*\],\s*)+)\]")
 
     def join(m: re.Match[str]) -> str:
@@ -411,7 +566,10 @@ def _wedge_name(beta2_deg: float) -> str:
 
 
 def _scene_dict(
-    s: SimulationSettings, layout: SpecimenLayout, photos: Sequence[dict[str, Any]]
+    s: SimulationSettings,
+    layout: SpecimenLayout,
+    photos: Sequence[dict[str, Any]],
+    calibration: dict[str, list[str]] | None = None,
 ) -> dict[str, Any]:
     wedges = [
         {
@@ -432,6 +590,7 @@ def _scene_dict(
             "marker": [{"id": i, "corners_mm": c.tolist()} for i, c in layout.markers_mm()],
         },
         "photos": [{**p, "light_deg": s.light_deg} for p in photos],
+        **({"calibration": calibration} if calibration else {}),
     }
 
 
