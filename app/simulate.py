@@ -333,6 +333,7 @@ def face_radiance(settings: SimulationSettings) -> np.ndarray:
         0.5 * settings.light_angular_diameter_deg * DEG,
         0.5 * settings.camera_angular_extent_deg * DEG,
         5,
+        foreshortened=True,  # as the fit reads the scene's angular_extent_deg (docs/scene.md)
     )
     if t.edge_radius_um > 0:
         values = fitting.predict(params, obs, spectral, aperture=aperture)

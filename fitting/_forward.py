@@ -125,7 +125,8 @@ def _rounded_impl(sigma_k: Array, dn: Array, radius_um: Array, cfg: tuple, g: Ro
     aperture, resolution = cfg
     di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
     ti = jnp.clip(g.r_ti[:, None] + di, -HALF_PI, HALF_PI)  # (R, M)
-    to = jnp.clip(g.r_to[:, None, :] + do[None, :, None], -HALF_PI, HALF_PI)  # (R|1, M, T)
+    r_to = g.r_to[:, None, :]
+    to = jnp.clip(r_to + model.view_offsets(aperture, r_to, do[None, :, None]), -HALF_PI, HALF_PI)
     n = _clamp_index(g.r_n + dn).reshape(-1)  # (C K): every channel's samples on one axis
     res = _rounded.ROUNDED_RESOLUTION if resolution is None else resolution
     # geometry once per distinct (theta_i, beta2, layer) (G of them), then gathered to the keys
@@ -195,7 +196,8 @@ def _sharp_grid_impl(sigma_k: Array, dn: Array, aperture: model.Aperture, g: Rou
     """
     di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
     ti = jnp.clip(g.r_ti[:, None] + di, -HALF_PI, HALF_PI)  # (R, M)
-    to = jnp.clip(g.r_to[:, :, None] + do, -HALF_PI, HALF_PI)  # (R|1, T, M)
+    r_to = g.r_to[:, :, None]
+    to = jnp.clip(r_to + model.view_offsets(aperture, r_to, do), -HALF_PI, HALF_PI)  # (R|1,T,M)
     b2 = g.r_b2[:, None]
     weight = model.lobe_weights(ti, b2)  # (R, M, 3)
     kernel = model.hemisphere_gaussian(

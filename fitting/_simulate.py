@@ -124,7 +124,9 @@ def _rounded_rows(
     di, do, dw = (aperture or model.Aperture()).nodes()
     half = np.pi / 2
     ti = np.clip(obs.theta_i_rad[:, None] + di, -half, half)[..., None]  # (N, M, 1)
-    to = np.clip(obs.theta_o_rad[:, None] + do, -half, half)[..., None]
+    to_nominal = obs.theta_o_rad[:, None]
+    offsets = np.asarray(model.view_offsets(aperture or model.Aperture(), to_nominal, do))
+    to = np.clip(to_nominal + offsets, -half, half)[..., None]
     kwargs = {} if resolution is None else {"resolution": resolution}
     rho = model.brdf_rounded(  # type: ignore[attr-defined]
         ti,

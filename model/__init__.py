@@ -28,6 +28,7 @@ from ._measurement import band_density_derivatives as band_density_derivatives
 from ._measurement import band_kernel as band_kernel
 from ._measurement import band_ratio as band_ratio
 from ._measurement import radiance as radiance
+from ._measurement import view_offsets as view_offsets
 from .materials import MATERIALS as MATERIALS
 from .materials import get_material as get_material
 from .materials import refractive_index as refractive_index

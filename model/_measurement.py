@@ -27,12 +27,15 @@ class Aperture(NamedTuple):
     `theta_o +- half_width_o_rad` with `n_nodes` Gauss-Legendre nodes along each (so
     `n_nodes**2` evaluations; `n_nodes = 1` is a point evaluation). A light of diameter `D` at
     distance `d` has `half_width_i = atan(D / 2d)`; a wedge face seen across a length `L` at
-    distance `d` spans about `half_width_o = atan(L cos(theta_o) / 2d)`.
+    distance `d` spans about `half_width_o = atan(L cos(theta_o) / 2d)`. With `foreshortened`,
+    `half_width_o_rad` is that spread seen face-on (`atan(L / 2d)`) and every observation uses
+    it times `cos(theta_o)` (`view_offsets`); without, the same spread at every `theta_o`.
     """
 
     half_width_i_rad: float = 0.0
     half_width_o_rad: float = 0.0
     n_nodes: int = 1
+    foreshortened: bool = False
 
     def nodes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Offsets in theta_i, offsets in theta_o, and weights (sum 1), each (n_nodes**2,)."""
@@ -48,15 +51,27 @@ class Aperture(NamedTuple):
         )
 
 
+def view_offsets(aperture: Aperture, theta_o: ArrayLike, offsets: ArrayLike) -> Array:
+    """The aperture's viewing-angle offsets at `theta_o` (broadcast): `offsets`, times
+    `cos(theta_o)` for a `foreshortened` aperture (a face of fixed size seen obliquely spans a
+    smaller range of angles). `theta_o` carries the trailing axes of `offsets`' broadcast."""
+    offsets = jnp.asarray(offsets)
+    if not aperture.foreshortened:
+        return offsets
+    return offsets * jnp.cos(jnp.asarray(theta_o))
+
+
 def _aperture_angles(
     theta_i: ArrayLike, theta_o: ArrayLike, aperture: Aperture | None
 ) -> tuple[Array, Array, Array]:
     """Angles of incidence and viewing at the aperture nodes (clipped to the hemisphere)."""
     dtype = jnp.result_type(jnp.asarray(theta_i), jnp.asarray(theta_o))
-    di, do, dw = (jnp.asarray(a, dtype) for a in (aperture or Aperture()).nodes())
+    aperture = aperture or Aperture()
+    di, do, dw = (jnp.asarray(a, dtype) for a in aperture.nodes())
     half = jnp.pi / 2
     ti = jnp.clip(jnp.asarray(theta_i)[..., None] + di, -half, half)  # (n_obs, n_nodes)
-    to = jnp.clip(jnp.asarray(theta_o)[..., None] + do, -half, half)
+    to_nominal = jnp.asarray(theta_o)[..., None]
+    to = jnp.clip(to_nominal + view_offsets(aperture, to_nominal, do), -half, half)
     return ti, to, dw
 
 
