@@ -368,3 +368,31 @@ def test_bracket_markers_come_from_the_exposure_that_shows_them(tmp_path: Path) 
     rows = list(imaging.measure_photos([spec], SETTINGS, max_workers=1))
     assert rows[0].roi_source == "markers" and rows[0].n_markers == 4
     assert rows[0].value == pytest.approx(4000 * EXPOSURE.scale, rel=0.02)
+
+
+def test_the_cache_follows_bracket_members_and_calibration_frames(tmp_path: Path) -> None:
+    """A changed bracket member or calibration frame measures the photo again; nothing
+    changed, the cached rows come back."""
+    radiance = {f: np.full(3, 300.0) * EXPOSURE.scale for f in FACES}
+    paths, _ = _bracket(tmp_path, 0, radiance)
+    flats = _write_flats(tmp_path, 1, 0.1)
+
+    def measure() -> list:
+        spec = imaging.PhotoSpec(
+            paths[0], rois=FACES, bracket=tuple(paths[1:]),
+            calibration=imaging.calibration_spec(flat_field=flats),
+        )  # fmt: skip
+        return list(imaging.measure_photos([spec], SETTINGS, cache=tmp_path / "m.csv"))
+
+    first = measure()
+    assert measure() == first  # reused from the cache, bit for bit
+    synthetic.render_photo(
+        SIZE, FACES, radiance, EXPOSURE, background=np.full(3, 20 * EXPOSURE.scale), seed=99
+    ).write_dng(paths[2])  # another exposure of the bracket
+    second = measure()
+    assert second[0].photo_sha256 != first[0].photo_sha256
+    assert second[0].settings_key == first[0].settings_key
+    _write_flats(tmp_path, 1, 0.12)  # the flat-field photo is taken again
+    third = measure()
+    assert third[0].settings_key != second[0].settings_key
+    assert third[0].value != second[0].value
