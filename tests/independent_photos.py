@@ -98,7 +98,7 @@ class Setup:
     height: int = 1200
     distance_mm: float = 900.0
     light_diameter_deg: float = 0.6
-    light_shape: str = "square"
+    light_shape: str = "disk"
     vignetting: tuple[float, float, float] = (0.16, 0.15, 0.14)
     flat_photos: int = 1
     texture: float = 0.02
