@@ -201,9 +201,8 @@ def measure_frame(
 
     Places marker-based ROIs (when there are any), rasterises and erodes every ROI, resolves the
     exposure, computes the per-channel statistics, flags, and the optional reference
-    normalisation. With `radiometry` (`prepare_radiometry` of the photo's exposures: dark, flat,
-    bracket), the statistics come from its corrected image, the calibration frames' noise is
-    added to the standard errors, and the markers are found in the exposure that shows them best.
+    normalisation. With `radiometry` (dark, flat, bracket: `view_radiometry`), the statistics
+    come from its corrected image, plus the calibration frames' noise (docs/imaging.md).
 
     Raises:
         ImagingError: exposure unknown, ROI outside the image or empty after erosion, ROIs
@@ -216,11 +215,7 @@ def measure_frame(
     placed = spec.placed_names()
     if placed:
         assert spec.markers is not None  # checked by PhotoSpec
-        detection = (
-            radiometry.detect_markers(spec.markers)
-            if radiometry is not None
-            else detect_markers(frame, spec.markers.dictionary)
-        )
+        detection = _detect(frame, spec.markers, radiometry)
         placement = fit_placement(detection, spec.markers, photo=photo, wedges=placed)
         faces = dict(spec.faces_mm)
         for n in placed:
@@ -238,8 +233,7 @@ def measure_frame(
     }
     _check_overlaps(rois, photo)
     key = cache_key(spec, settings)
-    black = frame.black_level_per_channel() if radiometry is None else radiometry.black_per_channel
-    stats_frame = frame if radiometry is None else radiometry.frame
+    stats_frame, black = _stats_source(frame, radiometry)
     stats = {n: roi_channel_stats(stats_frame, roi, settings) for n, roi in rois.items()}
     common = {n: _common_stderr(radiometry, roi, stats[n]) for n, roi in rois.items()}
     ref = stats[spec.reference] if spec.reference else None
@@ -248,21 +242,15 @@ def measure_frame(
     for n, roi in rois.items():
         by_marker = roi.source == "markers" and placement is not None
         for c, s in enumerate(stats[n]):
-            value = s.mean_dn * exposure.scale
-            stderr = math.hypot(s.stderr_dn, common[n][c]) * exposure.scale
+            se_dn = math.hypot(s.stderr_dn, common[n][c])
+            value, stderr = s.mean_dn * exposure.scale, se_dn * exposure.scale
             flags = _flags(s, settings)
             normalised_by = ""
             if ref is not None and ref_flags is not None and n != spec.reference:
-                r = ref[c]
                 normalised_by = spec.reference or ""
-                flags += [f"reference-{f}" for f in ref_flags[c]]
-                if r.mean_dn > 0:
-                    ratio = s.mean_dn / r.mean_dn
-                    stderr = math.hypot(s.stderr_dn / r.mean_dn, ratio * r.stderr_dn / r.mean_dn)
-                    value = ratio
-                else:
-                    flags.append("reference-nonpositive")
-                    value = stderr = math.nan
+                r_se = math.hypot(ref[c].stderr_dn, common[normalised_by][c])
+                value, stderr, extra = _ratio(s.mean_dn, se_dn, ref[c].mean_dn, r_se)
+                flags += [f"reference-{f}" for f in ref_flags[c]] + extra
             rows.append(
                 MeasurementRow(
                     photo=photo,
@@ -291,6 +279,33 @@ def measure_frame(
                 )
             )
     return FrameMeasurement(tuple(rows), rois, exposure, detection, placement)
+
+
+def _detect(
+    frame: RawFrame, layout: MarkerLayout, radiometry: Radiometry | None
+) -> MarkerDetection:
+    """The markers of a photo; of a bracket, those of the exposure that shows most of them."""
+    if radiometry is not None:
+        return radiometry.detect_markers(layout)
+    return detect_markers(frame, layout.dictionary)
+
+
+def _stats_source(
+    frame: RawFrame, radiometry: Radiometry | None
+) -> tuple[RawFrame, tuple[float, float, float]]:
+    """The frame the statistics are computed on and the black level reported per channel."""
+    if radiometry is None:
+        return frame, frame.black_level_per_channel()
+    return radiometry.frame, radiometry.black_per_channel
+
+
+def _ratio(mean: float, se: float, ref: float, ref_se: float) -> tuple[float, float, list[str]]:
+    """(value, stderr, extra flags) of `mean / ref` (independent errors; docs/imaging.md
+    §Reference patch); NaN and "reference-nonpositive" when the reference mean is <= 0."""
+    if ref > 0:
+        ratio = mean / ref
+        return ratio, math.hypot(se / ref, ratio * ref_se / ref), []
+    return math.nan, math.nan, ["reference-nonpositive"]
 
 
 def _common_stderr(
@@ -625,10 +640,10 @@ def measure_photos(
     workers = max_workers or min(2, os.cpu_count() or 1)
     workers = max(1, min(workers, len(todo)))
     try:
-        calibrations = _build_calibrations(todo, settings)
+        cals = _build_calibrations(todo, settings)
         if workers == 1:
             serial_done, serial_errors = _measure_in_process(
-                todo, settings, pdir, pcache, bar, calibrations
+                todo, settings, pdir, pcache, bar, cals
             )
             done |= serial_done
             errors |= serial_errors
@@ -643,9 +658,7 @@ def measure_photos(
                         settings,
                         preview_path(pdir, spec) if pdir else None,
                         preview_cache=pcache,
-                        calibration=calibrations.get(spec.calibration)
-                        if spec.calibration
-                        else None,
+                        calibration=cals.get(spec.calibration) if spec.calibration else None,
                     ): spec
                     for spec in todo
                 }
