@@ -115,3 +115,22 @@ def test_vignetting_biases_floor_and_scale_unless_flat_fielded(tmp_path: Path) -
         assert abs(value - truth[name]) < 3 * se, (name, value, se)
     biased = [abs(_ls(plain, n)[0] - truth[n]) / _ls(plain, n)[1] for n in ("scale", "floor")]
     assert max(biased) > 3, biased
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "message"),
+    [
+        ("--vignetting", "0.9", "--vignetting: 0.9 is outside [0, 0.6]"),
+        ("--flat-field", "-1", "--flat-field: give 0 to 64 frames"),
+        ("--bracket", "9", "--bracket: 9 is outside [1, 5]"),
+        ("--black-error-dn", "nan", "--black-error-dn: nan is outside"),
+    ],
+)
+def test_bad_effect_options_are_one_line_errors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str, value: str, message: str
+) -> None:
+    for command in ("simulate", "demo"):
+        assert main([command, str(tmp_path / command), f"{option}={value}", "--quiet"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and "\n" not in err, err
+        assert not (tmp_path / command).exists()
