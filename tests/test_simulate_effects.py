@@ -110,6 +110,11 @@ def test_vignetting_biases_floor_and_scale_unless_flat_fielded(tmp_path: Path) -
     del scene["calibration"]
     (folder / "scene.toml").write_text(tomli_w.dumps(scene))
     plain = _fit(tmp_path, folder, "without-flat")
+    for label, results in (("with the flat field", corrected), ("without", plain)):
+        for name in ("scale", "floor"):
+            value, se = _ls(results, name)
+            rel, pull = 100 * (value / truth[name] - 1), (value - truth[name]) / se
+            print(f"{label}: {name} {value:.6g} +- {se:.3g} ({rel:+.2f}%, {pull:+.1f} sd)")
     for name in ("scale", "floor"):
         value, se = _ls(corrected, name)
         assert abs(value - truth[name]) < 3 * se, (name, value, se)
