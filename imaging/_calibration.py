@@ -32,8 +32,6 @@ FLAT_MAX_SATURATED = 0.001
 """A flat with a larger fraction of saturated pixels is refused."""
 DARK_MAX_SIGNAL = 0.01
 """A dark frame whose median is above black by more than this fraction of the range is refused."""
-CENTRE_FRACTION = 0.05
-"""The gain is normalised to its mean over a central window of this fraction of each side."""
 
 
 @dataclass(frozen=True)
@@ -140,7 +138,7 @@ class FlatField:
     Attributes:
         coef: (ph, pw, d + 1, d + 1) Legendre coefficients in the normalised image coordinates
             (x, y in [-1, 1] across the visible image), scaled so that the gain is 1 at the
-            image centre (the mean over a central window of `CENTRE_FRACTION` of each side);
+            image centre, ((W - 1) / 2, (H - 1) / 2);
             only terms of total degree <= d are non-zero.
         shape: (H, W) of the images it applies to.
         rel_stderr: (ph, pw) RMS over the image of the fitted gain's standard error, relative.
@@ -148,6 +146,9 @@ class FlatField:
             than the cells' noise when the flat has structure the polynomial cannot follow.
         cell_noise: (ph, pw) the RMS relative noise of one cell mean.
         n_frames: flat-field photos averaged.
+        centre_stderr: (ph, pw) relative standard error of the fitted level at the centre,
+            which the gain is divided by: a common factor of every corrected value of that
+            CFA position in every photo (docs/imaging.md §Flat fields and dark frames).
     """
 
     coef: np.ndarray
@@ -156,6 +157,7 @@ class FlatField:
     fit_rms: np.ndarray
     cell_noise: np.ndarray
     n_frames: int
+    centre_stderr: np.ndarray
 
     def gain(self) -> np.ndarray:
         """(H, W) float32 gain map: the flat's smooth relative response, 1 at the centre."""
@@ -356,6 +358,7 @@ def _total_degree_mask(degree: int) -> np.ndarray:
 @dataclass(frozen=True)
 class _PlaneFit:
     coef: np.ndarray  # (d + 1, d + 1), total-degree terms only
+    cov: np.ndarray  # covariance of the total-degree terms (in `_total_degree_mask` order)
     rel_stderr: float
     fit_rms: float
     cell_noise: float
@@ -393,22 +396,23 @@ def _fit_plane(
     coef[keep] = a
     return _PlaneFit(
         coef=coef,
+        cov=cov,
         rel_stderr=float(np.sqrt(np.mean((se / fitted) ** 2))),
         fit_rms=float(np.sqrt(np.mean((resid / fitted) ** 2))),
         cell_noise=float(np.sqrt(np.mean(var_pix[ok] / n[ok] / fitted**2))),
     )
 
 
-def _centre_value(coef: np.ndarray, pos: tuple[int, int], tile: tuple[int, int],
-                  shape: tuple[int, int]) -> float:  # fmt: skip
-    """Mean of one position's polynomial over the central window of the image."""
-    h, w = shape
-    hy, hx = max(1, round(CENTRE_FRACTION * h / 2)), max(1, round(CENTRE_FRACTION * w / 2))
-    ys = np.arange(h // 2 - hy, h // 2 + hy)
-    xs = np.arange(w // 2 - hx, w // 2 + hx)
-    ys, xs = ys[ys % tile[0] == pos[0]], xs[xs % tile[1] == pos[1]]
-    d = coef.shape[0] - 1
-    return float(np.mean(_legendre_rows(ys, h, d) @ coef @ _legendre_rows(xs, w, d).T))
+def _normalise(fit: _PlaneFit) -> tuple[np.ndarray, float]:
+    """The coefficients scaled to 1 at the image centre ((W - 1) / 2, (H - 1) / 2, where the
+    normalised coordinates are 0), and that value's relative standard error (common to the
+    whole gain map of this position)."""
+    degree = fit.coef.shape[0] - 1
+    at_zero = np.polynomial.legendre.legvander(np.zeros(1), degree)[0]  # P_n(0)
+    basis = np.outer(at_zero, at_zero)
+    b = basis[_total_degree_mask(degree)]
+    centre = float(np.sum(basis * fit.coef))
+    return fit.coef / centre, math.sqrt(max(float(b @ fit.cov @ b), 0.0)) / centre
 
 
 def build_flat(
@@ -452,12 +456,11 @@ def build_flat(
          for dx in range(pw)]
         for dy in range(ph)
     ]  # fmt: skip
-    coef = np.stack([np.stack([f.coef for f in row]) for row in fits])
-    for dy in range(ph):
-        for dx in range(pw):
-            coef[dy, dx] /= _centre_value(coef[dy, dx], (dy, dx), (ph, pw), shape)
+    normed = [[_normalise(f) for f in row] for row in fits]
+    coef = np.stack([np.stack([c for c, _ in row]) for row in normed])
+    centre_se = np.array([[se for _, se in row] for row in normed])
     grid = np.array([[[f.rel_stderr, f.fit_rms, f.cell_noise] for f in row] for row in fits])
-    flat = FlatField(coef, shape, grid[..., 0], grid[..., 1], grid[..., 2], len(files))
+    flat = FlatField(coef, shape, grid[..., 0], grid[..., 1], grid[..., 2], len(files), centre_se)
     return flat, first
 
 
