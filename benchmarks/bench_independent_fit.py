@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         "peak_mb": round(peak_mb),
         "load_average": os.getloadavg(),
         **criteria(results, truth["parameters"]),
-        "timings_s": results.get("timings_s"),
+        "timings_s": results.get("diagnostics", {}).get("timings_s"),
     }
     print(json.dumps(report, indent=1, default=str))
     return 0
