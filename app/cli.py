@@ -3,15 +3,25 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import TextIO
 
-from . import __version__, demo, fit, predict, simulate
-from ._jaxcache import enable_persistent_cache
-from .errors import UserError
+from . import __version__
+from ._jaxcache import start_jax
+from ._signals import Terminated, terminate_by_exception
+from .errors import StairfitWarning, UserError
+
+COMMANDS = ("predict", "simulate", "fit", "measure", "demo", "study")
+"""The subcommands, each the module `stairfit.<name>` with `add_parser(sub)` and `run(args)`."""
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser with every subcommand registered."""
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser with every subcommand registered, or just `only` (then only that
+    command's module is imported: `stairfit predict` does not import fit's; issue 14)."""
     parser = argparse.ArgumentParser(
         prog="stairfit",
         description=(
@@ -22,10 +32,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"stairfit {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    predict.add_parser(sub)
-    simulate.add_parser(sub)
-    fit.add_parser(sub)
-    demo.add_parser(sub)
+    for name in COMMANDS if only is None else (only,):
+        importlib.import_module(f"{__package__}.{name}").add_parser(sub)
     return parser
 
 
@@ -63,26 +71,62 @@ def _is_imaging_error(e: BaseException) -> bool:
     return imaging is not None and isinstance(e, imaging.ImagingError)
 
 
+def _is_ours(category: type[Warning]) -> bool:
+    """Whether a warning category is stairfit's own (shown as one line)."""
+    imaging = sys.modules.get("stairfit.imaging")
+    ours = (StairfitWarning,) + ((imaging.ImagingWarning,) if imaging is not None else ())
+    return issubclass(category, ours)
+
+
+@contextmanager
+def one_line_warnings(command: str) -> Iterator[None]:
+    """Within the block, stairfit's warnings print as `stairfit COMMAND: warning: ...`."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", StairfitWarning)
+        original = warnings.showwarning
+
+        def show(
+            message: Warning | str,
+            category: type[Warning],
+            filename: str,
+            lineno: int,
+            file: TextIO | None = None,
+            line: str | None = None,
+        ) -> None:
+            if _is_ours(category):
+                print(f"stairfit {command}: warning: {one_line(str(message))}", file=sys.stderr)
+            else:
+                original(message, category, filename, lineno, file, line)
+
+        warnings.showwarning = show
+        yield
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: float64 on, one-line errors for user mistakes, non-zero exit on failure.
 
     A `UserError` (or an `ImagingError` that reached this far) is printed as one line,
     `stairfit COMMAND: error: FILE: FIELD: what is wrong; the fix`, with exit status 2; an
-    `OSError` (a folder that cannot be written, a full disk) as one line with status 1. Anything
-    else is a bug and keeps its traceback.
+    `OSError` (a folder that cannot be written, a full disk) as one line with status 1. SIGINT
+    exits with 130, SIGTERM and SIGHUP with 128 + the signal number (143, 129) after the same
+    cleanup (app/_signals.py). Warnings are one line each. Anything else is a bug and keeps its
+    traceback.
     """
-    parser = build_parser()
     argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser(argv[0] if argv and argv[0] in COMMANDS else None)
     if not argv:  # no command: say what the commands are, not only that one is required
         parser.print_help(sys.stderr)
         return EXIT_USER_ERROR
     args = parser.parse_args(_join_negative_values(argv))
-    import jax
-
-    jax.config.update("jax_enable_x64", True)  # [conventions §10]
-    enable_persistent_cache()  # compiled programs kept across runs (app/_jaxcache.py)
+    # float64 [conventions §10], the persistent compilation cache, and under --quiet no XLA
+    # log banners (set before jax is first imported: app/_jaxcache.py)
+    start_jax(quiet=bool(getattr(args, "quiet", False)))
     try:
-        return int(args.func(args) or 0)
+        with terminate_by_exception(), one_line_warnings(args.command):
+            return int(args.func(args) or 0)
+    except Terminated as t:
+        print(f"stairfit {args.command}: terminated by {t.name}", file=sys.stderr)
+        return 128 + t.signum
     except UserError as e:
         print(f"stairfit {args.command}: error: {one_line(str(e))}", file=sys.stderr)
         return EXIT_USER_ERROR

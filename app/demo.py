@@ -15,6 +15,7 @@ import numpy as np
 
 from . import fit, simulate
 from .errors import UserError
+from .outputs import staged_folder
 
 DEG = np.pi / 180
 
@@ -47,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     settings = simulate.settings_from_args(args)
     options = fit.options_from_args(args)
     t0 = time.perf_counter()
-    with simulate.staged_folder(out, args.force) as tmp:
+    with staged_folder(out, args.force, option="OUT") as tmp:
         photos = tmp / "photos"
         photos.mkdir()
         print(

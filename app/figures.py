@@ -1,5 +1,10 @@
 """Figures of the model: BRDF maps (paper Fig. 3/8), diffuse curves (Fig. 5) and the colour of
-the reflected light (Fig. 7). Degrees on every axis [conventions §1]; matplotlib's Agg backend.
+the reflected light (Fig. 7). Degrees on every axis [conventions §1].
+
+Every figure is a plain `matplotlib.figure.Figure`, drawn on the Agg canvas by `save`: nothing
+here selects a backend or registers figures with pyplot, so importing this module changes no
+global state (a notebook keeps its backend; show a returned figure by making it a cell's
+last expression, or `display(fig)`).
 
 These take physical parameters, not fits, so notebooks and the report share them.
 
@@ -17,10 +22,6 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
@@ -77,15 +78,22 @@ _SUPERSCRIPT = str.maketrans(
 
 class PlainLogFormatter(LogFormatterSciNotation):
     """Log-axis labels `10⁵`, `2×10⁴` as plain text: matplotlib's default choice of labels and
-    look, without mathtext, whose parser costs ~0.2 s to build on first use."""
+    look, without mathtext, whose parser costs ~0.2 s to build on first use.
+
+    A panel spanning less than a decade gets its minor ticks from matplotlib's linear fallback
+    (`LogLocator` hands over to `AutoLocator`: 1.1, 1.2, ... x 10⁵), so the coefficient keeps
+    the digits the tick needs (`1.2×10⁵`, not `10⁵` on every tick).
+    """
 
     def __call__(self, x: float, pos: int | None = None) -> str:
         if not super().__call__(x, pos) or x <= 0:  # the default leaves this tick unlabelled
             return ""
         exponent = math.floor(math.log10(x) + 1e-9)
-        coeff = round(x / 10.0**exponent)
+        coeff = float(f"{x / 10.0**exponent:.4g}")  # 4 digits: no float noise (1.1000000001)
+        if coeff >= 10.0:  # x a hair below a decade, e.g. 9.99995e4 -> 10⁵
+            exponent, coeff = exponent + 1, coeff / 10.0
         power = "10" + str(exponent).translate(_SUPERSCRIPT)
-        return power if coeff == 1 else f"{coeff}\u00d7{power}"
+        return power if coeff == 1 else f"{coeff:g}\u00d7{power}"
 
 
 def log_y(ax: Axes) -> None:
@@ -233,7 +241,8 @@ def brdf_map(
     `float32` evaluates the density in single precision (a preset's `float32_figures`)."""
     from matplotlib.colors import PowerNorm
 
-    fig, axes = plt.subplots(1, len(beta2_deg), figsize=(4.2 * len(beta2_deg), 3.8), squeeze=False)
+    fig = Figure(figsize=(4.2 * len(beta2_deg), 3.8))
+    axes = fig.subplots(1, len(beta2_deg), squeeze=False)
     if sigma_deg > 0:
         _, images = brdf_images(beta2_deg, n, sigma_deg, step_deg, float32)
     else:
@@ -284,7 +293,8 @@ def diffuse_curves(
     from stairfit import model
 
     to = np.arange(-90, 90 + step_deg / 2, step_deg) * DEG
-    fig, ax = plt.subplots(figsize=(6.5, 4))
+    fig = Figure(figsize=(6.5, 4))
+    ax = fig.subplots()
     for b in beta2_deg:
         if sigma_deg > 0:
             d = model.diffuse_broadened(to, b * DEG, n, sigma_deg * DEG, cosine_weighted)
@@ -325,12 +335,8 @@ def reflected_colours(
     )
     rows = [*(f"{b:g} deg" for b in beta2_deg), "material"]
     n_to = len(theta_o_deg)
-    fig, axes = plt.subplots(
-        1,
-        len(illuminants),
-        figsize=(0.45 * n_to * len(illuminants) + 1.5, 0.5 * len(rows) + 1.2),
-        squeeze=False,
-    )
+    fig = Figure(figsize=(0.45 * n_to * len(illuminants) + 1.5, 0.5 * len(rows) + 1.2))
+    axes = fig.subplots(1, len(illuminants), squeeze=False)
     for ax, ill in zip(axes[0], illuminants, strict=True):
         xyz = spectra @ spectral.xyz_weights(ill).T  # (rows, angles, 3)
         exposure = 0.9 / max(float(xyz[..., 1].max()), 1e-12)
@@ -346,11 +352,14 @@ def save(fig: Figure, path: Path, dpi: int = 120) -> Path:
     """Save a figure as an opaque RGB PNG (zlib level `PNG_COMPRESS_LEVEL`) and close it.
 
     Drawn on the Agg canvas and written by Pillow without the alpha channel: a quarter less
-    to compress than `savefig`'s RGBA, the same pixels (the figure background is opaque).
+    to compress than `savefig`'s RGBA, the same pixels (the figure background is opaque). A
+    figure pyplot manages (made with `plt.subplots`, e.g. in a notebook) is closed in pyplot
+    too; stairfit's own figures are plain `Figure`s and never touch pyplot.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from PIL import Image
 
+    managed = getattr(fig.canvas, "manager", None) is not None
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         fig.set_dpi(dpi)
@@ -361,5 +370,8 @@ def save(fig: Figure, path: Path, dpi: int = 120) -> Path:
             path, format="png", compress_level=PNG_COMPRESS_LEVEL, dpi=(dpi, dpi)
         )
     finally:
-        plt.close(fig)
+        if managed:  # pyplot made it, so pyplot is already imported
+            import matplotlib.pyplot as plt
+
+            plt.close(fig)
     return path

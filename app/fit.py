@@ -17,9 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from .errors import UserError
+from . import _exclusions, _ranges
+from ._failed_previews import FAILED_PREVIEWS, forget_previews, keep_previews
+from .errors import StairfitWarning, UserError
 from .presets import PRESETS, Preset, get_preset
-from .scene import Scene, load_scene, visible
+from .scene import Photo, Scene, load_scene, visible
 
 DEG = np.pi / 180
 CACHE_DIR = ".stairfit-cache"
@@ -95,8 +97,7 @@ class FitOptions:
 
 def options_from_args(args: argparse.Namespace) -> FitOptions:
     """Validated options (user mistakes raise UserError)."""
-    if args.workers < 1:
-        raise UserError("--workers: must be >= 1")
+    _ranges.check_workers(args.workers)
     if args.seed < 0:
         raise UserError(f"--seed: {args.seed} is negative; give an integer >= 0")
     if args.model is not None:
@@ -134,32 +135,56 @@ def default_output(folder: Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """`stairfit fit DIR`."""
+    from .outputs import staged_folder
     from .report import print_summary
-    from .simulate import staged_folder
 
     options = options_from_args(args)
     scene = load_scene(args.folder)
     out = args.output or default_output(args.folder)
-    if out.exists() and not args.force:
-        raise UserError(f"{out}: already exists; choose another --output or add --force")
-    check_photos(scene)
-    with staged_folder(out, args.force) as tmp:
+    inputs = (scene.folder, *scene.input_files())
+    with staged_folder(out, args.force, inputs=inputs, reserved=(scene.folder / CACHE_DIR,)) as tmp:
+        check_photos(scene)
         outcome = fit_scene(scene, tmp, options)
     print_summary(outcome, out)
     return 0
 
 
 def check_photos(scene: Scene) -> None:
-    """Every listed file (photos, bracket members, calibration frames) exists; a one-line error
-    names the missing one."""
-    for where, name, path in scene.input_fields():
-        if not path.is_file():
-            fix = (
-                "fix the name or remove the [[photos]] entry"
-                if where.endswith(".file")
-                else "fix the name or remove it from the list"
-            )
-            raise UserError(f"{scene.path}: {where}: {name!r} is not in {scene.folder}; {fix}")
+    """Every listed file (photos, bracket members, calibration frames) is a regular file (a
+    one-line error names the one that is not)."""
+    for where, name, _ in scene.input_fields():
+        remove = "the [[photos]] entry" if where.endswith(".file") else "it from the list"
+        problem = photo_file_problem(scene.folder / name, scene.folder, remove)
+        if problem is not None:
+            raise UserError(f"{scene.path}: {where}: {name!r} {problem}")
+
+
+def photo_file_problem(
+    path: Path, folder: Path, remove: str = "the [[photos]] entry"
+) -> str | None:
+    """Why `path` cannot be read as a photo (missing, a folder, a device, a broken link), or None.
+
+    Checked before decoding: reading a link to /dev/zero would never end. `remove` names what
+    to remove in the advice for a missing file.
+    """
+    import os
+    import stat
+
+    if not path.exists():
+        if path.is_symlink():
+            return f"is a link to {os.readlink(path)}, which does not exist; fix the link"
+        spaces = " (mind the spaces around the name)" if path.name != path.name.strip() else ""
+        return f"is not in {folder}{spaces}; fix the name or remove {remove}"
+    link = f" (a link to {path.resolve()})" if path.is_symlink() else ""
+    mode = path.stat().st_mode
+    if stat.S_ISDIR(mode):
+        return f"is a folder{link}, not a RAW file; name the photo file itself"
+    if not stat.S_ISREG(mode):
+        kinds = {stat.S_ISCHR: "a character device", stat.S_ISBLK: "a block device",
+                 stat.S_ISFIFO: "a pipe", stat.S_ISSOCK: "a socket"}  # fmt: skip
+        kind = next((v for f, v in kinds.items() if f(mode)), "not a regular file")
+        return f"is {kind}{link}, not a RAW file; give the photo's RAW file"
+    return None
 
 
 @dataclass
@@ -189,9 +214,16 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     timings["measure_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    observations, row_info, excluded_notes = to_observations(scene, table)
+    try:
+        observations, row_info, excluded_notes = to_observations(scene, table)
+    except UserError as err:  # nothing usable: keep the previews (ROIs, saturation) to look at
+        kept = scene.folder / CACHE_DIR / FAILED_PREVIEWS
+        shown = "ROIs, saturated pixels in magenta"
+        where = keep_previews(kept, out / "previews", photo_specs(scene), table.photos(), shown)
+        raise UserError(f"{err}{where}") from None
     notes.extend(excluded_notes)
     spectral, aperture = fit_setup(scene, options.preset)
+    notes.extend(index_notes(scene, spectral))
     selection = select(observations, spectral, aperture, options)
     timings["fit_s"] = time.perf_counter() - t0
 
@@ -226,13 +258,9 @@ def photo_specs(scene: Scene) -> list[Any]:
     """One `imaging.PhotoSpec` per photo: the ROIs of the wedges it can see."""
     from stairfit import imaging
 
-    layout = None
-    if scene.markers is not None:
-        layout = imaging.MarkerLayout(
-            {m.id: m.corners_mm for m in scene.markers.markers},
-            scene.markers.dictionary,
-            scene.markers.min_markers,
-        )
+    from .placement import marker_layout, placement_fields
+
+    layout = marker_layout(scene)
     calibration = calibration_spec(scene)
     specs = []
     for photo in scene.photos:
@@ -266,22 +294,32 @@ def photo_specs(scene: Scene) -> list[Any]:
                 faces_mm=tuple(faces.items()),
                 markers=layout if faces else None,
                 reference=reference,
-                bracket=tuple(
-                    imaging.BracketMember(
-                        scene.folder / b.file, b.exposure_time_s, b.f_number, b.iso
-                    )
-                    for b in photo.bracket
-                ),
-                calibration=calibration,
+                **placement_fields(scene, photo, faces),
+                **radiometry_fields(scene, photo, calibration),
             )
         )
     return specs
+
+
+def radiometry_fields(scene: Scene, photo: Photo, calibration: Any) -> dict[str, Any]:
+    """A photo's `imaging.PhotoSpec` fields for its HDR bracket members and the calibration
+    frames (`calibration_spec(scene)`, shared by every photo)."""
+    from stairfit import imaging
+
+    bracket = tuple(
+        imaging.BracketMember(scene.folder / b.file, b.exposure_time_s, b.f_number, b.iso)
+        for b in photo.bracket
+    )
+    return {"bracket": bracket, "calibration": calibration}
 
 
 def calibration_spec(scene: Scene) -> Any:
     """The scene's `[calibration]` frames as an `imaging.CalibrationSpec` (None without any).
 
     Reads each file's SHA-256 (the cache key depends on the frames' contents).
+
+    Raises:
+        UserError: a frame cannot be read (one line naming the scene field).
     """
     from stairfit import imaging
 
@@ -289,14 +327,30 @@ def calibration_spec(scene: Scene) -> Any:
     if c is None:
         return None
     folder = scene.folder
-    return imaging.calibration_spec(
-        flat_field=[
-            (f"calibration.flat_field[{j}]", folder / f) for j, f in enumerate(c.flat_field)
-        ],
-        dark_frames=[
-            (f"calibration.dark_frames[{j}]", folder / f) for j, f in enumerate(c.dark_frames)
-        ],
-        flat_degree=c.flat_degree,
+    try:
+        return imaging.calibration_spec(
+            flat_field=[
+                (f"calibration.flat_field[{j}]", folder / f) for j, f in enumerate(c.flat_field)
+            ],
+            dark_frames=[
+                (f"calibration.dark_frames[{j}]", folder / f) for j, f in enumerate(c.dark_frames)
+            ],
+            flat_degree=c.flat_degree,
+        )
+    except imaging.ImagingError as err:  # an unreadable frame: one line, no traceback
+        raise UserError(f"{scene.path}: {err}") from None
+
+
+def extraction_settings(scene: Scene) -> Any:
+    """The scene's [extraction] as `imaging.ExtractionSettings`."""
+    from stairfit import imaging
+
+    e = scene.extraction
+    return imaging.ExtractionSettings(
+        erode_px=e.erode_px,
+        block_px=e.block_px,
+        saturation_level=e.saturation_level,
+        max_saturated_fraction=e.max_saturated_fraction,
     )
 
 
@@ -304,22 +358,24 @@ def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
     """Decode and measure every photo (cached in DIR/.stairfit-cache), previews into out."""
     from stairfit import imaging
 
-    e = scene.extraction
-    settings = imaging.ExtractionSettings(
-        erode_px=e.erode_px,
-        block_px=e.block_px,
-        saturation_level=e.saturation_level,
-        max_saturated_fraction=e.max_saturated_fraction,
-    )
+    settings = extraction_settings(scene)
     cache = scene.folder / CACHE_DIR / MEASUREMENT_CACHE if options.cache else None
     try:
         if cache is not None:
             cache.parent.mkdir(exist_ok=True)
-    except OSError:
-        cache = None  # a read-only photo folder: measure without a cache
+    except OSError as e:  # a read-only photo folder, or a file in the way: measure without
+        warnings.warn(
+            f"{cache.parent}: cannot keep the measurement cache there ({e.strerror or e}); "
+            "measuring without it",
+            StairfitWarning,
+            stacklevel=2,
+        )
+        cache = None
+    specs = photo_specs(scene)
+    kept = scene.folder / CACHE_DIR / FAILED_PREVIEWS
     try:
-        return imaging.measure_photos(
-            photo_specs(scene),
+        table = imaging.measure_photos(
+            specs,
             settings,
             cache=cache,
             preview_dir=out / "previews",
@@ -327,7 +383,11 @@ def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
             max_workers=options.workers,
         )
     except imaging.ImagingError as err:
-        raise UserError(f"{scene.path}: {err}") from None
+        failed = getattr(err, "failed_photos", ())
+        where = keep_previews(kept, out / "previews", specs, failed)
+        raise UserError(f"{scene.path}: {err}{where}") from None
+    forget_previews(kept)
+    return table
 
 
 def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]], list[str]]:
@@ -385,20 +445,20 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
                 "stderr_inflation": inflation[(r.photo, r.wedge)],
             }
         )
+    fitted_rows = [r for r in table if r.wedge != reference]
     if not rows or not any(r["use"] for r in rows):
-        raise UserError(
-            f"{scene.path}: no usable measurement: every ROI is flagged or saturated (see the "
-            "previews and the flag column); shorten the exposures or move the ROIs"
-        )
+        counts = _exclusions.count_reasons(fitted_rows)
+        raise UserError(f"{scene.path}: {_exclusions.nothing_usable(len(rows), counts)}")
     try:
         obs = fitting.Observations.from_rows(rows)
     except fitting.FitInputError as err:
         raise UserError(f"{scene.path}: {err}") from None
     notes = []
     if n_flagged:
+        flags = _exclusions.count_reasons(r for r in fitted_rows if r.flag)
         notes.append(
-            f"{n_flagged} measurements flagged by imaging (saturated, too few blocks, "
-            "...) were not fitted"
+            f"{n_flagged} measurements flagged by imaging ({_exclusions.describe(flags)}) were "
+            "not fitted"
         )
     if n_saturated:
         notes.append(f"{n_saturated} measurements with some saturated pixels were not fitted")
@@ -452,6 +512,18 @@ def fit_setup(scene: Scene, preset: Preset) -> tuple[Any, Any]:
     return spectral, aperture
 
 
+def index_notes(scene: Scene, spectral: Any) -> list[str]:
+    """A warning (and a note for results.json) when the fit uses the index outside `valid_nm`."""
+    from ._index_checks import extrapolation_warning
+
+    index = scene.specimen.index
+    name = index.name if index.model == "named" else f"the scene's {index.model} index"
+    message = extrapolation_warning(
+        index.build(), name, spectral.wavelength_nm, spectral.weights, user="the fit"
+    )
+    return [message] if message else []
+
+
 def ladder_for(preset: Preset) -> tuple[Any, ...]:
     """The model ladder of a preset (shared sigma only, or also per-wedge sigma)."""
     from stairfit import fitting
@@ -469,8 +541,6 @@ def select(observations: Any, spectral: Any, aperture: Any, options: FitOptions)
     if options.model is not None:
         check_model_name(options.model)
         ladder = fitting.DEFAULT_LADDER
-    if not fitting.rounded_model_available():
-        ladder = tuple(v for v in ladder if "edge_radius_um" not in v.free)
     rounded = [v for v in ladder if "edge_radius_um" in v.free]
     policy = options.preset.rounded_rungs
     gated = options.model is None and bool(rounded) and policy == "when_needed"

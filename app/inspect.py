@@ -43,7 +43,26 @@ OBSERVATION_COLUMNS: dict[str, type] = {
 }
 """The columns of observations.csv (`stairfit.report.write_observations`) and their types."""
 
-_SIGMA_INDEX = re.compile(r"^sigma_deg\[(\d+)")
+_LEGACY_SIGMA = re.compile(r"^sigma_deg\[(\d+)")
+"""Only for `_legacy_key`: a per-wedge width's display name in folders written before
+results.json recorded each parameter's `parameter` and `wedge`."""
+
+
+def parameter_key(rec: dict[str, Any]) -> tuple[str, int | None]:
+    """`(param, wedge)` of a results.json parameter record: the fitting layer's identity of the
+    parameter (`("sigma_rad", 2)` for wedge 2's own width, shown as `sigma_deg[2: ...]`)."""
+    if "parameter" in rec:
+        return str(rec["parameter"]), None if rec["wedge"] is None else int(rec["wedge"])
+    return _legacy_key(str(rec["name"]))
+
+
+def _legacy_key(name: str) -> tuple[str, int | None]:
+    """`(param, wedge)` from a display name, for results.json files that predate the
+    `parameter` and `wedge` fields (kept so that older fit folders still open)."""
+    m = _LEGACY_SIGMA.match(name)
+    if m:
+        return "sigma_rad", int(m.group(1))
+    return ("sigma_rad", None) if name == "sigma_deg" else (name, None)
 
 
 # --- the folder -----------------------------------------------------------------------------
@@ -251,9 +270,11 @@ def display_chain(fit: FitFolder) -> tuple[list[str], np.ndarray, int, int]:
     if fit.chain_path is None:
         raise FileNotFoundError(f"{fit.path}: no chain.npz (the fit ran without a posterior)")
     data = fitting.load_chain(fit.chain_path)
-    names = [str(n) for n in data["names"]]
-    factors = np.array([1 / DEG if n.startswith("sigma_rad") else 1.0 for n in names])
-    shown = [n.replace("sigma_rad", "sigma_deg", 1) for n in names]
+    records = fit.results["parameters"]  # the chain's columns, in the same order
+    if len(records) != data["chain"].shape[-1]:
+        raise ValueError(f"{fit.chain_path}: its columns do not match results.json's parameters")
+    shown = [str(rec["name"]) for rec in records]
+    factors = np.array([1 / DEG if parameter_key(r)[0] == "sigma_rad" else 1.0 for r in records])
     post = fit.results["diagnostics"]["posterior"]
     return shown, np.asarray(data["chain"]) * factors, int(post["burn_in"]), int(post["thin"])
 
@@ -264,8 +285,8 @@ def display_chain(fit: FitFolder) -> tuple[list[str], np.ndarray, int, int]:
 @dataclass(frozen=True)
 class FitModel:
     """What is needed to evaluate the fitted model anywhere: the scene, the fit's observations
-    (same row order as observations.csv), spectral setup, aperture, best-fit parameters and
-    the names of the free parameters (display units)."""
+    (same row order as observations.csv), spectral setup, aperture, best-fit parameters, the
+    names of the free parameters (display units) and their `(param, wedge)` keys."""
 
     scene: Any
     observations: Any
@@ -275,6 +296,7 @@ class FitModel:
     free: tuple[str, ...]
     resolution: int
     uncertainty: np.ndarray
+    keys: tuple[tuple[str, int | None], ...] = ()
 
 
 def params_from_results(results: dict[str, Any]) -> Any:
@@ -289,14 +311,13 @@ def params_from_results(results: dict[str, Any]) -> Any:
         else:
             values[name] = v
     for rec in results["parameters"]:
-        name, v = rec["name"], rec["least_squares"]["value"]
-        m = _SIGMA_INDEX.match(name)
-        if m:
-            per_wedge[int(m.group(1))] = v * DEG
-        elif name == "sigma_deg":
+        (param, wedge), v = parameter_key(rec), rec["least_squares"]["value"]
+        if param == "sigma_rad" and wedge is not None:
+            per_wedge[wedge] = v * DEG
+        elif param == "sigma_rad":
             values["sigma_rad"] = v * DEG
         else:
-            values[name] = v
+            values[param] = v
     if per_wedge:
         values["sigma_rad"] = np.array([per_wedge[k] for k in sorted(per_wedge)])
     return fitting.Params(**values)
@@ -331,6 +352,7 @@ def fit_model(fit: FitFolder) -> FitModel:
         free,
         preset.rounded_resolution,
         np.asarray(fit.observations["uncertainty"], float),
+        tuple(parameter_key(p) for p in results["parameters"]),
     )
 
 
@@ -338,7 +360,7 @@ def predict(m: FitModel, observations: Any = None, params: Any = None) -> np.nda
     """Model radiance of `observations` (default: the fit's) for `params` (default: best fit)."""
     from stairfit import fitting
 
-    return fitting.predict(
+    return fitting.model_radiance(
         m.params if params is None else params,
         m.observations if observations is None else observations,
         m.spectral,
@@ -347,60 +369,38 @@ def predict(m: FitModel, observations: Any = None, params: Any = None) -> np.nda
     )
 
 
-def _shifted(params: Any, name: str, step: float) -> Any:
-    """`params` with the display-unit parameter `name` moved by `step` (display units)."""
-    m = _SIGMA_INDEX.match(name)
-    if m:
-        sigma = np.array(params.sigma_rad, dtype=float)
-        sigma[int(m.group(1))] += step * DEG
-        return params._replace(sigma_rad=sigma)
-    if name == "sigma_deg":
-        return params._replace(sigma_rad=float(np.asarray(params.sigma_rad)) + step * DEG)
-    return params._replace(**{name: float(getattr(params, name)) + step})
-
-
 def jacobian(
-    m: FitModel,
-    observations: Any = None,
-    names: Sequence[str] | None = None,
-    rel_step: float = 1e-4,
+    m: FitModel, observations: Any = None, names: Sequence[str] | None = None
 ) -> tuple[tuple[str, ...], np.ndarray]:
-    """d(model)/d(parameter) by central differences, display units; (names, (n_rows, p)).
+    """d(model)/d(parameter) in display units (per degree for a width); (names, (n_rows, p)).
 
-    `model_error_frac` changes the uncertainty, not the model, and is left out by default.
-    Steps are `rel_step` times the parameter (or its absolute value floor of 1e-6 x scale for
-    parameters at 0, e.g. a floor or delta_n).
+    Forward-mode autodiff of the fit's own forward model (`stairfit.fitting.model_jacobian`).
+    `model_error_frac` changes the uncertainty, not the model, and is left out.
     """
-    names = tuple(n for n in (names or m.free) if n != "model_error_frac")
-    cols = []
-    for name in names:
-        x = _value(m.params, name)
-        h = rel_step * max(abs(x), 1e-3 if name in ("delta_n", "edge_radius_um") else 1e-6)
-        if name == "floor":
-            h = rel_step * max(abs(x), 1e-6 * abs(float(m.params.scale)))
-        up = predict(m, observations, _shifted(m.params, name, h))
-        down = predict(m, observations, _shifted(m.params, name, -h))
-        cols.append((up - down) / (2 * h))
-    return names, np.stack(cols, axis=1)
+    from stairfit import fitting
 
-
-def _value(params: Any, name: str) -> float:
-    m = _SIGMA_INDEX.match(name)
-    if m:
-        return float(np.asarray(params.sigma_rad)[int(m.group(1))]) / DEG
-    if name == "sigma_deg":
-        return float(np.asarray(params.sigma_rad)) / DEG
-    return float(getattr(params, name))
+    key = dict(zip(m.free, m.keys, strict=True))
+    names = tuple(n for n in (names or m.free) if key[n][0] != "model_error_frac")
+    J = fitting.model_jacobian(
+        m.params,
+        m.observations if observations is None else observations,
+        m.spectral,
+        [key[n] for n in names],
+        aperture=m.aperture,
+        resolution=m.resolution,
+    )
+    per_display_unit = np.array([DEG if key[n][0] == "sigma_rad" else 1.0 for n in names])
+    return names, J * per_display_unit
 
 
 def fisher_matrix(
     J: np.ndarray, uncertainty: np.ndarray, use: np.ndarray | None = None
 ) -> np.ndarray:
-    """Fisher information `J^T W J` of Gaussian rows with standard deviations `uncertainty`."""
-    w = 1.0 / np.asarray(uncertainty, float) ** 2
-    if use is not None:
-        w = np.where(np.asarray(use, bool), w, 0.0)
-    return J.T @ (J * w[:, None])
+    """Fisher information `J^T W J` of Gaussian rows with standard deviations `uncertainty`
+    (`stairfit.fitting.fisher_information`)."""
+    from stairfit import fitting
+
+    return np.asarray(fitting.fisher_information(J, uncertainty, use))
 
 
 def candidate_observations(
@@ -476,7 +476,6 @@ def view_gain(
     views_deg: Sequence[float],
     relative_error: float,
     light_deg: float | None = None,
-    rel_step: float = 1e-4,
 ) -> list[dict[str, Any]]:
     """What one more photo at each base-frame view angle would teach (Fisher information).
 
@@ -489,7 +488,7 @@ def view_gain(
     cands = [candidate_observations(m, v, light_deg)[0] for v in views_deg]
     parts = [m.observations, *(c for c in cands if c is not None)]
     table = _concat(parts)
-    names, J = jacobian(m, table, rel_step=rel_step)
+    names, J = jacobian(m, table)
     n_fit = m.observations.n_rows
     F = fisher_matrix(J[:n_fit], m.uncertainty, np.asarray(m.observations.use, bool))
     cov = np.linalg.inv(F)
@@ -530,12 +529,8 @@ def photo_image(m: FitModel, photo: str) -> tuple[np.ndarray, float, dict[str, n
     spec = next(s for s in photo_specs(m.scene) if s.name == photo)
     frame = imaging.decode_raw(spec.path)
     polygons = {n: np.asarray(p, float) for n, p in spec.rois}
-    placed = spec.placed_names()
-    if placed:
-        detection = imaging.detect_markers(frame, spec.markers.dictionary)
-        placement = imaging.fit_placement(detection, spec.markers, photo=photo, wedges=placed)
-        faces = dict(spec.faces_mm)
-        polygons |= {n: np.asarray(placement.polygon(faces[n]), float) for n in placed}
+    _detection, _pose, placed = imaging.place_faces(frame, spec)  # as the measurement does
+    polygons |= {n: np.asarray(p, float) for n, p in placed.items()}
     img = imaging.render_preview(frame)[..., ::-1]  # BGR -> RGB
     scale = img.shape[1] / frame.width
     return img, scale, {n: (p + 0.5) * scale - 0.5 for n, p in polygons.items()}

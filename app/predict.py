@@ -8,16 +8,18 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Protocol, TextIO
+from typing import Any, Protocol, TextIO
 
 import numpy as np
 
 from . import _ranges
+from ._index_checks import extrapolation_warning
+from ._predict_checks import Given, check_combination, check_scalars, check_size, parse_index
 from .errors import UserError
-from .outputs import atomic_text
+from .outputs import staged_file
 
 
 class _RowWriter(Protocol):
@@ -43,12 +45,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--wedge-deg", default="10,20,30,40,45,60", help="wedge angles beta2 (deg)")
     p.add_argument("--layer-um", type=float, default=150.0, help="layer thickness l1 (um)")
-    p.add_argument("--material", default="pla", help="named dispersion model (see README)")
+    p.add_argument(
+        "--material", default="pla", help="named dispersion model (see README)", action=Given
+    )
     p.add_argument(
         "--n", default=None, help="constant complex index instead, e.g. 1.5 or 1.5+0.01j"
     )
     p.add_argument("--delta-n", type=float, default=0.0, help="offset added to n")
-    p.add_argument("--sigma-deg", type=float, default=5.0, help="Gaussian broadening (deg)")
+    p.add_argument(
+        "--sigma-deg", type=float, default=5.0, help="Gaussian broadening (deg)", action=Given
+    )
     p.add_argument(
         "--edge-radius-um",
         type=float,
@@ -60,8 +66,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("--wavelength-nm", default="550", help="wavelengths (nm)")
-    p.add_argument("--theta-i-deg", default="0", help="angles of incidence (deg)")
-    p.add_argument("--theta-o-deg", default="-90:90:1", help="angles of observation (deg)")
+    p.add_argument("--theta-i-deg", default="0", help="angles of incidence (deg)", action=Given)
+    p.add_argument(
+        "--theta-o-deg", default="-90:90:1", help="angles of observation (deg)", action=Given
+    )
     p.add_argument(
         "--lobes",
         action="store_true",
@@ -73,15 +81,49 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("-o", "--output", type=Path, default=None, help="CSV file (default: stdout)")
     p.add_argument("--force", action="store_true", help="overwrite an existing --output file")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, given=frozenset())
 
 
 def run(args: argparse.Namespace) -> int:
-    """Evaluate and write; user mistakes raise UserError."""
-    import jax.numpy as jnp
+    """Evaluate and write; user mistakes raise UserError.
 
-    from stairfit import model
+    Each model evaluation is one compiled call (`_jit`): eager JAX would compile every
+    operation separately (about 40 small programs for one `--lobes` case, most of its
+    start-up; issue 14).
+    """
+    check_combination(args)
+    check_scalars(args)
+    wedges, lam, theta_i, theta_o = _grids(args)
+    _check_table_size(args, wedges, lam, theta_i, theta_o)
+    radius = _edge_radius(args.edge_radius_um, wedges, args.layer_um)
+    if radius > 0.0 and args.diffuse:
+        raise UserError(
+            "--edge-radius-um with --diffuse: the diffuse integral is only available for the "
+            "sharp model; drop --diffuse (density or --lobes) or use --edge-radius-um 0"
+        )
+    n_lam = _index(args, lam)
+    if args.sigma_deg == 0.0 and not (args.lobes or args.diffuse):
+        raise UserError(
+            "--sigma-deg 0: the model without broadening has no finite density; add --lobes "
+            "(delta lobes, or the rounded model's paths) or --diffuse (exact diffuse integral), "
+            "or give a broadening > 0"
+        )
+    b2, ti, to = np.deg2rad(wedges), np.deg2rad(theta_i), np.deg2rad(theta_o)
+    with _open_output(args.output, args.force) as out:
+        w = csv.writer(out, lineterminator="\n")
+        if args.lobes and radius > 0.0:
+            _write_rounded_paths(w, b2, lam, n_lam, ti, args.layer_um, radius)
+        elif args.lobes:
+            _write_lobes(w, b2, lam, n_lam, ti)
+        elif args.diffuse:
+            _write_diffuse(w, b2, lam, n_lam, to, args)
+        else:
+            _write_density(w, b2, lam, n_lam, ti, to, radius, args)
+    return 0
 
+
+def _grids(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Wedge angles (deg), wavelengths (nm), theta_i and theta_o (deg), each range-checked."""
     wedges = _ranges.check_range(
         _ranges.parse_values(args.wedge_deg, "--wedge-deg"), 0.01, 89.99, "--wedge-deg", "deg"
     )
@@ -98,128 +140,155 @@ def run(args: argparse.Namespace) -> int:
     theta_o = _ranges.check_range(
         _ranges.parse_values(args.theta_o_deg, "--theta-o-deg"), -90, 90, "--theta-o-deg", "deg"
     )
-    if args.sigma_deg < 0 or not np.isfinite(args.sigma_deg):
-        raise UserError("--sigma-deg: must be >= 0 (0 means the sharp model)")
-    if args.layer_um <= 0:
-        raise UserError("--layer-um: the layer thickness must be > 0 um")
-    radius = _edge_radius(args.edge_radius_um, wedges, args.layer_um)
-    rounded = radius > 0.0
-    if rounded and args.diffuse:
-        raise UserError(
-            "--edge-radius-um with --diffuse: the diffuse integral is only available for the "
-            "sharp model; drop --diffuse (density or --lobes) or use --edge-radius-um 0"
+    return wedges, lam, theta_i, theta_o
+
+
+def _check_table_size(
+    args: argparse.Namespace,
+    wedges: np.ndarray,
+    lam: np.ndarray,
+    theta_i: np.ndarray,
+    theta_o: np.ndarray,
+) -> None:
+    """The number of rows the chosen table will have, refused beyond `MAX_ROWS` (up front)."""
+    axes = [("wedges", wedges.size), ("wavelengths", lam.size)]
+    if args.lobes:
+        paths = 10 if args.edge_radius_um > 0 else 3  # model.PATH_NAMES / model.LOBE_NAMES
+        check_size([*axes, ("theta_i", theta_i.size)], paths)
+    elif args.diffuse:
+        check_size([*axes, ("theta_o", theta_o.size)], 1)
+    else:
+        check_size([*axes, ("theta_i", theta_i.size), ("theta_o", theta_o.size)], 1)
+
+
+def _write_lobes(
+    w: _RowWriter, b2: np.ndarray, lam: np.ndarray, n_lam: np.ndarray, theta_i: np.ndarray
+) -> None:
+    """The three sharp lobes of every (wedge, wavelength, theta_i) [conventions §3]."""
+    from stairfit import model
+
+    w.writerow(
+        [
+            "wedge_deg",
+            "wavelength_nm",
+            "n",
+            "theta_i_deg",
+            "lobe",
+            "theta_o_deg",
+            "weight",
+            "fresnel",
+            "ratio",
+        ]
+    )
+    B, N, T = np.meshgrid(b2, n_lam, theta_i, indexing="ij")
+    lobes = _jit(model.sharp_lobes)(T, B, N)
+    L = np.broadcast_to(lam[None, :, None], B.shape)
+    for idx in np.ndindex(B.shape):
+        for k, name in enumerate(model.LOBE_NAMES):
+            w.writerow(
+                [
+                    _f(np.rad2deg(B[idx])),
+                    _f(L[idx]),
+                    _fn(N[idx]),
+                    _f(np.rad2deg(T[idx])),
+                    name,
+                    _f(np.rad2deg(lobes.theta_o[idx][k])),
+                    _f(lobes.weight[idx][k]),
+                    _f(lobes.fresnel[idx][k]),
+                    _f(lobes.ratio[idx][k]),
+                ]
+            )
+
+
+def _write_diffuse(
+    w: _RowWriter,
+    b2: np.ndarray,
+    lam: np.ndarray,
+    n_lam: np.ndarray,
+    theta_o: np.ndarray,
+    args: argparse.Namespace,
+) -> None:
+    """The diffuse-lighting integral of every (wedge, wavelength, theta_o) [conventions §4]."""
+    from stairfit import model
+
+    w.writerow(
+        [
+            "wedge_deg",
+            "wavelength_nm",
+            "n",
+            "theta_o_deg",
+            "sigma_deg",
+            "cosine_weighted",
+            "diffuse",
+        ]
+    )
+    B, N, Th_o = np.meshgrid(b2, n_lam, theta_o, indexing="ij")
+    cosine = args.cosine_weighted
+    if args.sigma_deg == 0.0:
+        D = _jit(model.diffuse_sharp, "cosine_weighted")(Th_o, B, N, cosine_weighted=cosine)
+    else:
+        D = _jit(model.diffuse_broadened, "cosine_weighted")(
+            Th_o, B, N, np.deg2rad(args.sigma_deg), cosine_weighted=cosine
         )
-    n_lam = _index(args, lam)
-    sharp = args.sigma_deg == 0.0
-    if sharp and not (args.lobes or args.diffuse):
-        raise UserError(
-            "--sigma-deg 0: the model without broadening has no finite density; add --lobes "
-            "(delta lobes, or the rounded model's paths) or --diffuse (exact diffuse integral), "
-            "or give a broadening > 0"
+    L = np.broadcast_to(lam[None, :, None], B.shape)
+    for idx in np.ndindex(B.shape):
+        w.writerow(
+            [
+                _f(np.rad2deg(B[idx])),
+                _f(L[idx]),
+                _fn(N[idx]),
+                _f(np.rad2deg(Th_o[idx])),
+                _f(args.sigma_deg),
+                int(args.cosine_weighted),
+                _f(D[idx]),
+            ]
         )
-    sigma = np.deg2rad(args.sigma_deg)
-    b2 = np.deg2rad(wedges)
-    with _open_output(args.output, args.force) as out:
-        w = csv.writer(out, lineterminator="\n")
-        if args.lobes and rounded:
-            _write_rounded_paths(w, b2, lam, n_lam, np.deg2rad(theta_i), args.layer_um, radius)
-        elif args.lobes:
-            w.writerow(
-                [
-                    "wedge_deg",
-                    "wavelength_nm",
-                    "n",
-                    "theta_i_deg",
-                    "lobe",
-                    "theta_o_deg",
-                    "weight",
-                    "fresnel",
-                    "ratio",
-                ]
-            )
-            B, N, T = np.meshgrid(b2, n_lam, np.deg2rad(theta_i), indexing="ij")
-            lobes = model.sharp_lobes(jnp.asarray(T), jnp.asarray(B), jnp.asarray(N))
-            L = np.broadcast_to(lam[None, :, None], B.shape)
-            for idx in np.ndindex(B.shape):
-                for k, name in enumerate(model.LOBE_NAMES):
-                    w.writerow(
-                        [
-                            _f(np.rad2deg(B[idx])),
-                            _f(L[idx]),
-                            _fn(N[idx]),
-                            _f(np.rad2deg(T[idx])),
-                            name,
-                            _f(np.rad2deg(float(lobes.theta_o[idx][k]))),
-                            _f(lobes.weight[idx][k]),
-                            _f(lobes.fresnel[idx][k]),
-                            _f(lobes.ratio[idx][k]),
-                        ]
-                    )
-        elif args.diffuse:
-            w.writerow(
-                [
-                    "wedge_deg",
-                    "wavelength_nm",
-                    "n",
-                    "theta_o_deg",
-                    "sigma_deg",
-                    "cosine_weighted",
-                    "diffuse",
-                ]
-            )
-            B, N, Th_o = np.meshgrid(b2, n_lam, np.deg2rad(theta_o), indexing="ij")
-            if sharp:
-                D = model.diffuse_sharp(Th_o, B, N, cosine_weighted=args.cosine_weighted)
-            else:
-                D = model.diffuse_broadened(Th_o, B, N, sigma, cosine_weighted=args.cosine_weighted)
-            L = np.broadcast_to(lam[None, :, None], B.shape)
-            for idx in np.ndindex(B.shape):
-                w.writerow(
-                    [
-                        _f(np.rad2deg(B[idx])),
-                        _f(L[idx]),
-                        _fn(N[idx]),
-                        _f(np.rad2deg(Th_o[idx])),
-                        _f(args.sigma_deg),
-                        int(args.cosine_weighted),
-                        _f(D[idx]),
-                    ]
-                )
-        else:
-            w.writerow(
-                [
-                    "wedge_deg",
-                    "wavelength_nm",
-                    "n",
-                    "theta_i_deg",
-                    "theta_o_deg",
-                    "sigma_deg",
-                    "edge_radius_um",
-                    "rho_per_rad",
-                ]
-            )
-            B, N, T, Th_o = np.meshgrid(
-                b2, n_lam, np.deg2rad(theta_i), np.deg2rad(theta_o), indexing="ij"
-            )
-            if rounded:
-                R = _rounded_density(b2, n_lam, np.deg2rad(theta_i), np.deg2rad(theta_o), args)
-            else:
-                R = model.brdf(T, Th_o, B, N, sigma)
-            L = np.broadcast_to(lam[None, :, None, None], B.shape)
-            for idx in np.ndindex(B.shape):
-                w.writerow(
-                    [
-                        _f(np.rad2deg(B[idx])),
-                        _f(L[idx]),
-                        _fn(N[idx]),
-                        _f(np.rad2deg(T[idx])),
-                        _f(np.rad2deg(Th_o[idx])),
-                        _f(args.sigma_deg),
-                        _f(radius),
-                        _f(R[idx]),
-                    ]
-                )
-    return 0
+
+
+def _write_density(
+    w: _RowWriter,
+    b2: np.ndarray,
+    lam: np.ndarray,
+    n_lam: np.ndarray,
+    theta_i: np.ndarray,
+    theta_o: np.ndarray,
+    radius: float,
+    args: argparse.Namespace,
+) -> None:
+    """The broadened density rho (1/rad) on the full grid, sharp or rounded [conventions §4]."""
+    from stairfit import model
+
+    w.writerow(
+        [
+            "wedge_deg",
+            "wavelength_nm",
+            "n",
+            "theta_i_deg",
+            "theta_o_deg",
+            "sigma_deg",
+            "edge_radius_um",
+            "rho_per_rad",
+        ]
+    )
+    B, N, T, Th_o = np.meshgrid(b2, n_lam, theta_i, theta_o, indexing="ij")
+    if radius > 0.0:
+        R = _rounded_density(b2, n_lam, theta_i, theta_o, args)
+    else:
+        R = _jit(model.brdf)(T, Th_o, B, N, np.deg2rad(args.sigma_deg))
+    L = np.broadcast_to(lam[None, :, None, None], B.shape)
+    for idx in np.ndindex(B.shape):
+        w.writerow(
+            [
+                _f(np.rad2deg(B[idx])),
+                _f(L[idx]),
+                _fn(N[idx]),
+                _f(np.rad2deg(T[idx])),
+                _f(np.rad2deg(Th_o[idx])),
+                _f(args.sigma_deg),
+                _f(radius),
+                _f(R[idx]),
+            ]
+        )
 
 
 def _edge_radius(radius_um: float, wedges_deg: np.ndarray, layer_um: float) -> float:
@@ -230,7 +299,9 @@ def _edge_radius(radius_um: float, wedges_deg: np.ndarray, layer_um: float) -> f
     """
     from stairfit import model
 
-    r_max = np.asarray(model.max_edge_radius(np.deg2rad(wedges_deg), layer_um), dtype=float)
+    if radius_um == 0.0:  # sharp edges fit every wedge; nothing to evaluate
+        return 0.0
+    r_max = _jit(model.max_edge_radius)(np.deg2rad(wedges_deg), layer_um)
     limit = int(np.argmin(r_max))
     valid = f"[0, {r_max[limit]:.6g}] um"
     # the same relative slack as model.check_edge_radius, so r = r_max itself is accepted
@@ -261,16 +332,15 @@ def _rounded_density(
     Fresnel factors once per wavelength (see `brdf_rounded`) [conventions §1, §4].
     """
     import jax
-    import jax.numpy as jnp
 
     from stairfit import model
 
     fn = jax.jit(model.brdf_rounded)
     rho = fn(
-        jnp.asarray(theta_i[None, None, :, None]),
-        jnp.asarray(theta_o[None, None, None, :]),
-        jnp.asarray(b2[:, None, None, None]),
-        jnp.asarray(n_lam[None, :, None, None]),
+        theta_i[None, None, :, None],
+        theta_o[None, None, None, :],
+        b2[:, None, None, None],
+        n_lam[None, :, None, None],
         np.deg2rad(args.sigma_deg),
         args.layer_um,
         args.edge_radius_um,
@@ -295,7 +365,6 @@ def _write_rounded_paths(
     unpolarised factor of the path; empty where the weight is 0) [conventions §3, §4].
     """
     import jax
-    import jax.numpy as jnp
 
     from stairfit import model
 
@@ -315,9 +384,9 @@ def _write_rounded_paths(
     )
     B, N, T = np.meshgrid(b2, n_lam, theta_i, indexing="ij")
     paths = jax.jit(model.rounded_paths)
-    p = paths(jnp.asarray(T), jnp.asarray(B), jnp.asarray(N), layer_um, radius_um)
+    p = paths(T, B, N, layer_um, radius_um)
     weight, ratio = np.asarray(p.weight), np.asarray(p.ratio)
-    direction = np.asarray(model.lobe_directions(jnp.asarray(T), jnp.asarray(B)))
+    direction = _jit(model.lobe_directions)(T, B)
     L = np.broadcast_to(lam[None, :, None], B.shape)
     for idx in np.ndindex(B.shape):
         for k, name in enumerate(model.PATH_NAMES):
@@ -342,23 +411,34 @@ def _index(args: argparse.Namespace, lam: np.ndarray) -> np.ndarray:
     from stairfit import model
 
     if args.n is not None:
-        try:
-            n = complex(args.n.replace(" ", ""))
-        except ValueError:
-            raise UserError(f"--n: cannot read {args.n!r}; give e.g. 1.46 or 1.5+0.01j") from None
-        if n.real <= 1.0 or n.imag < 0:
-            raise UserError("--n: need Re(n) > 1 and Im(n) >= 0 (docs/conventions.md §6)")
+        n = parse_index(args.n)
         values = np.full(lam.shape, n if n.imag else n.real)
     else:
         try:
             disp = model.get_material(args.material)
         except ValueError as e:
             raise UserError(f"--material: {e}") from None
-        values = np.asarray(disp(lam))
+        values = _jit(model.refractive_index, "dispersion")(disp, lam)
+        problem = model.materials.index_problem(disp, lam, args.delta_n, values=values)
+        if problem is not None:
+            raise UserError(f"--material {args.material}, --delta-n {args.delta_n:g}: {problem}")
+        extrapolation_warning(disp, args.material, lam, user="this prediction")
     values = values + args.delta_n
     if np.any(np.real(values) <= 1.0):
         raise UserError("--delta-n: the resulting index must stay > 1")
     return values
+
+
+def _jit(fn: Callable[..., Any], *static: str) -> Callable[..., Any]:
+    """`fn` compiled as one program, returning NumPy arrays (the CSV loops index them)."""
+    import jax
+
+    compiled = jax.jit(fn, static_argnames=static)
+
+    def call(*args: Any, **kwargs: Any) -> Any:
+        return jax.tree.map(np.asarray, compiled(*args, **kwargs))
+
+    return call
 
 
 def _f(x: float) -> str:
@@ -375,7 +455,5 @@ def _open_output(path: Path | None, force: bool) -> Iterator[TextIO]:
     if path is None:
         yield sys.stdout
         return
-    if path.exists() and not force:
-        raise UserError(f"{path}: already exists; choose another --output or add --force")
-    with atomic_text(path) as fh:
+    with staged_file(path, force) as fh:
         yield fh

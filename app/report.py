@@ -16,11 +16,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from . import __version__
 from .figures import brdf_map, fixed_layout, log_y, reflected_colours, refractive_index, save
@@ -47,35 +44,39 @@ PACKAGES = (
 # --- parameters at the edge ---------------------------------------------------------------
 
 
-def display_name(name: str) -> tuple[str, float]:
-    """Name and factor for files and screens: radians become degrees."""
-    if name.startswith("sigma_rad"):
-        return name.replace("sigma_rad", "sigma_deg", 1), 1.0 / DEG
-    return name, 1.0
+def display_name(p: Any) -> tuple[str, float]:
+    """Name and factor for files and screens of a parameter (a `fitting.Estimate` or
+    `fitting.Parameter`): widths become degrees (`sigma_deg`, `sigma_deg[2: 30 deg]`)."""
+    if p.param == "sigma_rad":
+        return p.label("sigma_deg"), 1.0 / DEG
+    return p.label(), 1.0
 
 
-def display_unit(name: str, unit: str) -> str:
-    """Unit for files and screens."""
-    return "deg" if name.startswith("sigma_rad") else unit
+def display_unit(p: Any) -> str:
+    """Unit for files and screens of a parameter (see `display_name`)."""
+    return "deg" if p.param == "sigma_rad" else p.unit
 
 
 def parameter_records(outcome: FitOutcome) -> list[dict[str, Any]]:
     """One record per free parameter: least-squares and posterior estimates, display units."""
     fit, post = outcome.selection.fit, outcome.posterior
     records = []
+    sampled = [] if post is None else [(p.param, p.wedge) for p in post.parameters]
     for i, e in enumerate(fit.estimates):
-        name, f = display_name(e.name)
+        name, f = display_name(e)
         rec: dict[str, Any] = {
             "name": name,
-            "unit": display_unit(e.name, e.unit),
+            "parameter": e.param,
+            "wedge": e.wedge,
+            "unit": display_unit(e),
             "least_squares": {
                 "value": e.value * f,
                 "stderr": None if e.stderr is None else e.stderr * f,
                 "at_bound": e.at_bound,
             },
         }
-        if post is not None and e.name in post.names:
-            j = post.names.index(e.name)
+        if (e.param, e.wedge) in sampled:
+            j = sampled.index((e.param, e.wedge))
             rec["posterior"] = {
                 "median": float(post.median[j]) * f,
                 "p16": float(post.p16[j]) * f,
@@ -107,8 +108,12 @@ def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
 
 def write_outputs(outcome: FitOutcome, out: Path) -> None:
     """Write every output into `out` (a temporary folder moved into place by the caller)."""
+    from .measure import MARKER_COLUMNS, fit_marker_reports, write_table
+
     out.mkdir(parents=True, exist_ok=True)
     outcome.table.write_csv(out / "measurements.csv")
+    markers = fit_marker_reports(outcome.scene, outcome.table)
+    write_table(out / "markers.csv", markers, MARKER_COLUMNS)
     write_observations(outcome, out / "observations.csv")
     figures = write_figures(outcome, out / "figures")
     results = results_dict(outcome, figures)
@@ -185,7 +190,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         outcome.posterior,
         outcome.scene,
     )
-    names = [display_name(n)[0] for n in fit.names]
+    names = [display_name(e)[0] for e in fit.estimates]
     corr = None if fit.correlation is None else np.round(fit.correlation, 6)
     versions = {}
     for pkg in PACKAGES:
@@ -244,6 +249,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         },
         "parameters": parameter_records(outcome),
         "fixed_parameters": fixed_parameters(outcome),
+        "spectral": spectral_record(outcome),
         "correlation": {"names": names, "matrix": corr},
         "diagnostics": {
             "least_squares": {
@@ -300,6 +306,31 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
     return _jsonable(result)
 
 
+def spectral_record(outcome: FitOutcome) -> dict[str, Any]:
+    """The camera model's channels for results.json [conventions §7, §8]: each channel's
+    effective wavelength (its sensitivity x illuminant weighted mean, `ChannelWeights.
+    effective_nm`; what the "effective" sampling evaluates) and the material's index there,
+    without `delta_n` (`index_n`, `index_k`)."""
+    from stairfit.model import materials, spectral
+
+    from .scene import CHANNELS
+
+    scene = outcome.scene
+    eff = spectral.channel_weights(scene.camera.sensitivity, scene.light.illuminant).effective_nm
+    index = np.asarray(materials.index_per_channel(scene.specimen.index.build(), eff[:, None]))[
+        :, 0
+    ]
+    return {
+        "camera": scene.camera.sensitivity,
+        "illuminant": scene.light.illuminant,
+        "sampling": outcome.options.preset.spectral,
+        "channels": list(CHANNELS[: eff.size]),
+        "effective_wavelength_nm": np.round(eff, 3),
+        "index_n": np.round(np.real(index), 8),
+        "index_k": np.round(np.imag(index), 8),
+    }
+
+
 # --- figures --------------------------------------------------------------------------------
 
 
@@ -322,7 +353,7 @@ def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
     wedges = [w.angle_deg for w in outcome.scene.specimen.wedges]
     pick = sorted({min(wedges), max(wedges)})
     sigma_deg = float(np.mean(p.sigma_rad)) / DEG
-    disp = outcome.scene.specimen.index.build()
+    disp = _along_wavelength(outcome.scene)
     lam = VISIBLE_NM  # the grid of reflected_colours: one compilation serves both figures
     n_lam = refractive_index(disp, lam, float(p.delta_n))
     n550 = complex(np.interp(550.0, lam, n_lam.real), np.interp(550.0, lam, np.imag(n_lam)))
@@ -357,18 +388,31 @@ def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
     return figs
 
 
+def _along_wavelength(scene: Any) -> Any:
+    """The scene's index as a function of wavelength for the figures: a dispersion model as
+    it is, a per-channel index through its channels' effective wavelengths."""
+    from stairfit.model import materials, spectral
+
+    index = scene.specimen.index.build()
+    if not isinstance(index, materials.PerChannel):
+        return index
+    cw = spectral.channel_weights(scene.camera.sensitivity, scene.light.illuminant)
+    return index.along_wavelength(cw.effective_nm)
+
+
 def _rel(path: Path, folder: Path) -> str:
     return f"figures/{path.relative_to(folder)}"
 
 
-def fit_per_wedge(outcome: FitOutcome) -> plt.Figure:
+def fit_per_wedge(outcome: FitOutcome) -> Figure:
     """Measured (error bars) and fitted radiance against the face-frame viewing angle, one
     panel per wedge and one colour per channel (like the paper's Fig. 9)."""
     fit, obs = outcome.selection.fit, outcome.observations
     wedges = outcome.scene.specimen.wedges
     ncol = min(3, len(wedges))
     nrow = int(np.ceil(len(wedges) / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(4.3 * ncol, 3.2 * nrow), squeeze=False)
+    fig = Figure(figsize=(4.3 * ncol, 3.2 * nrow))  # no pyplot: no global state (app/figures.py)
+    axes = fig.subplots(nrow, ncol, squeeze=False)
     colours = ("tab:red", "tab:green", "tab:blue")
     theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
     for k, wedge in enumerate(wedges):
@@ -410,12 +454,13 @@ def fit_per_wedge(outcome: FitOutcome) -> plt.Figure:
     return fig
 
 
-def residual_figure(outcome: FitOutcome) -> plt.Figure:
+def residual_figure(outcome: FitOutcome) -> Figure:
     """Whitened residuals against viewing angle per wedge, and their histogram vs N(0, 1)."""
     fit, obs = outcome.selection.fit, outcome.observations
     theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
     used = np.asarray(obs.use, bool)
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 3.6), gridspec_kw={"width_ratios": [2, 1]})
+    fig = Figure(figsize=(11, 3.6))
+    a1, a2 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [2, 1]})
     for k, wedge in enumerate(outcome.scene.specimen.wedges):
         sel = used & (obs.wedge_index == k)
         a1.plot(theta_o[sel], fit.residuals[sel], "o", ms=3, label=wedge.name)
@@ -432,21 +477,27 @@ def residual_figure(outcome: FitOutcome) -> plt.Figure:
     return fig
 
 
-def corner_figure(outcome: FitOutcome) -> plt.Figure:
+def corner_figure(outcome: FitOutcome) -> Figure:
     """Corner plot of the posterior samples (display units), titled with the median and the
-    16-84% interval in plain text (corner's own titles are mathtext, slow to set up)."""
+    16-84% interval in plain text (corner's own titles are mathtext, slow to set up).
+
+    Drawn on a plain `Figure` of corner's own size (`corner_size_in`), so that corner does not
+    create it through pyplot (which would pick an interactive backend where there is a display).
+    """
     import corner
 
     post = outcome.posterior
-    labels, factors = zip(*(display_name(n) for n in post.names), strict=True)
+    labels, factors = zip(*(display_name(p) for p in post.parameters), strict=True)
     samples = post.samples * np.asarray(factors)[None, :]
     q16, q50, q84 = np.quantile(samples, (0.16, 0.5, 0.84), axis=0)
     titles = [
         f"{lab} = {value_with_errors(m, m - lo, hi - m)}"
         for lab, lo, m, hi in zip(labels, q16, q50, q84, strict=True)
     ]
+    size = corner_size_in(samples.shape[1])
     return corner.corner(
         samples,
+        fig=Figure(figsize=(size, size)),
         labels=list(labels),
         titles=titles,
         quantiles=(0.16, 0.5, 0.84),
@@ -454,6 +505,14 @@ def corner_figure(outcome: FitOutcome) -> plt.Figure:
         title_fmt=None,
         title_kwargs={"fontsize": "medium"},
     )
+
+
+def corner_size_in(n_params: int) -> float:
+    """The figure size (inches) `corner.corner` chooses for `n_params` parameters when it makes
+    the figure itself (corner 2.3 core.py: 2 inches per panel, gaps of 5%, margins 0.5 x 2 and
+    0.2 x 2 inches); its margins are fractions of that size, so the layout stays corner's."""
+    factor, whspace = 2.0, 0.05
+    return 0.5 * factor + factor * n_params + factor * (n_params - 1.0) * whspace + 0.2 * factor
 
 
 def value_with_errors(value: float, minus: float, plus: float) -> str:
@@ -545,10 +604,17 @@ table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}</style
 {ls["n_used"]} of {ls["n_rows"]} measurements fitted.<br>{e(post_line)}</p>
 <ul>{warn}{notes}</ul>
 <h2>Figures</h2>{imgs}
-<h2>Regions of interest</h2>{prev}
+<h2>Regions of interest</h2>{prev}<h3>Markers per photo</h3>{_markers_html(outcome)}
 <p style="color:#777">stairfit {e(__version__)}; conventions: docs/conventions.md; all numbers
 also in results.json.</p></body></html>
 """
+
+
+def _markers_html(outcome: FitOutcome) -> str:
+    """The per-photo marker table (app/measure.py), as in markers.csv."""
+    from .measure import MARKER_COLUMNS, fit_marker_reports, html_table
+
+    return html_table(fit_marker_reports(outcome.scene, outcome.table), MARKER_COLUMNS)
 
 
 def _fmt(x: Any, spec: str) -> str:

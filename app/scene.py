@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,13 +22,17 @@ from .errors import UserError
 SCENE_FILE = "scene.toml"
 SCENE_VERSION = 1
 Polygon = tuple[tuple[float, float], ...]
+MetadataValue = str | int | float
+CHANNELS = ("R", "G", "B")
+"""The camera channels, in the order of per-channel fields: `imaging.CHANNELS`, restated so that
+reading a scene file does not import the imaging stack (cv2, rawpy)."""
 
 
 @dataclass(frozen=True)
 class IndexSpec:
     """The dispersion model: a named material, or explicit parameters [conventions §7]."""
 
-    model: str  # "named", "constant", "cauchy", "sellmeier", "tabulated"
+    model: str  # "named", "constant", "cauchy", "sellmeier", "tabulated", "per_channel"
     name: str = "pla"
     params: tuple[tuple[str, Any], ...] = ()
 
@@ -46,6 +51,8 @@ class IndexSpec:
             )
         if self.model == "sellmeier":
             return materials.Sellmeier(c0=p.get("c0", 0.0), b=tuple(p["b"]), c_um=tuple(p["c_um"]))
+        if self.model == "per_channel":  # not a dispersion model: one index per channel
+            return materials.PerChannel(n=tuple(p["n"]), k=tuple(p["k"]) if any(p["k"]) else ())
         return materials.Tabulated(
             wavelength_nm=tuple(p["wavelength_nm"]),
             n=tuple(p["n"]),
@@ -70,6 +77,8 @@ class Specimen:
     layer_um: float
     index: IndexSpec
     wedges: tuple[Wedge, ...]
+    metadata: tuple[tuple[str, MetadataValue], ...] = ()
+    """Free `[specimen.metadata]` (printer, nozzle temperature, ...): key = string or number."""
 
 
 @dataclass(frozen=True)
@@ -82,10 +91,17 @@ class Light:
 
 @dataclass(frozen=True)
 class Camera:
-    """The camera: channel sensitivities by name, and the spread of viewing angles over a face."""
+    """The camera: channel sensitivities by name, and the spread of viewing angles over a face.
+
+    `focal_length_px` and `principal_point_px` (optional, pixels of the full-resolution raw
+    image) make it a pinhole for placing wedge faces in 3-D from the markers; without them an
+    affine camera is assumed (docs/imaging.md §3-D placement).
+    """
 
     sensitivity: str = "ideal"
     angular_extent_deg: float = 0.0
+    focal_length_px: float | None = None
+    principal_point_px: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -130,12 +146,13 @@ class Photo:
 
     `file` is the photo's (first) file and its name in the results; an HDR bracket (`file` a
     list in the scene file) has its further exposures in `bracket`. The overrides here are the
-    first file's.
+    first file's. `light_deg` and `view_deg` are always set in a scene for `fit`; a
+    measure-only scene of patches alone (no [specimen]) may leave them out (None).
     """
 
     file: str
-    light_deg: float
-    view_deg: float
+    light_deg: float | None
+    view_deg: float | None
     exposure_time_s: float | None = None
     f_number: float | None = None
     iso: float | None = None
@@ -158,6 +175,16 @@ class CalibrationFrames:
 
 
 @dataclass(frozen=True)
+class Patch:
+    """A named patch measured by `stairfit measure` (a colour-chart patch, a grey card): its
+    pixel polygon in every photo, or its outline on the base (flat, placed by the markers)."""
+
+    name: str
+    roi_px: Polygon | None = None
+    face_mm: Polygon | None = None
+
+
+@dataclass(frozen=True)
 class Extraction:
     """Settings for turning pixels into measurements (see docs/imaging.md)."""
 
@@ -173,13 +200,14 @@ class Scene:
 
     path: Path
     angles_relative_to: str
-    specimen: Specimen
+    specimen: Specimen | None  # None only in a measure-only scene of patches
     light: Light
     camera: Camera
     photos: tuple[Photo, ...]
     markers: Markers | None = None
     reference: Reference | None = None
     extraction: Extraction = field(default_factory=Extraction)
+    patches: tuple[Patch, ...] = ()
     calibration: CalibrationFrames | None = None
 
     @property
@@ -188,7 +216,7 @@ class Scene:
         return self.path.parent
 
     def input_fields(self) -> tuple[tuple[str, str, Path], ...]:
-        """Every file the scene reads: (scene field, name as written, absolute resolved path).
+        """Every file the scene lists: (scene field, name as written, absolute resolved path).
 
         Photos and their bracket members (`photos[k].file`, `photos[k].file[j]`), then the
         calibration frames (`calibration.flat_field[j]`, `calibration.dark_frames[j]`).
@@ -206,9 +234,14 @@ class Scene:
         return tuple((where, name, (self.folder / name).resolve()) for where, name in out)
 
     def input_files(self) -> tuple[Path, ...]:
-        """Every file the scene reads (photos, bracket members, flat fields, dark frames),
-        as absolute resolved paths."""
-        return tuple(path for _, _, path in self.input_fields())
+        """Every file this scene makes a run read, as absolute resolved paths, without repeats.
+
+        The scene file, then each photo's file (every member of a bracket), then the flat-field
+        photos and dark frames (`input_fields`). Whoever adds a new kind of input file adds it
+        there: outputs are refused when they would replace any of these (app/outputs.py).
+        """
+        files = [Path(self.path).resolve(), *(path for _, _, path in self.input_fields())]
+        return tuple(dict.fromkeys(files))
 
     def face_angles_deg(self, photo: Photo, wedge: Wedge) -> tuple[float, float]:
         """(theta_i, theta_o) of this photo in this wedge's face frame, degrees.
@@ -228,8 +261,12 @@ class Scene:
 # --- loading and validation -----------------------------------------------------------------
 
 
-def load_scene(path: Path) -> Scene:
-    """Read and validate a scene file (or the `scene.toml` inside a folder)."""
+def load_scene(path: Path, measure_only: bool = False) -> Scene:
+    """Read and validate a scene file (or the `scene.toml` inside a folder).
+
+    `measure_only` (for `stairfit measure`) also allows `[[patches]]`, beside or instead of
+    `[specimen]`, and photos without angles when there is no specimen.
+    """
     path = Path(path)
     if not path.exists():
         raise UserError(
@@ -243,7 +280,7 @@ def load_scene(path: Path) -> Scene:
             "'stairfit simulate OUT' to see a complete one)"
         )
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+        raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))  # a BOM (Notepad) is fine
     except tomllib.TOMLDecodeError as e:
         raise UserError(f"{path}: not valid TOML ({e}); fix the syntax at that line") from None
     except UnicodeDecodeError:
@@ -252,11 +289,11 @@ def load_scene(path: Path) -> Scene:
         raise UserError(
             f"{path}: cannot read the scene file ({e.strerror or e}); check its permissions"
         ) from None
-    return parse_scene(raw, path)
+    return parse_scene(raw, path, measure_only)
 
 
-def parse_scene(raw: dict[str, Any], path: Path) -> Scene:
-    """Validate a scene given as a dict (as read from TOML)."""
+def parse_scene(raw: dict[str, Any], path: Path, measure_only: bool = False) -> Scene:
+    """Validate a scene given as a dict (as read from TOML); see `load_scene`."""
     r = _Reader(path)
     top = r.table(
         raw,
@@ -271,6 +308,7 @@ def parse_scene(raw: dict[str, Any], path: Path) -> Scene:
             "markers",
             "reference",
             "extraction",
+            "patches",
             "calibration",
         ],
     )
@@ -280,21 +318,26 @@ def parse_scene(raw: dict[str, Any], path: Path) -> Scene:
     relative = r.get(top, "angles_relative_to", str, "", default="base")
     if relative not in ("base", "face"):
         r.fail("angles_relative_to", f'is {relative!r}; use "base" or "face"')
-    specimen = _specimen(r, r.need_table(top, "specimen", ""))
+    if "patches" in top and not measure_only:
+        r.fail("patches", "named patches are measured by 'stairfit measure' only; remove them")
+    patch_only = measure_only and "patches" in top and "specimen" not in top
+    specimen = None if patch_only else _specimen(r, r.need_table(top, "specimen", ""))
     light = _light(r, r.opt_table(top, "light", ""))
     camera = _camera(r, r.opt_table(top, "camera", ""))
     markers = _markers(r, top["markers"], "markers") if "markers" in top else None
     reference = _reference(r, top["reference"], "reference") if "reference" in top else None
     extraction = _extraction(r, r.opt_table(top, "extraction", ""))
-    photos = _photos(r, top, specimen)
+    patches = _patches(r, top, specimen, reference, markers) if "patches" in top else ()
+    photos = _photos(r, top, specimen, tuple(x.name for x in patches))
     calibration = _calibration(r, top["calibration"]) if "calibration" in top else None
     scene = Scene(
-        path, relative, specimen, light, camera, photos, markers, reference, extraction,
+        path, relative, specimen, light, camera, photos, markers, reference, extraction, patches,
         calibration,
     )  # fmt: skip
-    _check_files_unique(r, scene)
-    _check_geometry(r, scene)
-    _check_rois(r, scene)
+    _check_input_paths(r, scene)
+    if specimen is not None:
+        _check_geometry(r, scene)
+        _check_rois(r, scene)
     return scene
 
 
@@ -361,7 +404,7 @@ class _Reader:
         ok = (
             isinstance(v, list)
             and len(v) >= 3
-            and all(isinstance(p, list) and len(p) == 2 and all(_is_num(c) for c in p) for p in v)
+            and all(isinstance(p, list) and len(p) == 2 and all(_is_real(c) for c in p) for p in v)
         )
         if not ok:
             self.fail(
@@ -369,12 +412,13 @@ class _Reader:
                 "must be a list of at least 3 [x, y] points, e.g. [[10, 10], "
                 "[200, 10], [200, 150], [10, 150]]",
             )
+        _check_polygon(self, name, v)
         return tuple((float(p[0]), float(p[1])) for p in v)
 
 
 def _specimen(r: _Reader, d: dict[str, Any]) -> Specimen:
     w = "specimen"
-    r.table(d, w, ["layer_um", "material", "index", "wedges"])
+    r.table(d, w, ["layer_um", "material", "index", "wedges", "metadata"])
     layer = r.get(d, "layer_um", float, w, lo=1.0, hi=10_000.0)
     if "index" in d and "material" in d:
         r.fail(f"{w}.index", "give either 'material' (a name) or an 'index' table, not both")
@@ -413,7 +457,28 @@ def _specimen(r: _Reader, d: dict[str, Any]) -> Specimen:
     dup = {x for x in names if names.count(x) > 1}
     if dup:
         r.fail(f"{w}.wedges", f"duplicate wedge name(s) {sorted(dup)}; names must be unique")
-    return Specimen(layer, index, tuple(wedges))
+    metadata = _metadata(r, d.get("metadata", {}), f"{w}.metadata")
+    return Specimen(layer, index, tuple(wedges), metadata)
+
+
+def _metadata(r: _Reader, d: Any, w: str) -> tuple[tuple[str, MetadataValue], ...]:
+    """`[specimen.metadata]`: free key = value pairs, each a string or a finite number."""
+    if not isinstance(d, dict):
+        r.fail(w, 'must be a table of key = value, e.g. printer = "MK4", nozzle_c = 215')
+    items = []
+    for key, v in d.items():
+        if isinstance(v, float) and not math.isfinite(v):
+            r.fail(f"{w}.{key}", f"must be a finite number, not {v!r}")
+        if isinstance(v, dict | list):
+            r.fail(
+                f"{w}.{key}",
+                f"is a {'table' if isinstance(v, dict) else 'list'}; metadata values are single "
+                f'strings or numbers, e.g. {key} = "..."',
+            )
+        if isinstance(v, bool) or not isinstance(v, str | int | float):
+            r.fail(f"{w}.{key}", f'must be a string or a number, not {v!r}; quote it: "{v}"')
+        items.append((str(key), v))
+    return tuple(items)
 
 
 def _index(r: _Reader, d: dict[str, Any], w: str) -> IndexSpec:
@@ -422,6 +487,7 @@ def _index(r: _Reader, d: dict[str, Any], w: str) -> IndexSpec:
         "cauchy": (["a"], ["b_um2", "c_um4", "k"]),
         "sellmeier": (["b", "c_um"], ["c0"]),
         "tabulated": (["wavelength_nm", "n"], ["k"]),
+        "per_channel": (["n"], ["k"]),
     }
     if not isinstance(d, dict):
         r.fail(w, 'must be a table such as { model = "constant", n = 1.46 }')
@@ -451,13 +517,40 @@ def _index(r: _Reader, d: dict[str, Any], w: str) -> IndexSpec:
             r.fail(w, "wavelength_nm, n (and k) must have the same length")
     if model == "sellmeier" and len(params["b"]) != len(params["c_um"]):
         r.fail(w, "b and c_um must have the same length")
+    if model == "per_channel":
+        return _per_channel_index(r, params, w)
     spec = IndexSpec(model, params=tuple(sorted(params.items())))
-    import numpy as np
-
-    n550 = complex(np.asarray(spec.build()(np.array([550.0])))[0])
-    if not n550.real > 1.0 or n550.imag < 0:
-        r.fail(w, f"gives n(550 nm) = {n550:.4g}; need Re(n) > 1 and k >= 0")
+    _check_physical_index(r, spec, w)
     return spec
+
+
+def _check_physical_index(r: _Reader, spec: IndexSpec, where: str) -> None:
+    """The index must be physical over the whole spectral grid a fit can use [conventions §8]."""
+    from stairfit.model import materials, spectral
+
+    problem = materials.index_problem(spec.build(), spectral.VISIBLE_NM)
+    if problem is not None:
+        r.fail(where, f"{problem}; fix the {spec.model} coefficients")
+
+
+def _per_channel_index(r: _Reader, params: dict[str, Any], w: str) -> IndexSpec:
+    """One index per camera channel, in R, G, B order; `k` one for all or one per channel
+    [conventions §6, §7]."""
+    n, k = params["n"], params.get("k", 0.0)
+    if not isinstance(n, tuple) or len(n) != len(CHANNELS):
+        r.fail(
+            f"{w}.n",
+            "must list one index per camera channel, in R, G, B order, e.g. n = [1.47, 1.46, 1.45]",
+        )
+    k = k if isinstance(k, tuple) else (k,) * len(CHANNELS)
+    if len(k) != len(CHANNELS):
+        r.fail(f"{w}.k", "must be one number for every channel, or 3 numbers in R, G, B order")
+    for name, n_c, k_c in zip(CHANNELS, n, k, strict=True):
+        if not (math.isfinite(n_c) and n_c > 1.0):
+            r.fail(f"{w}.n", f"{n_c:g} for channel {name}; each index must be > 1 (e.g. 1.46)")
+        if not (math.isfinite(k_c) and k_c >= 0.0):
+            r.fail(f"{w}.k", f"{k_c:g} for channel {name}; the extinction k must be >= 0")
+    return IndexSpec("per_channel", params=(("k", k), ("n", n)))
 
 
 def _light(r: _Reader, d: dict[str, Any]) -> Light:
@@ -473,7 +566,8 @@ def _light(r: _Reader, d: dict[str, Any]) -> Light:
 
 
 def _camera(r: _Reader, d: dict[str, Any]) -> Camera:
-    r.table(d, "camera", ["sensitivity", "angular_extent_deg"])
+    fields = ["sensitivity", "angular_extent_deg", "focal_length_px", "principal_point_px"]
+    r.table(d, "camera", fields)
     sens = r.get(d, "sensitivity", str, "camera", default="ideal")
     from stairfit.model import spectral
 
@@ -482,7 +576,15 @@ def _camera(r: _Reader, d: dict[str, Any]) -> Camera:
             "camera.sensitivity", f"unknown camera {sens!r}; known: {', '.join(spectral.CAMERAS)}"
         )
     ext = r.get(d, "angular_extent_deg", float, "camera", default=0.0, lo=0, hi=30)
-    return Camera(sens, ext)
+    focal = r.get(d, "focal_length_px", float, "camera", default=None, lo=1.0, hi=1e6)
+    centre = d.get("principal_point_px")
+    if centre is not None:
+        if not (isinstance(centre, list) and len(centre) == 2 and all(map(_is_num, centre))):
+            r.fail("camera.principal_point_px", "must be [cx, cy] in pixels, e.g. [2999.5, 1999.5]")
+        if focal is None:
+            r.fail("camera.principal_point_px", "needs camera.focal_length_px as well")
+        centre = (float(centre[0]), float(centre[1]))
+    return Camera(sens, ext, focal, centre)
 
 
 def _markers(r: _Reader, d: Any, w: str) -> Markers:
@@ -520,8 +622,10 @@ def _reference(r: _Reader, d: Any, w: str) -> Reference:
 def _extraction(r: _Reader, d: dict[str, Any]) -> Extraction:
     w = "extraction"
     r.table(d, w, ["erode_px", "block_px", "saturation_level", "max_saturated_fraction"])
+    from stairfit.imaging import MAX_ERODE_PX  # erosion time grows as radius^2 x ROI area
+
     return Extraction(
-        erode_px=r.get(d, "erode_px", int, w, default=8, lo=0, hi=1000),
+        erode_px=r.get(d, "erode_px", int, w, default=8, lo=0, hi=MAX_ERODE_PX),
         block_px=r.get(d, "block_px", int, w, default=8, lo=2, hi=512),
         saturation_level=r.get(d, "saturation_level", float, w, default=0.98, lo=0.5, hi=1.0),
         max_saturated_fraction=r.get(
@@ -530,11 +634,45 @@ def _extraction(r: _Reader, d: dict[str, Any]) -> Extraction:
     )
 
 
-def _photos(r: _Reader, top: dict[str, Any], specimen: Specimen) -> tuple[Photo, ...]:
+def _patches(
+    r: _Reader,
+    top: dict[str, Any],
+    specimen: Specimen | None,
+    reference: Reference | None,
+    markers: Markers | None,
+) -> tuple[Patch, ...]:
+    """The `[[patches]]` of a measure-only scene: unique names, one polygon each."""
+    items = top["patches"]
+    if not isinstance(items, list) or not items:
+        r.fail("patches", "must be [[patches]] tables with name and roi_px (or face_mm)")
+    taken = {w.name for w in specimen.wedges} if specimen else set()
+    taken |= {reference.name} if reference else set()
+    patches = []
+    for k, d in enumerate(items):
+        w = f"patches[{k}]"
+        r.table(d, w, ["name", "roi_px", "face_mm"])
+        name = r.get(d, "name", str, w)
+        patch = Patch(name, r.polygon(d, "roi_px", w), r.polygon(d, "face_mm", w))
+        if (patch.roi_px is None) == (patch.face_mm is None):
+            r.fail(w, "give either roi_px (pixels) or face_mm (base-plane mm), one of them")
+        if patch.face_mm is not None and markers is None:
+            r.fail(f"{w}.face_mm", "needs a [markers] layout to be placed; or give roi_px")
+        if patch.name in taken:
+            r.fail(f"{w}.name", f"{patch.name!r} is already a wedge, patch or reference name")
+        taken.add(patch.name)
+        patches.append(patch)
+    return tuple(patches)
+
+
+def _photos(
+    r: _Reader, top: dict[str, Any], specimen: Specimen | None, patches: tuple[str, ...] = ()
+) -> tuple[Photo, ...]:
     items = top.get("photos")
     if not isinstance(items, list) or not items:
         r.fail("photos", "missing or empty; add one [[photos]] table per photograph")
-    names = {w.name for w in specimen.wedges}
+    names = {w.name for w in specimen.wedges} if specimen is not None else set()
+    names |= set(patches)
+    angle = ... if specimen is not None else None  # required unless there are no wedges
     photos = []
     for k, p in enumerate(items):
         w = f"photos[{k}]"
@@ -558,8 +696,8 @@ def _photos(r: _Reader, top: dict[str, Any], specimen: Specimen) -> tuple[Photo,
         photos.append(
             Photo(
                 file=files[0],
-                light_deg=r.get(p, "light_deg", float, w, lo=-90, hi=90),
-                view_deg=r.get(p, "view_deg", float, w, lo=-90, hi=90),
+                light_deg=r.get(p, "light_deg", float, w, default=angle, lo=-90, hi=90),
+                view_deg=r.get(p, "view_deg", float, w, default=angle, lo=-90, hi=90),
                 exposure_time_s=overrides[0][0],
                 f_number=overrides[0][1],
                 iso=overrides[0][2],
@@ -582,7 +720,7 @@ def _file_list(r: _Reader, d: dict[str, Any], key: str, where: str) -> tuple[str
         r.fail(name, f'missing; add {key} = "IMG_0001.dng" (or a list of files for a bracket)')
     v = d[key]
     items = v if isinstance(v, list) else [v]
-    if not items or not all(isinstance(x, str) and x.strip() for x in items):
+    if not items or not all(isinstance(x, str) for x in items):
         r.fail(
             name, f'must be a file name or a list of file names, e.g. ["a.dng", "b.dng"], not {v!r}'
         )
@@ -621,13 +759,37 @@ def _calibration(r: _Reader, d: Any) -> CalibrationFrames:
     return CalibrationFrames(flat, dark, degree)
 
 
-def _check_files_unique(r: _Reader, scene: Scene) -> None:
-    """No file is listed twice (as two photos, twice in a bracket, or as photo and calibration)."""
-    seen: dict[Path, str] = {}
-    for where, name, path in scene.input_fields():
-        if path in seen:
-            r.fail(where, f"{name!r} is listed twice (also as {seen[path]}); list every file once")
-        seen[path] = where
+def _check_input_paths(r: _Reader, scene: Scene) -> None:
+    """Every listed file (photos, bracket members, calibration frames) lies in the scene's
+    folder (by its name) and is listed once (by path).
+
+    `../x.dng` or an absolute path elsewhere is refused: results must not depend on files
+    outside the folder, and a preview is never written outside the output. A link inside the
+    folder may point anywhere (that is how to use photos kept elsewhere). Two names of one file
+    (`./a.dng` and `a.dng`, or two links to it) are refused by comparing resolved paths.
+    """
+    folder = Path(os.path.abspath(r.path.parent))
+    seen: dict[Path, tuple[str, str]] = {}
+    for where, name, _ in scene.input_fields():
+        lexical = Path(os.path.normpath(folder / name))
+        if lexical == folder:
+            r.fail(where, f"{name!r} names the photo folder, not a photo file")
+        if folder not in lexical.parents:
+            r.fail(
+                where,
+                f"{name!r} is outside the photo folder {folder}; copy the file (or a link to "
+                "it) into the folder and give its name relative to the folder",
+            )
+        resolved = lexical.resolve()
+        if resolved in seen:
+            other_where, other = seen[resolved]
+            what = (
+                f"is listed twice (also as {other_where})"
+                if other == name
+                else f"is the same file as {other_where} {other!r}"
+            )
+            r.fail(where, f"{name!r} {what}; list every file once")
+        seen[resolved] = (where, name)
 
 
 VISIBILITY_LIMIT_DEG = 89.0
@@ -646,9 +808,13 @@ def visible(scene: Scene, photo: Photo, wedge: Wedge) -> bool:
 
 
 def _check_geometry(r: _Reader, scene: Scene) -> None:
+    assert scene.specimen is not None
+    patches = {p.name for p in scene.patches}
     for k, photo in enumerate(scene.photos):
         seen = [w for w in scene.specimen.wedges if visible(scene, photo, w)]
         for name, _ in photo.roi_px:
+            if name in patches:
+                continue
             wedge = next(w for w in scene.specimen.wedges if w.name == name)
             if wedge not in seen:
                 ti, to = scene.face_angles_deg(photo, wedge)
@@ -657,7 +823,7 @@ def _check_geometry(r: _Reader, scene: Scene) -> None:
                     f"this photo cannot see wedge {name!r}'s face lit (face-frame theta_i = "
                     f"{ti:g} deg, theta_o = {to:g} deg); fix light_deg/view_deg or drop the ROI",
                 )
-        if not seen:
+        if not seen and not patches:
             r.fail(
                 f"photos[{k}]",
                 "no wedge face is both lit and visible in this photo; fix "
@@ -666,6 +832,7 @@ def _check_geometry(r: _Reader, scene: Scene) -> None:
 
 
 def _check_rois(r: _Reader, scene: Scene) -> None:
+    assert scene.specimen is not None
     for k, photo in enumerate(scene.photos):
         per_photo = dict(photo.roi_px)
         for wedge in scene.specimen.wedges:
@@ -679,8 +846,25 @@ def _check_rois(r: _Reader, scene: Scene) -> None:
                 )
 
 
+def _check_polygon(r: _Reader, name: str, points: list[list[float]]) -> None:
+    """Finite coordinates, and a simple outline (corners in order, not crossing)."""
+    from ._polygons import polygon_problem
+
+    for k, p in enumerate(points):
+        if not all(math.isfinite(c) for c in p):
+            r.fail(name, f"point {k} is {p!r}; every coordinate must be a finite number")
+    problem = polygon_problem([(float(x), float(y)) for x, y in points])
+    if problem is not None:
+        r.fail(name, f"the polygon {problem}")
+
+
 def _join(where: str, key: str) -> str:
     return f"{where}.{key}" if where else key
+
+
+def _is_real(x: Any) -> bool:
+    """A number (finite or not; `_check_polygon` says which coordinate is not finite)."""
+    return isinstance(x, int | float) and not isinstance(x, bool)
 
 
 def _is_num(x: Any) -> bool:

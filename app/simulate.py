@@ -1,9 +1,10 @@
 """`stairfit simulate OUT`: a synthetic photo folder (real DNGs, scene file, truth) from known
 physical parameters.
 
-The model predicts each wedge face's relative radiance in every photo (`stairfit.fitting.predict`
-at the face angles of the scene geometry, conventions §1 and §9); `stairfit.imaging.synthetic`
-renders and writes the RAW photos. The truth goes to `truth.json`, apart from the photos.
+The model predicts each wedge face's relative radiance in every photo
+(`stairfit.fitting.model_radiance` at the face angles of the scene geometry, conventions §1 and
+§9); `stairfit.imaging.synthetic` renders and writes the RAW photos. The truth goes to
+`truth.json`, apart from the photos.
 """
 
 from __future__ import annotations
@@ -11,25 +12,41 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import secrets
-import shutil
-from collections.abc import Iterator, Sequence
+import multiprocessing
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from . import __version__
+from . import __version__, _ranges
 from ._layout import SpecimenLayout, camera_for
 from .errors import UserError
+from .outputs import staged_folder as staged_folder
 from .scene import SCENE_FILE, SCENE_VERSION
 
 DEG = np.pi / 180
 TRUTH_FILE = "truth.json"
+MIN_MEGAPIXELS = 0.3
+"""Smaller photos make the 60-degree face at -80 degrees too small for the default erosion."""
+
+MARKER_STYLES: tuple[str, ...] = ("quiet-zone", "no-quiet-zone")
+"""ArUco markers printed on white paper with a one-cell white margin, or straight on the dark
+base plate (their black border touches the plate)."""
+
+MARKER_WHITE_PER_SCALE = 0.003
+"""Relative radiance of the markers' white paper per unit of the truth's `scale`: a Lambertian
+white that, like every diffuse surface under the fixed light, has the same radiance in every
+photo (6000 at the default scale, 1.5 times the default floor). Exposures are chosen for the
+wedges, so in the bright specular views the markers come out dark, as in a real session."""
+
+MARKER_INK = 0.04
+"""Radiance of the markers' black ink, as a fraction of the white paper."""
+
+BASE_PLATE = 0.10
+"""Radiance of the dark base plate the wedges and markers sit on, as a fraction of the paper."""
 
 
 @dataclass(frozen=True)
@@ -86,6 +103,8 @@ class SimulationSettings:
     seed: int = 1
     workers: int = 1
     truth: Truth = field(default_factory=Truth)
+    exposure_tags: str = "exif"  # where the DNGs carry the exposure (imaging.synthetic)
+    markers: str = "quiet-zone"  # MARKER_STYLES
     effects: SessionEffects = field(default_factory=SessionEffects)
 
 
@@ -123,6 +142,19 @@ def add_truth_options(p: argparse.ArgumentParser, seed_and_workers: bool = True)
         type=int,
         default=len(s.views_deg),
         help="number of photos (viewing angles from -80 to 20 deg, base frame)",
+    )
+    p.add_argument(
+        "--exposure-tags",
+        default=s.exposure_tags,
+        choices=("exif", "ifd0", "both", "none"),
+        help="where the DNGs carry ExposureTime/FNumber/ISO: the EXIF IFD, IFD0 (TIFF/EP), both,"
+        " or none (the scene file then gives them as overrides)",
+    )
+    p.add_argument(
+        "--markers",
+        default=s.markers,
+        choices=MARKER_STYLES,
+        help="ArUco markers in a white quiet zone, or printed straight on the dark base plate",
     )
     if seed_and_workers:
         p.add_argument("--seed", type=int, default=s.seed, help="seed of texture and noise")
@@ -193,12 +225,14 @@ def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
         raise UserError(f"--delta-n: {args.delta_n} is outside [-0.3, 0.5]")
     if args.floor < 0:
         raise UserError("--floor: must be >= 0")
-    if not 0.05 <= args.megapixels <= 60:
-        raise UserError(f"--megapixels: {args.megapixels} is outside [0.05, 60]")
+    if not MIN_MEGAPIXELS <= args.megapixels <= 60:
+        raise UserError(
+            f"--megapixels: {args.megapixels} is outside [{MIN_MEGAPIXELS}, 60] (below "
+            f"{MIN_MEGAPIXELS} the steepest face is smaller than the ROI erosion)"
+        )
     if not 3 <= args.views <= 200:
         raise UserError(f"--views: {args.views} is outside [3, 200]")
-    if args.workers < 1:
-        raise UserError("--workers: must be >= 1")
+    _ranges.check_workers(args.workers)
     if args.seed < 0:
         raise UserError(f"--seed: {args.seed} is negative; give an integer >= 0")
     base = SimulationSettings()
@@ -210,6 +244,8 @@ def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
         seed=args.seed,
         workers=args.workers,
         truth=truth,
+        exposure_tags=getattr(args, "exposure_tags", base.exposure_tags),
+        markers=getattr(args, "markers", base.markers),
         effects=effects_from_args(args),
     )
     _check_edge_radius(settings)
@@ -236,53 +272,10 @@ def _check_edge_radius(s: SimulationSettings) -> None:
 def run(args: argparse.Namespace) -> int:
     """`stairfit simulate OUT`."""
     settings = settings_from_args(args)
-    with staged_folder(args.out, args.force) as tmp:
+    with staged_folder(args.out, args.force, option="OUT") as tmp:
         simulate(tmp, settings, progress=not args.quiet)
     print(f"wrote {len(settings.views_deg)} photos, {SCENE_FILE} and {TRUTH_FILE} to {args.out}")
     return 0
-
-
-@contextmanager
-def staged_folder(out: Path, force: bool) -> Iterator[Path]:
-    """Build a folder under a temporary name next to `out` and move it into place on success.
-
-    A crash leaves no folder named `out`; an existing `out` is only replaced with `force`.
-    """
-    out = Path(out)
-    if out.exists() and not force:
-        raise UserError(
-            f"{out}: already exists; choose another folder or add --force to replace it"
-        )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _fresh_partial_folder(out)
-    try:
-        yield tmp
-        if out.exists():
-            trash = out.with_name(f".{out.name}.old-{os.getpid()}")
-            out.rename(trash)
-            tmp.rename(out)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-def _fresh_partial_folder(out: Path) -> Path:
-    """A new, empty hidden folder `.NAME.XXXXXXXX.partial` next to `out`.
-
-    Made with `mkdir`, so it gets the user's umask like any folder they create (tempfile.mkdtemp
-    would make it private, 0700, and the finished results would stay that way).
-    """
-    for _ in range(100):
-        tmp = out.with_name(f".{out.name}.{secrets.token_hex(4)}.partial")
-        try:
-            tmp.mkdir()
-        except FileExistsError:
-            continue
-        return tmp
-    raise FileExistsError(f"{out.parent}: cannot find a free name for a temporary folder")
 
 
 def image_size(megapixels: float) -> tuple[int, int]:
@@ -336,7 +329,7 @@ def face_radiance(settings: SimulationSettings) -> np.ndarray:
         foreshortened=True,  # as the fit reads the scene's angular_extent_deg (docs/scene.md)
     )
     if t.edge_radius_um > 0:
-        values = fitting.predict(params, obs, spectral, aperture=aperture)
+        values = fitting.model_radiance(params, obs, spectral, aperture=aperture)
     else:  # the same model, compiled once: about 10x faster than evaluating op by op
         values = np.asarray(_sharp_values(obs, spectral, params, aperture))
     return values.reshape(len(settings.views_deg), len(settings.wedges_deg), 3)
@@ -359,7 +352,6 @@ def _sharp_values(obs: Any, spectral: Any, params: Any, aperture: Any) -> Any:
 def simulate(folder: Path, settings: SimulationSettings, progress: bool = False) -> dict[str, Any]:
     """Render every photo (and any calibration frames) into `folder`; write scene and truth."""
     import tomli_w
-    from tqdm import tqdm
 
     layout = SpecimenLayout(settings.wedges_deg)
     radiance = face_radiance(settings)
@@ -368,23 +360,12 @@ def simulate(folder: Path, settings: SimulationSettings, progress: bool = False)
     jobs = [
         _PhotoJob(
             folder, p, view, size, layout, radiance[p], settings.seed * 1000 + p, exposures[p],
-            settings.effects,
-            float(radiance.max() if settings.effects.fixed_exposure else radiance[p].max()),
+            settings.effects, settings.exposure_tags, settings.markers,
+            MARKER_WHITE_PER_SCALE * settings.truth.scale,
         )
         for p, view in enumerate(settings.views_deg)
     ]  # fmt: skip
-    photos: list[dict[str, Any]] = []
-    bar = tqdm(total=len(jobs), desc="rendering photos", unit="photo", disable=not progress)
-    if settings.workers > 1:
-        with ProcessPoolExecutor(max_workers=settings.workers) as pool:
-            for entry in pool.map(_render, jobs):
-                photos.append(entry)
-                bar.update()
-    else:
-        for job in jobs:
-            photos.append(_render(job))
-            bar.update()
-    bar.close()
+    photos = _render_all(jobs, settings.workers, progress)
     calibration = write_calibration_frames(folder, settings, size, exposures[0][0])
     scene = _scene_dict(settings, layout, photos, calibration)
     text = _compact_arrays(tomli_w.dumps(scene))
@@ -469,11 +450,38 @@ def write_calibration_frames(
                 seed=settings.seed * 1000 + (900 if level > 0 else 950) + k,
             )  # fmt: skip
             name = f"{'FLAT' if level > 0 else 'DARK'}_{k + 1:02d}.dng"
-            photo.write_dng(folder / name)
+            photo.write_dng(folder / name, exposure_tags=settings.exposure_tags)
             names.append(name)
         if names:
             table[kind] = names
     return table
+
+
+def _render_all(jobs: Sequence[_PhotoJob], workers: int, progress: bool) -> list[dict[str, Any]]:
+    """Render every photo (in `workers` spawned processes when > 1), with a progress bar.
+
+    The bar is closed (its line ended) and queued jobs are cancelled however this ends, so an
+    interruption's one-line message starts on a line of its own.
+    """
+    from tqdm import tqdm
+
+    photos: list[dict[str, Any]] = []
+    with tqdm(total=len(jobs), desc="rendering photos", unit="photo", disable=not progress) as bar:
+        if workers <= 1:
+            for job in jobs:
+                photos.append(_render(job))
+                bar.update()
+            return photos
+        # "spawn": never fork a process that has run JAX
+        ctx = multiprocessing.get_context("spawn")
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+        try:
+            for entry in pool.map(_render, jobs):
+                photos.append(entry)
+                bar.update()
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+    return photos
 
 
 @dataclass(frozen=True)
@@ -487,7 +495,9 @@ class _PhotoJob:
     seed: int
     exposures: tuple[Any, ...]  # imaging.Exposure, the reference (shortest) first
     effects: SessionEffects
-    peak: float  # the brightest face the exposure was set for (sets background and markers)
+    exposure_tags: str = "exif"
+    markers: str = "quiet-zone"
+    paper: float = 6000.0  # relative radiance of the markers' white paper
 
 
 def _render(job: _PhotoJob) -> dict[str, Any]:
@@ -498,7 +508,6 @@ def _render(job: _PhotoJob) -> dict[str, Any]:
     cam = camera_for(job.layout, job.view_deg, *job.size)
     faces = {n: cam.project(job.layout.face_corners_mm(k)).tolist() for k, n in enumerate(names)}
     sensor = _sensor(job.effects)
-    peak = job.peak
     markers_mm = dict(job.layout.markers_mm())
     src = np.array([c for m in markers_mm.values() for c in m], float)
     dst = cam.project_base(src)
@@ -512,26 +521,35 @@ def _render(job: _PhotoJob) -> dict[str, Any]:
             faces,
             {n: job.radiance[k_w] for k_w, n in enumerate(names)},
             exposure,
-            background=np.full(3, 0.02 * peak),
+            background=np.full(3, BASE_PLATE * job.paper),
             sensor=sensor,
             markers=MarkerLayout({i: c.tolist() for i, c in markers_mm.items()}),
             plane_to_image=h,
-            marker_white=np.full(3, 0.3 * peak),
-            marker_black=np.full(3, 0.01 * peak),
+            marker_white=np.full(3, job.paper),
+            marker_black=np.full(3, MARKER_INK * job.paper),
+            marker_quiet_zone_cells=1.0 if job.markers == "quiet-zone" else 0.0,
             # the pipeline corrects vignetting only with a flat field (SessionEffects)
             vignetting=job.effects.vignetting,
             seed=job.seed if k == 0 else job.seed + 100_000 * k,
             texture_seed=None if len(job.exposures) == 1 else job.seed,
         )
         name = f"IMG_{job.index + 1:04d}.dng" if k == 0 else f"IMG_{job.index + 1:04d}_{k}.dng"
-        photo.write_dng(job.folder / name)
+        photo.write_dng(job.folder / name, exposure_tags=job.exposure_tags)
         files.append(name)
-    return {
+    entry: dict[str, Any] = {
         "file": files[0] if len(files) == 1 else files,
         "light_deg": None,  # filled in by _scene_dict (same light for every photo)
         "view_deg": round(job.view_deg, 6),
-        "roi_px": {n: [[round(x, 2), round(y, 2)] for x, y in faces[n]] for n in names},
     }
+    if job.exposure_tags == "none":  # the scene file gives what the files lack (one per file)
+        e = job.exposures
+        one = len(e) == 1
+        entry |= {
+            key: getattr(e[0], key) if one else [getattr(x, key) for x in e]
+            for key in ("exposure_time_s", "f_number", "iso")
+        }
+    entry["roi_px"] = {n: [[round(x, 2), round(y, 2)] for x, y in faces[n]] for n in names}
+    return entry
 
 
 def _compact_arrays(toml_text: str) -> str:

@@ -395,7 +395,7 @@ def fit_case(n_seeds: int) -> FitCase:
         )
         for s in range(n_seeds)
     ]
-    clean = noisy[0]._replace(value=fitting.predict(truth, noisy[0], spec, aperture=ap))
+    clean = noisy[0]._replace(value=fitting.model_radiance(truth, noisy[0], spec, aperture=ap))
     return FitCase(noisy, clean)
 
 
@@ -408,7 +408,7 @@ def sharp_variant():
 
 def z_scores(fit: Any) -> np.ndarray:
     """(estimate - truth) / stderr for each free parameter."""
-    truth = np.array([TRUTH[n] for n in fit.names])
+    truth = np.array([TRUTH[e.param] for e in fit.estimates])
     return (np.asarray(fit.values) - truth) / np.asarray(fit.stderrs)
 
 
@@ -535,7 +535,7 @@ def posterior_rows(st: Settings, case: FitCase) -> list[Row]:
     rows = []
     for tf, max_steps, chunk in st.chains:
         posts = [run_posterior(f, tf, 7 + i, max_steps, chunk) for i, f in enumerate(fits)]
-        truth = np.array([TRUTH[n] for n in fits[0].names])
+        truth = np.array([TRUTH[e.param] for e in fits[0].estimates])
         zs = np.concatenate([(p.median - truth) / (0.5 * (p.p84 - p.p16)) for p in posts])
         widths = np.concatenate([p.width_ratio for p in posts])
         rows.append(

@@ -8,7 +8,9 @@ one of the warning categories below, so that callers can filter them.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple, TypeVar
+
+_Options = TypeVar("_Options", bound=tuple)  # a NamedTuple of settings
 
 
 class FitInputError(ValueError):
@@ -57,6 +59,18 @@ WARNING_CATEGORIES: dict[str, type[FitWarningCategory]] = {
     "low_acceptance": ConvergenceWarning,
 }
 """The `warnings` category used for each `FitWarning.code`."""
+
+
+def with_overrides(options: _Options, what: str, overrides: dict[str, Any]) -> _Options:
+    """`options` (a NamedTuple of settings) with `overrides` replacing fields; an unknown field
+    is a `TypeError` naming the `what` options and every valid field, like a bad keyword."""
+    unknown = set(overrides) - set(options._fields)
+    if unknown:
+        raise TypeError(
+            f"unknown {what} option(s) {sorted(unknown)}; the options are "
+            f"{', '.join(options._fields)}"
+        )
+    return options._replace(**overrides)
 
 
 def emit(records: tuple[FitWarning, ...], stacklevel: int = 3) -> None:

@@ -19,28 +19,24 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from stairfit import model
-from stairfit.model import _rounded
 
-from ._params import N_MIN, to_physical
-
-HALF_PI = np.pi / 2
+from ._params import Layout, Params, clamp_index, to_physical
 
 
 class Static(NamedTuple):
     """Hashable configuration of a forward evaluation (part of the compilation key).
 
-    `kinds`: transform of each slot of `z`. `rounded`: use the rounded-edge model (needed when
-    the edge radius is free or non-zero). `model_error`: the per-row variance includes
-    `(model_error_frac * model)^2` and the residuals carry its log-determinant. `aperture`:
-    finite light/patch sizes [conventions §9]. `resolution`: the rounded model's resolution
-    setting (`None` = its default).
+    `layout`: the slots of `z` (their parameters and transforms). `rounded`: use the
+    rounded-edge model (needed when the edge radius is free or non-zero). `model_error`: the
+    per-row variance includes `(model_error_frac * model)^2` and the residuals carry its
+    log-determinant. `aperture`: finite light/patch sizes [conventions §9]. `resolution`: the
+    rounded model's resolution setting (`None` = its default).
     """
 
-    kinds: tuple[str, ...]
+    layout: Layout
     rounded: bool = False
     model_error: bool = False
     aperture: model.Aperture = model.Aperture()
@@ -50,23 +46,22 @@ class Static(NamedTuple):
 class Data(NamedTuple):
     """Arrays of one fit (traced; changing them never recompiles).
 
-    Per row (N): angles (rad), `beta2`, `layer_um`, `wedge`, `value`, `stderr`, `use` (1.0 or
-    0.0). Both models are evaluated on a grid whose lobe geometry and broadening do not depend
-    on the channel: per key (R; distinct (theta_i, wedge), or (theta_i, wedge, theta_o), see
-    `_problem.rounded_grid`) `r_ti`, `r_b2`, `r_layer`, `r_wedge`, and the viewing angles `r_to`
-    either as a grid shared by all keys `(1, T)` or one per key `(R, 1)`; every key is
-    evaluated for all channels, `r_n` and `r_w` `(C, K)`; each row reads `[r_key, r_t, r_c]`.
-    Distinct (theta_i at each aperture node, beta2, layer_um) (G): `g_ti`, `g_b2`, `g_layer`,
-    indexed by `r_geo` (key, node). Per slot of `z`
-    (P): `free`, `x_fixed` (physical values of fixed slots). Per wedge (W): `sigma_source`
-    (slot holding that wedge's width). `r_max_um`: upper bound of the edge radius.
+    Per row (N): angles (rad), `beta2`, `layer_um` (read only by a posterior's fingerprint),
+    `value`, `stderr`, `use` (1.0 or 0.0). Both models are evaluated on a grid whose lobe
+    geometry and broadening do not depend on the channel: per key (R; distinct (theta_i, wedge),
+    or (theta_i, wedge, theta_o), see `_problem.evaluation_grid`) `r_ti`, `r_b2`, `r_wedge`, and
+    the viewing angles `r_to` either as a grid shared by all keys `(1, T)` or one per key
+    `(R, 1)`; every key is evaluated for all channels, `r_n` and `r_w` `(C, K)`; each row reads
+    `[r_key, r_t, r_c]`. Distinct (theta_i at each aperture node, beta2, layer_um) (G): `g_ti`,
+    `g_b2`, `g_layer`, indexed by `r_geo` (key, node). Per slot of `z` (P): `free`, `x_fixed`
+    (physical values of fixed slots). Per wedge (W): `sigma_source` (slot holding that wedge's
+    width). `r_max_um`: upper bound of the edge radius.
     """
 
     theta_i: Float[Array, " N"]
     theta_o: Float[Array, " N"]
     beta2: Float[Array, " N"]
     layer_um: Float[Array, " N"]
-    wedge: Int[Array, " N"]
     value: Float[Array, " N"]
     stderr: Float[Array, " N"]
     use: Float[Array, " N"]
@@ -75,7 +70,6 @@ class Data(NamedTuple):
     r_c: Int[Array, " N"]
     r_ti: Float[Array, " R"]
     r_b2: Float[Array, " R"]
-    r_layer: Float[Array, " R"]
     r_wedge: Int[Array, " R"]
     r_n: Array
     r_w: Float[Array, "C K"]
@@ -93,23 +87,16 @@ class Data(NamedTuple):
 def physical(z: Array, static: Static, data: Data) -> Array:
     """Physical value of every slot: free slots through their transform, fixed ones as given."""
     z_safe = jnp.where(data.free, z, 0.0)
-    x = to_physical(z_safe, static.kinds, data.r_max_um)
+    x = to_physical(z_safe, static.layout.kinds, data.r_max_um)
     return jnp.where(data.free, x, data.x_fixed)
 
 
-def _clamp_index(n: Array) -> Array:
-    """Real part held at >= N_MIN [conventions §6] (a guard for far-off solver steps)."""
-    if jnp.iscomplexobj(n):
-        return jnp.maximum(jnp.real(n), N_MIN) + 1j * jnp.imag(n)
-    return jnp.maximum(n, N_MIN)
-
-
-class RoundedGrid(NamedTuple):
-    """Arrays the rounded model is evaluated on (a subset of `Data`; see there)."""
+class EvaluationGrid(NamedTuple):
+    """The (key, view, channel) grid both the sharp and the rounded model are evaluated on
+    (a subset of `Data`; see there)."""
 
     r_ti: Array
     r_b2: Array
-    r_layer: Array
     r_n: Array
     r_w: Array
     r_to: Array
@@ -119,20 +106,21 @@ class RoundedGrid(NamedTuple):
     g_layer: Array
 
 
-def _rounded_impl(sigma_k: Array, dn: Array, radius_um: Array, cfg: tuple, g: RoundedGrid) -> Array:
+def _rounded_impl(
+    sigma_k: Array, dn: Array, radius_um: Array, cfg: tuple, g: EvaluationGrid
+) -> Array:
     """Band- and aperture-averaged rounded density on the (key, view, channel) grid,
     `(R, T, C)`."""
     aperture, resolution = cfg
     di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
-    ti = jnp.clip(g.r_ti[:, None] + di, -HALF_PI, HALF_PI)  # (R, M)
-    r_to = g.r_to[:, None, :]
-    to = jnp.clip(r_to + model.view_offsets(aperture, r_to, do[None, :, None]), -HALF_PI, HALF_PI)
-    n = _clamp_index(g.r_n + dn).reshape(-1)  # (C K): every channel's samples on one axis
-    res = _rounded.ROUNDED_RESOLUTION if resolution is None else resolution
+    ti = model.node_angles(g.r_ti, di)  # (R, M)
+    to = jnp.swapaxes(model.node_angles(g.r_to, do, aperture.foreshortened), -1, -2)  # (R|1,M,T)
+    n = clamp_index(g.r_n + dn).reshape(-1)  # (C K): every channel's samples on one axis
+    res = model.ROUNDED_RESOLUTION if resolution is None else resolution
     # geometry once per distinct (theta_i, beta2, layer) (G of them), then gathered to the keys
-    geo = _rounded.rounded_geometry(g.g_ti, g.g_b2, g.g_layer, radius_um, resolution=res)
+    geo = model.rounded_geometry(g.g_ti, g.g_b2, g.g_layer, radius_um, resolution=res)
     geo = jax.tree_util.tree_map(lambda a: a[g.r_geo][:, :, None, None], geo)  # (R, M, 1, 1, ..)
-    rho = _rounded.brdf_rounded_from_geometry(
+    rho = model.brdf_rounded_from_geometry(
         geo,
         ti[:, :, None, None],
         to[..., None],
@@ -147,7 +135,7 @@ def _rounded_impl(sigma_k: Array, dn: Array, radius_um: Array, cfg: tuple, g: Ro
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
 def rounded_grid_density(
-    sigma_k: Array, dn: Array, radius_um: Array, cfg: tuple, g: RoundedGrid
+    sigma_k: Array, dn: Array, radius_um: Array, cfg: tuple, g: EvaluationGrid
 ) -> Array:
     """`_rounded_impl` with a JVP that differentiates the rounded model once per call.
 
@@ -187,7 +175,9 @@ factors at every (key, aperture node, channel) directly; with more, once per dis
 (`g_ti`, `g_b2`) and gathers them (a gather costs about as much as a few Fresnel evaluations)."""
 
 
-def _sharp_grid_impl(sigma_k: Array, dn: Array, aperture: model.Aperture, g: RoundedGrid) -> Array:
+def _sharp_grid_impl(
+    sigma_k: Array, dn: Array, aperture: model.Aperture, g: EvaluationGrid
+) -> Array:
     """Band- and aperture-averaged sharp density on the (key, view, channel) grid, `(R, T, C)`.
 
     The same quantity as `stairfit.model.band_density` [conventions §4, §5, §8, §9], laid out
@@ -195,15 +185,14 @@ def _sharp_grid_impl(sigma_k: Array, dn: Array, aperture: model.Aperture, g: Rou
     theta_o) and are shared by the channels; only the Fresnel factors depend on the channel.
     """
     di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
-    ti = jnp.clip(g.r_ti[:, None] + di, -HALF_PI, HALF_PI)  # (R, M)
-    r_to = g.r_to[:, :, None]
-    to = jnp.clip(r_to + model.view_offsets(aperture, r_to, do), -HALF_PI, HALF_PI)  # (R|1,T,M)
+    ti = model.node_angles(g.r_ti, di)  # (R, M)
+    to = model.node_angles(g.r_to, do, aperture.foreshortened)  # (R|1, T, M)
     b2 = g.r_b2[:, None]
     weight = model.lobe_weights(ti, b2)  # (R, M, 3)
     kernel = model.hemisphere_gaussian(
         to[..., None], model.lobe_directions(ti, b2)[:, None], sigma_k[:, None, None, None]
     )  # (R, T, M, 3)
-    n = _clamp_index(g.r_n + dn)  # (C, K)
+    n = clamp_index(g.r_n + dn)  # (C, K)
     if n.shape[1] <= SHARP_FRESNEL_DIRECT_MAX_K:
         fresnel = model.lobe_fresnel(ti[:, :, None, None], b2[:, :, None, None], n)  # (R,M,C,K,3)
         band = jnp.einsum("ck,rmckl->rmcl", g.r_w, fresnel)
@@ -215,7 +204,7 @@ def _sharp_grid_impl(sigma_k: Array, dn: Array, aperture: model.Aperture, g: Rou
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
 def sharp_grid_density(
-    sigma_k: Array, dn: Array, aperture: model.Aperture, g: RoundedGrid
+    sigma_k: Array, dn: Array, aperture: model.Aperture, g: EvaluationGrid
 ) -> Array:
     """`_sharp_grid_impl` with a JVP that needs two directional derivatives, whatever the
     number of parameters: each element depends on its key's width only, and on `delta_n`, so
@@ -238,9 +227,9 @@ def _sharp_grid_jvp(
     return value, jac[..., 0] * t_sigma[:, None, None] + jac[..., 1] * t_dn
 
 
-def _grid(data: Data) -> RoundedGrid:
-    return RoundedGrid(
-        data.r_ti, data.r_b2, data.r_layer, data.r_n, data.r_w, data.r_to,
+def _grid(data: Data) -> EvaluationGrid:
+    return EvaluationGrid(
+        data.r_ti, data.r_b2, data.r_n, data.r_w, data.r_to,
         data.r_geo, data.g_ti, data.g_b2, data.g_layer,
     )  # fmt: skip
 
@@ -270,24 +259,22 @@ def rounded_density(
     return dens[data.r_key, data.r_t, data.r_c]
 
 
-def model_values(z: Array, static: Static, data: Data) -> tuple[Array, Array]:
-    """(model relative radiance per row, physical slot values) [conventions §9]."""
-    x = physical(z, static, data)
-    n_wedges = data.sigma_source.shape[0]
-    sigma_w = x[data.sigma_source]
-    dn, radius, scale, floor = (x[n_wedges + k] for k in (1, 2, 3, 4))
+def model_values(z: Array, static: Static, data: Data) -> tuple[Array, Params]:
+    """(model relative radiance per row, physical parameters) [conventions §9]; the widths in
+    the returned `Params` are one per wedge."""
+    p = static.layout.unpack(physical(z, static, data), data.sigma_source)
     if static.rounded:
-        dens = rounded_density(sigma_w, dn, radius, data, static)
+        dens = rounded_density(p.sigma_rad, p.delta_n, p.edge_radius_um, data, static)
     else:
-        dens = sharp_density(sigma_w, dn, data, static.aperture)
-    return model.radiance(dens, data.theta_i, data.theta_o, scale, floor), x
+        dens = sharp_density(p.sigma_rad, p.delta_n, data, static.aperture)
+    return model.radiance(dens, data.theta_i, data.theta_o, p.scale, p.floor), p
 
 
-def variance(m: Array, x: Array, static: Static, data: Data) -> Array:
+def variance(m: Array, p: Params, static: Static, data: Data) -> Array:
     """Per-row variance `stderr^2 + (model_error_frac * model)^2` (or `stderr^2`)."""
     if not static.model_error:
         return data.stderr**2
-    return data.stderr**2 + (x[-1] * m) ** 2
+    return data.stderr**2 + (p.model_error_frac * m) ** 2
 
 
 def residuals(z: Array, args: tuple[Static, Data]) -> Array:
@@ -298,8 +285,8 @@ def residuals(z: Array, args: tuple[Static, Data]) -> Array:
     `-2 log L + const`, so that least squares is maximum likelihood (docs/fitting.md).
     """
     static, data = args
-    m, x = model_values(z, static, data)
-    var = variance(m, x, static, data)
+    m, p = model_values(z, static, data)
+    var = variance(m, p, static, data)
     r = data.use * (data.value - m) / jnp.sqrt(var)
     if not static.model_error:
         return r
@@ -311,13 +298,13 @@ def residuals(z: Array, args: tuple[Static, Data]) -> Array:
 
 def log_likelihood_z(z: Array, static: Static, data: Data) -> Array:
     """Gaussian log-likelihood of the used rows at `z` (full normalisation)."""
-    m, x = model_values(z, static, data)
-    var = variance(m, x, static, data)
+    m, p = model_values(z, static, data)
+    var = variance(m, p, static, data)
     terms = (data.value - m) ** 2 / var + jnp.log(2.0 * jnp.pi * var)
     return -0.5 * jnp.sum(data.use * terms)
 
 
 def mean_and_log_variance(z: Array, static: Static, data: Data) -> tuple[Array, Array]:
     """(model, log variance) per row: what the Fisher information is built from."""
-    m, x = model_values(z, static, data)
-    return m, jnp.log(variance(m, x, static, data))
+    m, p = model_values(z, static, data)
+    return m, jnp.log(variance(m, p, static, data))

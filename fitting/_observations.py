@@ -125,36 +125,7 @@ class Observations(NamedTuple):
             "photo_index": photo_index,
             "saturated": saturated,
         }
-        lengths = {k: np.size(v) for k, v in fields.items() if v is not None and np.ndim(v) > 0}
-        if not lengths:
-            raise FitInputError(
-                "the observation table is empty: give at least one row (photo x wedge x "
-                "channel) with value and stderr"
-            )
-        n = max(lengths.values())
-        bad = {k: m for k, m in lengths.items() if m != n}
-        if bad:
-            raise FitInputError(
-                f"observation columns have different lengths ({bad}, others {n}); every column "
-                "needs one entry per row"
-            )
-        if n == 0:
-            raise FitInputError(
-                "the observation table is empty: give at least one row (photo x wedge x "
-                "channel) with value and stderr"
-            )
-        arrays: dict[str, NDArray] = {}
-        for k in _FLOAT_FIELDS:
-            arrays[k] = _column(k, fields[k], n, float)
-        for k in _INT_FIELDS:
-            default = 0 if k == "photo_index" else None
-            arrays[k] = _column(k, fields[k] if fields[k] is not None else default, n, int)
-        arrays["use"] = _column("use", True if use is None else use, n, bool)
-        arrays["saturated"] = _column(
-            "saturated", False if saturated is None else saturated, n, bool
-        )
-        arrays["use"] = arrays["use"] & ~arrays["saturated"]
-        return _validate(cls(**arrays))
+        return _validate(cls(**_columns(fields)))
 
     @classmethod
     def from_rows(cls, rows: Sequence[Mapping[str, object]]) -> Observations:
@@ -166,10 +137,7 @@ class Observations(NamedTuple):
         Other keys are ignored. Degrees are converted to radians here [conventions §1].
         """
         if len(rows) == 0:
-            raise FitInputError(
-                "the observation table is empty: give at least one row (photo x wedge x "
-                "channel) with value and stderr"
-            )
+            raise FitInputError(_EMPTY)
         aliases = {
             "theta_i_rad": ("theta_i_deg",),
             "theta_o_rad": ("theta_o_deg",),
@@ -201,6 +169,47 @@ class Observations(NamedTuple):
             for key, default in (("use", True), ("photo_index", 0), ("saturated", False)):
                 cols.setdefault(key, []).append(row.get(key, default))
         return cls.from_arrays(**{k: np.asarray(v, dtype=object) for k, v in cols.items()})
+
+
+_EMPTY = (
+    "the observation table is empty: give at least one row (photo x wedge x channel) with "
+    "value and stderr"
+)
+
+
+def _row_count(fields: Mapping[str, ArrayLike | None]) -> int:
+    """The common length of the array columns (scalars broadcast); `FitInputError` if there is
+    none, if it is 0, or if the columns disagree."""
+    lengths = {k: np.size(v) for k, v in fields.items() if v is not None and np.ndim(v) > 0}
+    if not lengths:
+        raise FitInputError(_EMPTY)
+    n = max(lengths.values())
+    bad = {k: m for k, m in lengths.items() if m != n}
+    if bad:
+        raise FitInputError(
+            f"observation columns have different lengths ({bad}, others {n}); every column "
+            "needs one entry per row"
+        )
+    if n == 0:
+        raise FitInputError(_EMPTY)
+    return n
+
+
+def _columns(fields: Mapping[str, ArrayLike | None]) -> dict[str, NDArray]:
+    """Every column as a typed 1-D array of the common length; defaults for the optional ones
+    (`use` True, `photo_index` 0, `saturated` False); saturated rows are not used."""
+    n = _row_count(fields)
+    arrays: dict[str, NDArray] = {}
+    for k in _FLOAT_FIELDS:
+        arrays[k] = _column(k, fields[k], n, float)
+    for k in _INT_FIELDS:
+        default = 0 if k == "photo_index" else None
+        arrays[k] = _column(k, fields[k] if fields[k] is not None else default, n, int)
+    use, saturated = fields["use"], fields["saturated"]
+    arrays["use"] = _column("use", True if use is None else use, n, bool)
+    arrays["saturated"] = _column("saturated", False if saturated is None else saturated, n, bool)
+    arrays["use"] = arrays["use"] & ~arrays["saturated"]
+    return arrays
 
 
 def _as_float(x: object, row: int, field: str) -> float:
@@ -257,10 +266,94 @@ def _first_bad(arr: NDArray, dtype: type) -> int:
     return 0
 
 
+def _fail(obs: Observations, field: str, rows: NDArray, what: str, fix: str) -> None:
+    """Raise `FitInputError` naming the first bad row (its photo, wedge, channel), the field,
+    its value, how many more rows are bad, and the fix."""
+    i = int(rows[0])
+    more = f" (and {rows.size - 1} more rows)" if rows.size > 1 else ""
+    val = getattr(obs, field)[i]
+    raise FitInputError(
+        f"observation row {i} (photo {obs.photo_index[i]}, wedge {obs.wedge_index[i]}, "
+        f"channel {obs.channel_index[i]}): {field} = {val!r} {what}{more}; {fix}"
+    )
+
+
+def _check_rows(obs: Observations, used: NDArray) -> None:
+    """Angles, wedge angle, layer, indices, value and stderr of every used row."""
+    for field in ("theta_i_rad", "theta_o_rad"):
+        x = getattr(obs, field)[used]
+        bad = used[~np.isfinite(x) | (np.abs(x) > HALF_PI + ANGLE_TOL_RAD)]
+        if bad.size:
+            _fail(obs, field, bad, "is outside [-90, 90] deg",
+                  "angles are in radians in the wedge-face frame [conventions §1]; convert "
+                  "degrees with np.deg2rad or exclude the row")  # fmt: skip
+    b2 = obs.beta2_rad[used]
+    bad = used[~np.isfinite(b2) | (b2 <= 0.0) | (b2 >= HALF_PI)]
+    if bad.size:
+        _fail(obs, "beta2_rad", bad, "is outside (0, 90) deg", "give the wedge angle in radians")
+    lay = obs.layer_um[used]
+    bad = used[~np.isfinite(lay) | (lay <= 0.0)]
+    if bad.size:
+        _fail(obs, "layer_um", bad, "is not a positive length", "give the layer thickness in um")
+    for field in ("wedge_index", "channel_index"):
+        bad = np.flatnonzero(getattr(obs, field) < 0)
+        if bad.size:
+            _fail(obs, field, bad, "is negative", "indices count from 0")
+    bad = used[~np.isfinite(obs.value[used])]
+    if bad.size:
+        _fail(obs, "value", bad, "is not a finite number",
+              "fix the measurement or set use=False for the row")  # fmt: skip
+    se = obs.stderr[used]
+    bad = used[~np.isfinite(se) | (se <= 0.0)]
+    if bad.size:
+        _fail(obs, "stderr", bad, "must be a finite standard error > 0",
+              "fix the measurement table (a zero or missing uncertainty cannot be weighted) or "
+              "set use=False for the row")  # fmt: skip
+
+
+def _check_wedges(obs: Observations, used: NDArray) -> None:
+    """One geometry per wedge: every used row of a wedge agrees on beta2 and layer thickness."""
+    for field in ("beta2_rad", "layer_um"):
+        col = getattr(obs, field)
+        for w in np.unique(obs.wedge_index[used]):
+            rows = used[obs.wedge_index[used] == w]
+            vals = col[rows]
+            if np.ptp(vals) > 1e-9 * max(1.0, np.abs(vals).max()):
+                _fail(obs, field, rows[vals != vals[0]],
+                      f"differs from the other rows of wedge {w} ({vals[0]!r})",
+                      "each wedge_index must describe one wedge")  # fmt: skip
+
+
+def _sanitised(obs: Observations) -> Observations:
+    """Angles clipped to the hemisphere; unused rows given finite, harmless values (their
+    wedge's geometry, value 0, stderr 1) so that no NaN can reach a derivative through a masked
+    branch; the original values are not needed by any fit."""
+    unused = ~obs.use
+    clipped = obs._replace(
+        theta_i_rad=np.clip(obs.theta_i_rad, -HALF_PI, HALF_PI),
+        theta_o_rad=np.clip(obs.theta_o_rad, -HALF_PI, HALF_PI),
+    )
+    if not np.any(unused):
+        return clipped
+    used = obs.use
+    w_beta2 = np.zeros(obs.n_wedges)
+    w_layer = np.ones(obs.n_wedges)
+    w_beta2[obs.wedge_index[used]] = obs.beta2_rad[used]
+    w_layer[obs.wedge_index[used]] = obs.layer_um[used]
+    w_beta2[w_beta2 == 0] = np.pi / 4
+    return clipped._replace(
+        theta_i_rad=np.where(unused, 0.0, clipped.theta_i_rad),
+        theta_o_rad=np.where(unused, 0.0, clipped.theta_o_rad),
+        beta2_rad=np.where(unused, w_beta2[obs.wedge_index], obs.beta2_rad),
+        layer_um=np.where(unused, w_layer[obs.wedge_index], obs.layer_um),
+        value=np.where(unused, 0.0, obs.value),
+        stderr=np.where(unused, 1.0, obs.stderr),
+    )
+
+
 def _validate(obs: Observations) -> Observations:
-    """Check every field; return the observations with unused rows sanitised (see below)."""
-    use = obs.use
-    used = np.flatnonzero(use)
+    """Check every field; return the observations with unused rows sanitised (`_sanitised`)."""
+    used = np.flatnonzero(obs.use)
     if used.size == 0:
         n_sat = int(np.count_nonzero(obs.saturated))
         raise FitInputError(
@@ -268,91 +361,9 @@ def _validate(obs: Observations) -> Observations:
             f"{obs.n_rows - n_sat} flagged use=False); nothing is left to fit — re-expose the "
             "saturated photos or un-flag rows"
         )
-
-    def fail(field: str, rows: NDArray, what: str, fix: str) -> None:
-        i = int(rows[0])
-        more = f" (and {rows.size - 1} more rows)" if rows.size > 1 else ""
-        val = getattr(obs, field)[i]
-        raise FitInputError(
-            f"observation row {i} (photo {obs.photo_index[i]}, wedge {obs.wedge_index[i]}, "
-            f"channel {obs.channel_index[i]}): {field} = {val!r} {what}{more}; {fix}"
-        )
-
-    for field in ("theta_i_rad", "theta_o_rad"):
-        x = getattr(obs, field)[used]
-        bad = used[~np.isfinite(x) | (np.abs(x) > HALF_PI + ANGLE_TOL_RAD)]
-        if bad.size:
-            fail(
-                field,
-                bad,
-                "is outside [-90, 90] deg",
-                "angles are in radians in the wedge-face frame [conventions §1]; convert "
-                "degrees with np.deg2rad or exclude the row",
-            )
-    b2 = obs.beta2_rad[used]
-    bad = used[~np.isfinite(b2) | (b2 <= 0.0) | (b2 >= HALF_PI)]
-    if bad.size:
-        fail("beta2_rad", bad, "is outside (0, 90) deg", "give the wedge angle in radians")
-    lay = obs.layer_um[used]
-    bad = used[~np.isfinite(lay) | (lay <= 0.0)]
-    if bad.size:
-        fail("layer_um", bad, "is not a positive length", "give the layer thickness in um")
-    for field in ("wedge_index", "channel_index"):
-        bad = np.flatnonzero(getattr(obs, field) < 0)
-        if bad.size:
-            fail(field, bad, "is negative", "indices count from 0")
-    bad = used[~np.isfinite(obs.value[used])]
-    if bad.size:
-        fail(
-            "value",
-            bad,
-            "is not a finite number",
-            "fix the measurement or set use=False for the row",
-        )
-    se = obs.stderr[used]
-    bad = used[~np.isfinite(se) | (se <= 0.0)]
-    if bad.size:
-        fail(
-            "stderr",
-            bad,
-            "must be a finite standard error > 0",
-            "fix the measurement table (a zero or missing uncertainty cannot be weighted) or "
-            "set use=False for the row",
-        )
-    # One geometry per wedge: every row of a wedge must agree on beta2 and layer thickness.
-    for field in ("beta2_rad", "layer_um"):
-        col = getattr(obs, field)
-        for w in np.unique(obs.wedge_index[used]):
-            rows = used[obs.wedge_index[used] == w]
-            vals = col[rows]
-            if np.ptp(vals) > 1e-9 * max(1.0, np.abs(vals).max()):
-                fail(
-                    field,
-                    rows[vals != vals[0]],
-                    f"differs from the other rows of wedge {w} ({vals[0]!r})",
-                    "each wedge_index must describe one wedge",
-                )
-    # Unused rows are sanitised (finite, harmless values) so that no NaN can reach a
-    # derivative through a masked branch; the original values are not needed by any fit.
-    unused = ~use
-    if np.any(unused):
-        w_beta2 = np.zeros(obs.n_wedges)
-        w_layer = np.ones(obs.n_wedges)
-        w_beta2[obs.wedge_index[used]] = obs.beta2_rad[used]
-        w_layer[obs.wedge_index[used]] = obs.layer_um[used]
-        w_beta2[w_beta2 == 0] = np.pi / 4
-        return obs._replace(
-            theta_i_rad=np.where(unused, 0.0, np.clip(obs.theta_i_rad, -HALF_PI, HALF_PI)),
-            theta_o_rad=np.where(unused, 0.0, np.clip(obs.theta_o_rad, -HALF_PI, HALF_PI)),
-            beta2_rad=np.where(unused, w_beta2[obs.wedge_index], obs.beta2_rad),
-            layer_um=np.where(unused, w_layer[obs.wedge_index], obs.layer_um),
-            value=np.where(unused, 0.0, obs.value),
-            stderr=np.where(unused, 1.0, obs.stderr),
-        )
-    return obs._replace(
-        theta_i_rad=np.clip(obs.theta_i_rad, -HALF_PI, HALF_PI),
-        theta_o_rad=np.clip(obs.theta_o_rad, -HALF_PI, HALF_PI),
-    )
+    _check_rows(obs, used)
+    _check_wedges(obs, used)
+    return _sanitised(obs)
 
 
 # --- spectral setup -------------------------------------------------------------------------
@@ -383,7 +394,7 @@ class Spectral(NamedTuple):
 
 
 def spectral_setup(
-    material: str | _materials.Dispersion = "pla",
+    material: str | _materials.Dispersion | _materials.PerChannel = "pla",
     camera: str = "ideal",
     illuminant: str = "D65",
     sampling: str = "full",
@@ -391,7 +402,8 @@ def spectral_setup(
 ) -> Spectral:
     """The spectral setup for a fit [conventions §7, §8].
 
-    `material` is a name from `stairfit.model.MATERIALS` or a dispersion model; `camera` and
+    `material` is a name from `stairfit.model.MATERIALS`, a dispersion model, or one index per
+    camera channel (`materials.PerChannel`, constant across each band); `camera` and
     `illuminant` name a sensitivity set and a CIE illuminant (`stairfit.model.spectral`).
     `sampling="full"` keeps every 5 nm sample (K = 81); `"effective"` collapses each channel to
     its weighted mean wavelength (K = 1). `channels` selects camera channels (e.g. `(1,)` for a
@@ -410,7 +422,10 @@ def spectral_setup(
     else:
         wl = np.broadcast_to(cw.wavelength_nm, cw.weights.shape).copy()
         weights = np.asarray(cw.weights, float)
-    n_base = np.asarray(disp(wl))
+    try:  # a dispersion model at each sample, or a per-channel index per row
+        n_base = np.asarray(_materials.index_per_channel(disp, wl))
+    except ValueError as exc:
+        raise FitInputError(str(exc)) from None
     if channels is not None:
         idx = np.asarray(channels, dtype=int)
         if idx.ndim != 1 or idx.size == 0 or idx.min() < 0 or idx.max() >= weights.shape[0]:

@@ -1,4 +1,5 @@
-"""Physical parameters, their transforms, priors and the model variants [conventions §5, §7, §9].
+"""Physical parameters: one record each, their transforms, priors and the model variants
+[conventions §5, §7, §9].
 
 Every fit works in an *unconstrained* vector `z`; one transform per parameter maps it to the
 physical value `x` and is shared by least squares and the posterior (docs/fitting.md):
@@ -13,11 +14,15 @@ physical value `x` and is shared by least squares and the posterior (docs/fittin
 | `model_error_frac` | 1    | `>= 0`        | `x = abs(z)` (the likelihood depends on `x^2`) |
 
 (*) `scale` and `floor` are in the units of the measured relative radiance [conventions §9].
+The table is data here too: `PARAMETERS` holds one `ParamInfo` per row, and `Layout` turns it
+into one `Parameter` record per entry of `z` (a shared width, one width per wedge, then the
+others), so that no code needs to know where in `z` a parameter lives.
+
 The three parameters whose natural value is *on* their bound (a sharp edge, no floor, no model
 error) use transforms that reach the bound at a finite `z` (the sine is MINUIT's transform for
 doubly bounded parameters): a logit or log would send `z` to infinity and least squares would
 never converge when the data favour the bound. A least-squares optimum on a bound is detected
-and the parameter fixed there (an active set, `_least_squares.py`); the posterior keeps `z` in
+and the parameter fixed there (an active set, `_identify.py`); the posterior keeps `z` in
 the prior's support.
 A fixed parameter never goes through its transform: it keeps its exact physical value (so a
 fixed floor or edge radius can be exactly 0).
@@ -25,34 +30,68 @@ fixed floor or edge radius can be exactly 0).
 
 from __future__ import annotations
 
+import enum
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-PARAM_NAMES: tuple[str, ...] = (
-    "sigma_rad",
-    "delta_n",
-    "edge_radius_um",
-    "scale",
-    "floor",
-    "model_error_frac",
+
+class Transform(enum.StrEnum):
+    """How a parameter's unconstrained coordinate `z` maps to its physical value `x`."""
+
+    LOG = "log"
+    """`x = exp(z)`: positive parameters."""
+    IDENTITY = "identity"
+    """`x = z`."""
+    SIN = "sin"
+    """`x = r_max (1 + sin z) / 2`, `z in [-pi/2, pi/2]`: the edge radius in `[0, r_max]`."""
+    ABS = "abs"
+    """`x = abs(z)`: the model-error fraction (the likelihood depends on `x^2` only)."""
+
+
+LOG, IDENTITY, SIN, ABS = Transform.LOG, Transform.IDENTITY, Transform.SIN, Transform.ABS
+
+
+class ParamInfo(NamedTuple):
+    """What one physical parameter is (a row of the module table).
+
+    `bounds` are physical (`math.inf` for an open end; the edge radius's upper bound is the
+    scene's `r_max`, filled in by `Problem.parameters`). `on_bound`: the parameter's natural
+    value may lie on its lower bound (sharp edges, no floor, no model error), so an optimum
+    there is fixed on it (the active set) and a value within one standard error of it is
+    flagged. `optional`: switched on and off by the model ladder (`Variant`).
+    """
+
+    name: str
+    unit: str
+    transform: Transform
+    bounds: tuple[float, float]
+    on_bound: bool = False
+    optional: bool = False
+
+
+PARAMETERS: tuple[ParamInfo, ...] = (
+    ParamInfo("sigma_rad", "rad", LOG, (0.0, math.inf)),
+    ParamInfo("delta_n", "1", IDENTITY, (-math.inf, math.inf), optional=True),
+    ParamInfo("edge_radius_um", "um", SIN, (0.0, math.inf), on_bound=True, optional=True),
+    ParamInfo("scale", "radiance units x rad", LOG, (0.0, math.inf)),
+    ParamInfo("floor", "radiance units", IDENTITY, (0.0, math.inf), on_bound=True, optional=True),
+    ParamInfo("model_error_frac", "1", ABS, (0.0, math.inf), on_bound=True),
 )
-"""Every physical parameter, in the order of `Params` and of the parameter vector."""
+"""Every physical parameter, in the order of `Params` and of the unconstrained vector.
+`scale` multiplies a density in 1/rad [conventions §4, §9]."""
 
-PARAM_UNITS: dict[str, str] = {
-    "sigma_rad": "rad",
-    "delta_n": "1",
-    "edge_radius_um": "um",
-    "scale": "radiance units x rad",
-    "floor": "radiance units",
-    "model_error_frac": "1",
-}
-"""Units of each parameter; `scale` multiplies a density in 1/rad [conventions §4, §9]."""
+PARAM_INFO: dict[str, ParamInfo] = {p.name: p for p in PARAMETERS}
+"""`PARAMETERS` by name."""
 
-OPTIONAL_FEATURES: tuple[str, ...] = ("delta_n", "edge_radius_um", "floor")
+PARAM_NAMES: tuple[str, ...] = tuple(PARAM_INFO)
+"""The names of `PARAMETERS`, in order."""
+
+OPTIONAL_FEATURES: tuple[str, ...] = tuple(p.name for p in PARAMETERS if p.optional)
 """The parameters the model-selection ladder switches on and off (besides per-wedge sigma)."""
 
 ALWAYS_FREE: frozenset[str] = frozenset({"sigma_rad", "scale"})
@@ -65,6 +104,15 @@ solver step wanders far (exp(60) ~ 1e26); it is never active at a sensible optim
 
 N_MIN = 1.0001
 """The real part of the refractive index is held at or above this value [conventions §6]."""
+
+
+def clamp_index(n: ArrayLike) -> Array:
+    """The refractive index with its real part held at >= `N_MIN` [conventions §6]: a guard for
+    far-off solver steps and for `delta_n` far below the material's index."""
+    n = jnp.asarray(n)
+    if jnp.iscomplexobj(n):
+        return jnp.maximum(jnp.real(n), N_MIN) + 1j * jnp.imag(n)
+    return jnp.maximum(n, N_MIN)
 
 
 class Params(NamedTuple):
@@ -205,6 +253,188 @@ class Priors(NamedTuple):
         )
 
 
+# --- one record per entry of the unconstrained vector -----------------------------------------
+
+
+def parameter_label(name: str, wedge: int | None = None, wedge_deg: float | None = None) -> str:
+    """Human-readable name of a parameter: `sigma_rad`, `sigma_rad[2]`, `sigma_rad[2: 30 deg]`
+    (wedge 2, a 30-degree wedge). For display only: code identifies a parameter by its
+    `(param, wedge)`, never by this text."""
+    if wedge is None:
+        return name
+    if wedge_deg is None:
+        return f"{name}[{wedge}]"
+    return f"{name}[{wedge}: {wedge_deg:g} deg]"
+
+
+class Parameter(NamedTuple):
+    """One entry of the unconstrained vector `z` (lmfit's `Parameter`, for this model).
+
+    `param`: the physical parameter (a name of `PARAMETERS`); `wedge`: the wedge whose own
+    width this is (`None` for the shared width and every other parameter); `slot`: its index
+    in `z`; `unit`, `transform`, `bounds` (physical; the edge radius's upper bound is the
+    scene's `r_max` once resolved); `prior` (resolved against the data, or None before);
+    `free`: fitted (True) or held at its fixed value (False); `wedge_deg`: the wedge angle, for
+    the label.
+    """
+
+    param: str
+    wedge: int | None
+    slot: int
+    unit: str
+    transform: Transform
+    bounds: tuple[float, float]
+    prior: Prior | None = None
+    free: bool = False
+    wedge_deg: float | None = None
+
+    @property
+    def info(self) -> ParamInfo:
+        """The parameter's row of `PARAMETERS`."""
+        return PARAM_INFO[self.param]
+
+    def label(self, name: str | None = None) -> str:
+        """Display name (`parameter_label`), optionally under another `name` (e.g. `sigma_deg`
+        for a width shown in degrees)."""
+        return parameter_label(name or self.param, self.wedge, self.wedge_deg)
+
+
+def _record(param: str, wedge: int | None, slot: int) -> Parameter:
+    info = PARAM_INFO[param]
+    return Parameter(param, wedge, slot, info.unit, info.transform, info.bounds)
+
+
+class Layout(NamedTuple):
+    """The entries of the unconstrained vector `z` for a scene with `n_wedges` wedges.
+
+    Slot 0 is the shared width, slots `1 .. n_wedges` the per-wedge widths, then the other
+    parameters in `PARAMETERS` order. A variant leaves the slots it does not use fixed; their
+    Jacobian columns are zero. This class is the only place that knows the slot numbers.
+    """
+
+    n_wedges: int
+
+    @property
+    def size(self) -> int:
+        """Length of `z`."""
+        return self.n_wedges + len(PARAMETERS)
+
+    def parameters(self) -> tuple[Parameter, ...]:
+        """One record per slot, in slot order (priors and free flags not yet resolved)."""
+        widths = [_record("sigma_rad", None, 0)]
+        widths += [_record("sigma_rad", w, 1 + w) for w in range(self.n_wedges)]
+        rest = [_record(name, None, self.slot(name)) for name in PARAM_NAMES[1:]]
+        return (*widths, *rest)
+
+    def slot(self, param: str, wedge: int | None = None) -> int:
+        """Slot of `param` (of wedge `wedge`'s own width when `param` is `sigma_rad`)."""
+        if param == "sigma_rad":
+            return 0 if wedge is None else 1 + wedge
+        return self.n_wedges + PARAM_NAMES.index(param)
+
+    @property
+    def kinds(self) -> tuple[Transform, ...]:
+        """Transform of each slot."""
+        return tuple(p.transform for p in self.parameters())
+
+    def unpack(self, x: Array, sigma_source: Array) -> Params:
+        """Physical slot values `x` as `Params`: `sigma_rad` one width per wedge (each wedge's
+        from the slot `sigma_source` names), the others scalars."""
+        names = PARAM_NAMES[1:]
+        return Params(x[sigma_source], *(x[self.slot(name)] for name in names))
+
+
+# --- transforms -------------------------------------------------------------------------------
+
+
+def to_physical(z: Array, kinds: Sequence[str], r_max_um: ArrayLike) -> Array:
+    """Map the unconstrained vector to physical values slot by slot (see the module table)."""
+    out = []
+    for k, kind in enumerate(kinds):
+        if kind == LOG:
+            out.append(jnp.exp(jnp.clip(z[k], -Z_CLIP, Z_CLIP)))
+        elif kind == SIN:
+            out.append(jnp.asarray(r_max_um) * 0.5 * (1.0 + jnp.sin(z[k])))
+        elif kind == ABS:
+            out.append(jnp.abs(z[k]))
+        else:
+            out.append(z[k])
+    return jnp.stack(out)
+
+
+def in_support(z: Array, kinds: Sequence[str]) -> Array:
+    """False where a sine slot leaves its principal branch `[-pi/2, pi/2]` (posterior only)."""
+    ok = jnp.asarray(True)
+    for k, kind in enumerate(kinds):
+        if kind == SIN:
+            ok = ok & (jnp.abs(z[k]) <= 0.5 * jnp.pi)
+    return ok
+
+
+def log_abs_jacobian(z: Array, kinds: Sequence[str], r_max_um: ArrayLike) -> Array:
+    """`log |dx/dz|` of each slot's transform (the prior's change of variables).
+
+    For `abs` the map is two-to-one; the density of `z` is `p(|z|) / 2`, hence `-log 2`.
+    """
+    out = []
+    for k, kind in enumerate(kinds):
+        if kind == LOG:
+            out.append(z[k])
+        elif kind == SIN:
+            c = jnp.cos(z[k])
+            pos = c > 0
+            out.append(
+                jnp.where(
+                    pos, jnp.log(0.5 * jnp.asarray(r_max_um) * jnp.where(pos, c, 1.0)), -jnp.inf
+                )
+            )
+        elif kind == ABS:
+            out.append(jnp.full_like(z[k], -math.log(2.0)))
+        else:
+            out.append(jnp.zeros_like(z[k]))
+    return jnp.stack(out)
+
+
+def from_physical(x: float, kind: str, r_max_um: float) -> float:
+    """Inverse transform for one value (used for starting points)."""
+    if kind == LOG:
+        return float(np.clip(np.log(max(x, np.exp(-Z_CLIP))), -Z_CLIP, Z_CLIP))
+    if kind == SIN:
+        return float(np.arcsin(np.clip(2.0 * x / r_max_um - 1.0, -1.0, 1.0)))
+    if kind == ABS:
+        return float(abs(x))
+    return float(x)
+
+
+def dx_dz(z: np.ndarray, kinds: Sequence[str], r_max_um: float) -> np.ndarray:
+    """Derivative of each transform at `z` (for the delta method)."""
+    out = np.ones(len(kinds))
+    for k, kind in enumerate(kinds):
+        if kind == LOG:
+            out[k] = np.exp(np.clip(z[k], -Z_CLIP, Z_CLIP))
+        elif kind == SIN:
+            out[k] = 0.5 * r_max_um * np.cos(z[k])
+        elif kind == ABS:
+            out[k] = 1.0 if z[k] >= 0 else -1.0
+    return out
+
+
+PriorSpec = tuple[tuple[int, Prior], ...]
+"""Hashable (slot, prior) pairs of the free slots: static configuration of a posterior."""
+
+
+def log_prior_z(z: Array, kinds: Sequence[str], r_max_um: ArrayLike, priors: PriorSpec) -> Array:
+    """Log prior density of the free slots in the unconstrained coordinates: `sum over (slot,
+    prior) of [log p(x) + log |dx/dz|]` (priors are stated on the physical values). The one
+    home of that sum: the posterior and the Laplace evidence both use it."""
+    x = to_physical(z, kinds, r_max_um)
+    jac = log_abs_jacobian(z, kinds, r_max_um)
+    total = jnp.asarray(0.0, dtype=z.dtype)
+    for slot, prior in priors:
+        total = total + prior.log_pdf(x[slot]) + jac[slot]
+    return total
+
+
 # --- model variants -------------------------------------------------------------------------
 
 
@@ -240,15 +470,18 @@ def variant(name: str, *features: str, per_wedge_sigma: bool = False) -> Variant
     return Variant(name, ALWAYS_FREE | frozenset(features), per_wedge_sigma)
 
 
+_SHORT = {"delta_n": "delta_n", "edge_radius_um": "edge", "floor": "floor"}
+"""How the optional features appear in ladder names."""
+
+
 def _ladder() -> tuple[Variant, ...]:
     """Every combination of the optional features, then per-wedge sigma on top of each."""
     out = []
     for per_wedge in (False, True):
         for mask in range(2 ** len(OPTIONAL_FEATURES)):
             feats = tuple(f for k, f in enumerate(OPTIONAL_FEATURES) if mask >> k & 1)
-            short = {"delta_n": "delta_n", "edge_radius_um": "edge", "floor": "floor"}
             parts = ["sharp" if "edge_radius_um" not in feats else "rounded"]
-            parts += [short[f] for f in feats if f != "edge_radius_um"]
+            parts += [_SHORT[f] for f in feats if f != "edge_radius_um"]
             if per_wedge:
                 parts.append("sigma_per_wedge")
             out.append(variant("+".join(parts), *feats, per_wedge_sigma=per_wedge))
@@ -262,128 +495,3 @@ look like `sharp`, `sharp+delta_n`, `rounded+floor`, `sharp+delta_n+sigma_per_we
 
 SIMPLEST = DEFAULT_LADDER[0]
 """`sharp`: sharp steps, one sigma, the material's index, a scale."""
-
-
-# --- the unconstrained parameter vector -----------------------------------------------------
-
-LOG, IDENTITY, SIN, ABS = "log", "identity", "sin", "abs"
-
-
-class Layout(NamedTuple):
-    """Slots of the unconstrained vector `z` for a scene with `n_wedges` wedges.
-
-    Slot 0 is the shared log-width, slots `1 .. n_wedges` the per-wedge log-widths, then
-    `delta_n`, the edge radius (sine), log scale, floor, model error (abs). A variant
-    leaves the slots it does not use fixed; their Jacobian columns are zero.
-    """
-
-    n_wedges: int
-
-    @property
-    def size(self) -> int:
-        """Length of `z`."""
-        return self.n_wedges + 6
-
-    def slot(self, name: str) -> int:
-        """Slot of a scalar parameter (`sigma_rad` = the shared width)."""
-        if name == "sigma_rad":
-            return 0
-        return self.n_wedges + PARAM_NAMES.index(name)
-
-    def sigma_slot(self, wedge: int) -> int:
-        """Slot of wedge `wedge`'s own width."""
-        return 1 + wedge
-
-    @property
-    def kinds(self) -> tuple[str, ...]:
-        """Transform of each slot."""
-        return (LOG,) * (1 + self.n_wedges) + (IDENTITY, SIN, LOG, IDENTITY, ABS)
-
-    def param_of_slot(self, k: int) -> str:
-        """Physical parameter a slot belongs to (`sigma_rad` for every width slot)."""
-        if k <= self.n_wedges:
-            return "sigma_rad"
-        return PARAM_NAMES[k - self.n_wedges]
-
-    def label(self, k: int, wedge_deg: np.ndarray | None = None) -> str:
-        """Human-readable name of slot `k`: `sigma_rad`, `sigma_rad[2]` (wedge 2), ..."""
-        if k == 0:
-            return "sigma_rad"
-        if k <= self.n_wedges:
-            w = k - 1
-            if wedge_deg is not None:
-                return f"sigma_rad[{w}: {wedge_deg[w]:g} deg]"
-            return f"sigma_rad[{w}]"
-        return PARAM_NAMES[k - self.n_wedges]
-
-
-def to_physical(z: Array, kinds: tuple[str, ...], r_max_um: ArrayLike) -> Array:
-    """Map the unconstrained vector to physical values slot by slot (see the module table)."""
-    out = []
-    for k, kind in enumerate(kinds):
-        if kind == LOG:
-            out.append(jnp.exp(jnp.clip(z[k], -Z_CLIP, Z_CLIP)))
-        elif kind == SIN:
-            out.append(jnp.asarray(r_max_um) * 0.5 * (1.0 + jnp.sin(z[k])))
-        elif kind == ABS:
-            out.append(jnp.abs(z[k]))
-        else:
-            out.append(z[k])
-    return jnp.stack(out)
-
-
-def in_support(z: Array, kinds: tuple[str, ...]) -> Array:
-    """False where a sine slot leaves its principal branch `[-pi/2, pi/2]` (posterior only)."""
-    ok = jnp.asarray(True)
-    for k, kind in enumerate(kinds):
-        if kind == SIN:
-            ok = ok & (jnp.abs(z[k]) <= 0.5 * jnp.pi)
-    return ok
-
-
-def log_abs_jacobian(z: Array, kinds: tuple[str, ...], r_max_um: ArrayLike) -> Array:
-    """`log |dx/dz|` of each slot's transform (the prior's change of variables).
-
-    For `abs` the map is two-to-one; the density of `z` is `p(|z|) / 2`, hence `-log 2`.
-    """
-    out = []
-    for k, kind in enumerate(kinds):
-        if kind == LOG:
-            out.append(z[k])
-        elif kind == SIN:
-            c = jnp.cos(z[k])
-            pos = c > 0
-            out.append(
-                jnp.where(
-                    pos, jnp.log(0.5 * jnp.asarray(r_max_um) * jnp.where(pos, c, 1.0)), -jnp.inf
-                )
-            )
-        elif kind == ABS:
-            out.append(jnp.full_like(z[k], -math.log(2.0)))
-        else:
-            out.append(jnp.zeros_like(z[k]))
-    return jnp.stack(out)
-
-
-def from_physical(x: float, kind: str, r_max_um: float) -> float:
-    """Inverse transform for one value (used for starting points)."""
-    if kind == LOG:
-        return float(np.clip(np.log(max(x, np.exp(-Z_CLIP))), -Z_CLIP, Z_CLIP))
-    if kind == SIN:
-        return float(np.arcsin(np.clip(2.0 * x / r_max_um - 1.0, -1.0, 1.0)))
-    if kind == ABS:
-        return float(abs(x))
-    return float(x)
-
-
-def dx_dz(z: np.ndarray, kinds: tuple[str, ...], r_max_um: float) -> np.ndarray:
-    """Derivative of each transform at `z` (for the delta method)."""
-    out = np.ones(len(kinds))
-    for k, kind in enumerate(kinds):
-        if kind == LOG:
-            out[k] = np.exp(np.clip(z[k], -Z_CLIP, Z_CLIP))
-        elif kind == SIN:
-            out[k] = 0.5 * r_max_um * np.cos(z[k])
-        elif kind == ABS:
-            out[k] = 1.0 if z[k] >= 0 else -1.0
-    return out

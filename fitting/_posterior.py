@@ -3,19 +3,19 @@
 `log_likelihood`, `log_prior` and `log_probability` are module-level functions of the free
 unconstrained parameters; one `jax.jit(jax.vmap(log_probability))` evaluates all walkers at
 once (`emcee.EnsembleSampler(..., vectorize=True)`). Priors are on the *physical* parameters:
-`log_prior` adds `log |dx/dz|` of each transform. Seeds are explicit and recorded; the chain is
-saved atomically to an `.npz` file after every chunk, and a run can be resumed from it.
+`log_prior` adds `log |dx/dz|` of each transform. Seeds are explicit and recorded; the chain
+lives in a `ChainBackend` (`_chain.py`), saved atomically after every chunk, and a run resumes
+from it with `run_mcmc(None, n)`.
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import emcee
 import jax
@@ -23,16 +23,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._errors import FitError, FitInputError, FitWarning, emit
+from ._chain import ChainBackend, ChainInfo
+from ._errors import FitError, FitInputError, FitWarning, emit, with_overrides
 from ._forward import Data, Static, log_likelihood_z, physical
-from ._least_squares import FitResult
-from ._params import SIN, Prior, in_support, log_abs_jacobian, to_physical
-
-CHAIN_FORMAT_VERSION = 1
-"""Version of the chain file layout (docs/fitting.md, "Chain file")."""
-
-PriorSpec = tuple[tuple[int, Prior], ...]
-"""Hashable (slot, prior) pairs of the free slots: static configuration of the posterior."""
+from ._params import SIN, Parameter, PriorSpec, in_support, log_prior_z
+from ._result import FitResult
 
 
 def _full_z(theta: Array, base_z: Array, free_slots: Array) -> Array:
@@ -48,12 +43,8 @@ def log_prior(
     values; `-inf` outside their support (and outside the sine's principal branch).
     """
     z = _full_z(theta, base_z, free_slots)
-    x = to_physical(z, static.kinds, data.r_max_um)
-    jac = log_abs_jacobian(z, static.kinds, data.r_max_um)
-    total = jnp.asarray(0.0, dtype=z.dtype)
-    for slot, prior in priors:
-        total = total + prior.log_pdf(x[slot]) + jac[slot]
-    return jnp.where(in_support(z, static.kinds), total, -jnp.inf)
+    total = log_prior_z(z, static.layout.kinds, data.r_max_um, priors)
+    return jnp.where(in_support(z, static.layout.kinds), total, -jnp.inf)
 
 
 def log_likelihood(
@@ -80,12 +71,39 @@ _batched_log_probability = jax.jit(
 _batched_physical = jax.jit(jax.vmap(physical, in_axes=(0, None, None)), static_argnums=(1,))
 
 
+class PosteriorOptions(NamedTuple):
+    """How `sample_posterior` samples (every field is also a keyword of `sample_posterior`).
+
+    `n_walkers` (default `max(32, 4 x n_params)`, even); `seed` (the walker ball and emcee's
+    generator both derive from it); the sampler runs in chunks of `chunk_steps` until the chain
+    is longer than `tau_factor` integrated autocorrelation times and tau changed by less than
+    `tau_rtol` since the previous chunk, or `max_steps` is reached; burn-in `burn_tau x
+    tau_max` steps, thinning `thin_frac x tau_min`; walkers start in a ball of `ball_scale`
+    least-squares standard errors around the optimum.
+    """
+
+    n_walkers: int | None = None
+    seed: int = 0
+    chunk_steps: int = 500
+    max_steps: int = 20_000
+    tau_factor: float = 50.0
+    tau_rtol: float = 0.1
+    burn_tau: float = 3.0
+    thin_frac: float = 0.5
+    ball_scale: float = 1e-2
+
+    def updated(self, **overrides: Any) -> PosteriorOptions:
+        """A copy with `overrides` (field names; a `TypeError` for an unknown one)."""
+        return with_overrides(self, "posterior", overrides)
+
+
 @dataclass(frozen=True)
 class PosteriorResult:
     """The outcome of `sample_posterior` (immutable; `report()` prints it).
 
     Attributes:
-        names: free parameters, in the order of every array below.
+        names: display labels of the free parameters, in the order of every array below.
+        parameters: their records (`fitting.Parameter`: `param`, `wedge`, unit, prior, ...).
         seed: the seed given (walker ball and emcee's generator both derive from it).
         n_walkers, n_steps: walkers and steps per walker in the whole chain (resumes included).
         tau: integrated autocorrelation time per parameter (steps), `emcee.autocorr`,
@@ -98,6 +116,9 @@ class PosteriorResult:
             (n_steps - burn_in) / tau_max`.
         acceptance_fraction: mean over walkers; acceptance_per_walker: per walker.
         samples: `(n_samples, n_params)` physical values after burn-in and thinning.
+        chain: the whole chain in physical values `(n_steps, n_walkers, n_params)`, before
+            burn-in and thinning; log_prob: its log posterior `(n_steps, n_walkers)` (what
+            diagnostics such as split R-hat or an ArviZ `InferenceData` are built from).
         median, p16, p84, p2_5, p97_5: percentiles per parameter (physical units).
         ls_value, ls_stderr: the least-squares estimate and standard error per parameter.
         width_ratio: `((p84 - p16) / 2) / ls_stderr`: posterior width over LS standard error.
@@ -107,6 +128,7 @@ class PosteriorResult:
     """
 
     names: tuple[str, ...]
+    parameters: tuple[Parameter, ...]
     seed: int
     n_walkers: int
     n_steps: int
@@ -120,6 +142,8 @@ class PosteriorResult:
     acceptance_fraction: float
     acceptance_per_walker: np.ndarray = field(repr=False)
     samples: np.ndarray = field(repr=False)
+    chain: np.ndarray = field(repr=False)
+    log_prob: np.ndarray = field(repr=False)
     median: np.ndarray = field(repr=False)
     p16: np.ndarray = field(repr=False)
     p84: np.ndarray = field(repr=False)
@@ -132,6 +156,13 @@ class PosteriorResult:
     warnings: tuple[FitWarning, ...] = ()
     elapsed_s: float = 0.0
     sampling_s: float = 0.0
+
+    def index(self, param: str, wedge: int | None = None) -> int:
+        """Position of the parameter `(param, wedge)` in every array of this result."""
+        for i, p in enumerate(self.parameters):
+            if (p.param, p.wedge) == (param, wedge):
+                return i
+        raise KeyError(f"({param!r}, {wedge!r}) is not a parameter of this posterior")
 
     def report(self) -> str:
         """Plain-text summary: chain diagnostics and the percentile table."""
@@ -156,6 +187,49 @@ class PosteriorResult:
         return "\n".join(lines)
 
 
+# --- the problem emcee samples ------------------------------------------------------------------
+
+
+class Target(NamedTuple):
+    """What the posterior of one fit is evaluated on: the compiled configuration, the arrays,
+    the least-squares optimum `base_z` (every slot, sine slots on their principal branch), the
+    free slots and their priors, and the fingerprint of it all (for resuming)."""
+
+    fit: FitResult
+    static: Static
+    data: Data
+    priors: PriorSpec
+    base_z: np.ndarray
+    slots: np.ndarray
+    fingerprint: str
+
+    def log_prob(self, theta: np.ndarray) -> np.ndarray:
+        """Log posterior of walkers `theta` `(n_walkers, p)`, a writable numpy array."""
+        out = _batched_log_probability(
+            jnp.asarray(theta), self.static, self.priors, self.data,
+            jnp.asarray(self.base_z), jnp.asarray(self.slots),
+        )  # fmt: skip
+        return np.array(out)  # a writable copy: walkers outside the support are re-drawn
+
+    def physical(self, kept_z: np.ndarray) -> np.ndarray:
+        """Physical values of the free slots for unconstrained samples `(n, p)`."""
+        return _to_physical_samples(kept_z, self.static, self.data, self.base_z, self.slots)
+
+    def chain_info(self, seed: int) -> ChainInfo:
+        """The description a new chain file of this fit records."""
+        params = self.fit.parameters
+        return ChainInfo(
+            names=self.fit.names,
+            parameters=tuple(p.param for p in params),
+            wedges=tuple(-1 if p.wedge is None else p.wedge for p in params),
+            seed=int(seed),
+            free_slots=self.slots,
+            ls_z=np.asarray(self.fit.z),
+            fingerprint=self.fingerprint,
+            variant=self.fit.variant.name,
+        )
+
+
 def _fingerprint(fit: FitResult, data: Data) -> str:
     """Hash of everything the log probability depends on (to refuse resuming a different fit)."""
     h = hashlib.sha256()
@@ -166,6 +240,29 @@ def _fingerprint(fit: FitResult, data: Data) -> str:
     return h.hexdigest()[:32]
 
 
+def target(fit: FitResult) -> Target:
+    """The posterior's target of a converged least-squares fit (`FitError` otherwise)."""
+    if not fit.success or fit.covariance_z is None or fit.problem is None or fit.spec is None:
+        raise FitError(
+            "the posterior starts from a converged least-squares fit with a covariance; this "
+            f"fit has none ({fit.message}); fix the least-squares fit first"
+        )
+    static, data = fit.problem.static_for(fit.spec), fit.problem.arrays_for(fit.spec)
+    # The least-squares solver may end a sine slot (the edge radius) outside the principal
+    # branch that the posterior's support is defined on; the same physical value inside it is
+    # arcsin(sin z).
+    z = np.asarray(fit.z, dtype=float).copy()
+    for k, kind in enumerate(static.layout.kinds):
+        if kind == SIN:
+            z[k] = float(np.arcsin(np.sin(z[k])))
+    priors = tuple((p.slot, p.prior) for p in fit.parameters)
+    slots = np.asarray(fit.free_slots, dtype=int)
+    return Target(fit, static, data, priors, z, slots, _fingerprint(fit, data))
+
+
+# --- walkers, seeds, resuming -------------------------------------------------------------------
+
+
 def _seeds(seed: int) -> tuple[np.random.Generator, np.random.RandomState]:
     """The walker-ball generator and emcee's RandomState, both derived from one seed."""
     ball_ss, emcee_ss = np.random.SeedSequence(seed).spawn(2)
@@ -173,212 +270,165 @@ def _seeds(seed: int) -> tuple[np.random.Generator, np.random.RandomState]:
     return np.random.default_rng(ball_ss), rs
 
 
-def _save_chain(path: Path, payload: dict[str, np.ndarray]) -> None:
-    """Write the chain atomically: a temporary file in the same folder, then `os.replace`."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **payload)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def load_chain(path: str | Path) -> dict[str, np.ndarray]:
-    """Read a chain file written by `sample_posterior` (see docs/fitting.md for the fields)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FitInputError(f"chain file {path} does not exist; run sample_posterior first")
-    with np.load(path, allow_pickle=False) as f:
-        out = {k: f[k] for k in f.files}
-    version = int(out.get("format_version", -1))
-    if version != CHAIN_FORMAT_VERSION:
-        raise FitInputError(
-            f"chain file {path}: format_version {version} is not {CHAIN_FORMAT_VERSION}; "
-            "start a new chain"
-        )
-    return out
-
-
-def sample_posterior(
-    fit: FitResult,
-    *,
-    n_walkers: int | None = None,
-    seed: int = 0,
-    chunk_steps: int = 500,
-    max_steps: int = 20_000,
-    tau_factor: float = 50.0,
-    tau_rtol: float = 0.1,
-    burn_tau: float = 3.0,
-    thin_frac: float = 0.5,
-    ball_scale: float = 1e-2,
-    chain_path: str | Path | None = None,
-    resume: bool = False,
-    progress: bool = False,
-    emit_warnings: bool = True,
-) -> PosteriorResult:
-    """Sample the posterior of the free parameters of a least-squares fit with emcee.
-
-    Walkers (default `max(32, 4 x n_params)`, even) start in a ball of `ball_scale` least-squares
-    standard errors around the optimum (in the unconstrained coordinates; points outside the
-    prior's support are redrawn). The sampler runs in chunks of `chunk_steps` until the chain
-    is longer than `tau_factor` integrated autocorrelation times and tau has settled (relative
-    change < `tau_rtol`), or `max_steps` is reached (then a warning). Burn-in and thinning come
-    from tau. With `chain_path` the chain is saved after every chunk; `resume=True` continues
-    the chain in that file from its last walker positions and random state (the file must
-    belong to the same fit; the seed recorded there is kept).
-    """
-    t_start = time.perf_counter()
-    if not fit.success or fit.covariance_z is None or fit.problem is None or fit.spec is None:
-        raise FitError(
-            "the posterior starts from a converged least-squares fit with a covariance; this "
-            f"fit has none ({fit.message}); fix the least-squares fit first"
-        )
-    if chunk_steps < 1 or max_steps < chunk_steps:
-        raise FitInputError("need chunk_steps >= 1 and max_steps >= chunk_steps")
-    problem = fit.problem
-    static = problem.static_for(fit.spec)
-    data = problem.arrays_for(fit.spec)
-    slots = np.asarray(fit.free_slots, dtype=int)
-    p = slots.size
-    lay = problem.layout
-    priors: PriorSpec = tuple(
-        (int(k), getattr(problem.priors, lay.param_of_slot(int(k)))) for k in slots
-    )
-    # The least-squares solver may end a sine slot (the edge radius) outside the principal
-    # branch that the posterior's support is defined on; the same physical value inside it is
-    # arcsin(sin z).
-    z_fit = np.asarray(fit.z, dtype=float).copy()
-    for k, kind in enumerate(static.kinds):
-        if kind == SIN:
-            z_fit[k] = float(np.arcsin(np.sin(z_fit[k])))
-    base_z = jnp.asarray(z_fit)
-    slots_j = jnp.asarray(slots)
-
-    fingerprint = _fingerprint(fit, data)
-    path = None if chain_path is None else Path(chain_path)
-    walkers = n_walkers or max(32, 4 * p)
+def _walker_count(requested: int | None, p: int) -> int:
+    walkers = requested or max(32, 4 * p)
     walkers += walkers % 2
     if walkers < 2 * p:
         raise FitInputError(f"n_walkers = {walkers}; emcee needs at least 2 x {p} walkers")
+    return walkers
 
-    def log_prob_batch(theta: np.ndarray) -> np.ndarray:
-        out = _batched_log_probability(jnp.asarray(theta), static, priors, data, base_z, slots_j)
-        return np.array(out)  # a writable copy: walkers outside the support are re-drawn
 
-    prev_z = np.zeros((0, walkers, p))
-    prev_lp = np.zeros((0, walkers))
-    prev_acc = np.zeros(walkers)
-    if resume:
-        if path is None:
-            raise FitInputError("resume=True needs chain_path (the file to continue)")
-        saved = load_chain(path)
-        if str(saved["fingerprint"]) != fingerprint:
-            raise FitInputError(
-                f"chain file {path} belongs to a different fit (data, variant or priors "
-                "differ); give another chain_path or resume=False"
-            )
-        prev_z, prev_lp = saved["chain_z"], saved["log_prob"]
-        prev_acc = saved["n_accepted"].astype(float)
-        walkers = prev_z.shape[1]
-        seed = int(saved["seed"])
-        rng_state = (
-            "MT19937",
-            saved["rng_keys"],
-            int(saved["rng_pos"]),
-            int(saved["rng_has_gauss"]),
-            float(saved["rng_cached_gaussian"]),
+def _initial_state(t: Target, walkers: int, opts: PosteriorOptions) -> emcee.State:
+    """Walkers in a ball of `ball_scale` least-squares standard errors around the optimum
+    (points outside the prior's support redrawn), with emcee's seeded random state."""
+    ball_rng, rs = _seeds(opts.seed)
+    p = t.slots.size
+    se = np.sqrt(np.diag(t.fit.covariance_z))
+    centre = t.base_z[t.slots]
+    start = centre + opts.ball_scale * se * ball_rng.standard_normal((walkers, p))
+    lp0 = t.log_prob(start)
+    for _ in range(100):
+        bad = ~np.isfinite(lp0)
+        if not np.any(bad):
+            return emcee.State(start, log_prob=lp0, random_state=rs.get_state())
+        start[bad] = centre + opts.ball_scale * se * ball_rng.standard_normal((bad.sum(), p))
+        lp0[bad] = t.log_prob(start[bad])
+    raise FitError(
+        "could not place the walkers inside the prior's support around the least-squares "
+        "optimum; check the priors against the fitted values"
+    )
+
+
+def _resumed(t: Target, path: Path | None) -> ChainBackend:
+    """The backend of the chain file to continue (`FitInputError` if missing or foreign)."""
+    if path is None:
+        raise FitInputError("resume=True needs chain_path (the file to continue)")
+    backend = ChainBackend.load(path)
+    if backend.info.fingerprint != t.fingerprint:
+        raise FitInputError(
+            f"chain file {path} belongs to a different fit (data, variant or priors differ); "
+            "give another chain_path or resume=False"
         )
-        state = emcee.State(prev_z[-1], log_prob=prev_lp[-1], random_state=rng_state)
-    else:
-        ball_rng, rs = _seeds(seed)
-        se = np.sqrt(np.diag(fit.covariance_z))
-        centre = z_fit[slots]
-        start = centre + ball_scale * se * ball_rng.standard_normal((walkers, p))
-        lp0 = log_prob_batch(start)
-        for _ in range(100):
-            bad = ~np.isfinite(lp0)
-            if not np.any(bad):
-                break
-            start[bad] = centre + ball_scale * se * ball_rng.standard_normal((bad.sum(), p))
-            lp0[bad] = log_prob_batch(start[bad])
-        else:
-            raise FitError(
-                "could not place the walkers inside the prior's support around the "
-                "least-squares optimum; check the priors against the fitted values"
-            )
-        state = emcee.State(start, log_prob=lp0, random_state=rs.get_state())
+    return backend
 
-    sampler = emcee.EnsembleSampler(walkers, p, log_prob_batch, vectorize=True)
+
+def _sampler(
+    t: Target, opts: PosteriorOptions, path: Path | None, resume: bool
+) -> tuple[emcee.EnsembleSampler, emcee.State | None, int]:
+    """(sampler, initial state or None when resuming, the seed the chain belongs to)."""
+    p = t.slots.size
+    if resume:
+        backend = _resumed(t, path)
+        sampler = emcee.EnsembleSampler(backend.nwalkers, p, t.log_prob, vectorize=True,
+                                        backend=backend)  # fmt: skip
+        return sampler, None, backend.info.seed
+    walkers = _walker_count(opts.n_walkers, p)
+    state = _initial_state(t, walkers, opts)
+    backend = ChainBackend(t.chain_info(opts.seed), path)
+    sampler = emcee.EnsembleSampler(walkers, p, t.log_prob, vectorize=True, backend=backend)
     sampler.random_state = state.random_state
     if not np.array_equal(sampler.random_state[1], state.random_state[1]):
         raise FitError("emcee did not accept the random state; cannot guarantee reproducibility")
+    return sampler, state, opts.seed
 
-    tau = np.full(p, np.inf)
-    converged = False
-    t_sample = 0.0
-    records: list[FitWarning] = []
-    while True:
-        done = prev_z.shape[0] + sampler.iteration
-        n_run = min(chunk_steps, max_steps - done)
-        if n_run <= 0:
-            break
+
+# --- sampling -----------------------------------------------------------------------------------
+
+
+class _Run(NamedTuple):
+    """The chain's autocorrelation times, whether it converged, and the time spent in emcee."""
+
+    tau: np.ndarray
+    converged: bool
+    sampling_s: float
+
+
+def _run_chunks(
+    sampler: emcee.EnsembleSampler,
+    state: emcee.State | None,
+    t: Target,
+    opts: PosteriorOptions,
+    progress: bool,
+) -> _Run:
+    """Run in chunks of `chunk_steps` (the first from `state`, every later one, and every one of
+    a resumed chain, from where emcee stopped: `run_mcmc(None, n)`), saving the chain after
+    each, until it is converged (module doc) or `max_steps` long."""
+    backend: ChainBackend = sampler.backend
+    tau = np.full(t.slots.size, np.inf)
+    spent = 0.0
+    while (n_run := min(opts.chunk_steps, opts.max_steps - backend.iteration)) > 0:
         t0 = time.perf_counter()
-        state = sampler.run_mcmc(state, n_run, progress=progress)
-        t_sample += time.perf_counter() - t0
-        chain_z = np.concatenate([prev_z, sampler.get_chain()], axis=0)
+        sampler.run_mcmc(state, n_run, progress=progress)
+        spent += time.perf_counter() - t0
+        state = None
+        chain_z = backend.get_chain()
         tau_new = emcee.autocorr.integrated_time(chain_z, tol=0)
-        settled = bool(np.all(np.abs(tau_new - tau) < tau_rtol * tau_new))
+        settled = bool(np.all(np.abs(tau_new - tau) < opts.tau_rtol * tau_new))
         tau = tau_new
-        if path is not None:
-            log_prob = np.concatenate([prev_lp, sampler.get_log_prob()], axis=0)
-            accepted = prev_acc + sampler.backend.accepted
-            _save_chain(path, _payload(fit, static, data, chain_z, log_prob, accepted, seed,
-                                       sampler.random_state, fingerprint, tau))  # fmt: skip
-        if chain_z.shape[0] > tau_factor * np.max(tau) and settled:
-            converged = True
-            break
+        if backend.path is not None:
+            backend.save(_physical_chain(t, chain_z), tau)
+        if chain_z.shape[0] > opts.tau_factor * np.max(tau) and settled:
+            return _Run(tau, True, spent)
+    return _Run(tau, False, spent)
 
-    chain_z = np.concatenate([prev_z, sampler.get_chain()], axis=0)
-    accepted = prev_acc + sampler.backend.accepted
-    n_steps = chain_z.shape[0]
-    tau_max = float(np.max(tau))
-    if not converged:
-        records.append(
+
+def _physical_chain(t: Target, chain_z: np.ndarray) -> np.ndarray:
+    """The chain `(n_steps, n_walkers, p)` in physical values."""
+    n, w, p = chain_z.shape
+    return t.physical(chain_z.reshape(-1, p)).reshape(n, w, p)
+
+
+def _diagnostic_warnings(
+    run: _Run, n_steps: int, acceptance: float, opts: PosteriorOptions
+) -> tuple[FitWarning, ...]:
+    """`chain_too_short` (the step limit was hit) and `low_acceptance` (outside 0.15-0.75)."""
+    out = []
+    if not run.converged:
+        limit = opts.tau_factor * float(np.max(run.tau))
+        out.append(
             FitWarning(
                 "chain_too_short",
                 None,
-                f"the chain reached max_steps = {max_steps} with {n_steps} steps, which is not "
-                f"longer than {tau_factor:g} x tau_max = {tau_factor * tau_max:.0f} (or tau has "
+                f"the chain reached max_steps = {opts.max_steps} with {n_steps} steps, which is "
+                f"not longer than {opts.tau_factor:g} x tau_max = {limit:.0f} (or tau has "
                 "not settled); the percentiles are less reliable — raise max_steps or resume",
             )
         )
-    acc = accepted / n_steps
-    if not 0.15 <= float(np.mean(acc)) <= 0.75:
-        records.append(
+    if not 0.15 <= acceptance <= 0.75:
+        out.append(
             FitWarning(
                 "low_acceptance",
                 None,
-                f"mean acceptance fraction {np.mean(acc):.2f} is outside [0.15, 0.75]; the "
+                f"mean acceptance fraction {acceptance:.2f} is outside [0.15, 0.75]; the "
                 "sampler may be mixing poorly",
             )
         )
-    burn = min(math.ceil(burn_tau * tau_max), n_steps - 1)
-    thin = max(1, int(thin_frac * float(np.min(tau))))
-    kept_z = chain_z[burn::thin].reshape(-1, p)
-    samples = _to_physical_samples(kept_z, static, data, base_z, slots)
+    return tuple(out)
+
+
+def _summary(
+    t: Target, backend: ChainBackend, run: _Run, seed: int, opts: PosteriorOptions, t0: float
+) -> PosteriorResult:
+    """Burn-in, thinning, percentiles and diagnostics of the finished chain (`t0`: when the
+    call started)."""
+    chain_z = backend.get_chain()
+    n_steps, walkers, p = chain_z.shape
+    tau_max = float(np.max(run.tau))
+    acc = backend.accepted / n_steps
+    burn = min(math.ceil(opts.burn_tau * tau_max), n_steps - 1)
+    thin = max(1, int(opts.thin_frac * float(np.min(run.tau))))
+    samples = t.physical(chain_z[burn::thin].reshape(-1, p))
     q = np.percentile(samples, [2.5, 16, 50, 84, 97.5], axis=0)
-    ls_se = np.asarray(fit.stderrs)
-    result = PosteriorResult(
-        names=fit.names,
+    ls_se = np.asarray(t.fit.stderrs)
+    return PosteriorResult(
+        names=t.fit.names,
+        parameters=t.fit.parameters,
         seed=int(seed),
         n_walkers=walkers,
         n_steps=n_steps,
-        tau=tau,
+        tau=run.tau,
         tau_max=tau_max,
-        converged=converged,
+        converged=run.converged,
         burn_in=burn,
         thin=thin,
         n_samples=int(samples.shape[0]),
@@ -386,19 +436,53 @@ def sample_posterior(
         acceptance_fraction=float(np.mean(acc)),
         acceptance_per_walker=acc,
         samples=samples,
+        chain=_physical_chain(t, chain_z),
+        log_prob=backend.get_log_prob(),
         median=q[2],
         p16=q[1],
         p84=q[3],
         p2_5=q[0],
         p97_5=q[4],
-        ls_value=fit.values,
+        ls_value=t.fit.values,
         ls_stderr=ls_se,
         width_ratio=0.5 * (q[3] - q[1]) / ls_se,
-        chain_path=path,
-        warnings=tuple(records),
-        elapsed_s=time.perf_counter() - t_start,
-        sampling_s=t_sample,
+        chain_path=backend.path,
+        warnings=_diagnostic_warnings(run, n_steps, float(np.mean(acc)), opts),
+        elapsed_s=time.perf_counter() - t0,
+        sampling_s=run.sampling_s,
     )
+
+
+def sample_posterior(
+    fit: FitResult,
+    options: PosteriorOptions | None = None,
+    *,
+    chain_path: str | Path | None = None,
+    resume: bool = False,
+    progress: bool = False,
+    emit_warnings: bool = True,
+    **option_overrides: Any,
+) -> PosteriorResult:
+    """Sample the posterior of the free parameters of a least-squares fit with emcee.
+
+    `options` (`PosteriorOptions`; any field may also be given as a keyword, e.g. `seed=3`,
+    `max_steps=2000`) set the walkers, the seed, the chunked stopping rule, burn-in and
+    thinning. Walkers start in a ball around the optimum in the unconstrained coordinates; the
+    sampler runs in chunks until the chain is longer than `tau_factor` autocorrelation times and
+    tau has settled, or `max_steps` is reached (then a warning). With `chain_path` the chain
+    is saved after every chunk; `resume=True` continues the chain in that file from its last
+    walker positions and random state (the file must belong to the same fit; the seed recorded
+    there is kept).
+    """
+    t_start = time.perf_counter()
+    opts = (options or PosteriorOptions()).updated(**option_overrides)
+    t = target(fit)
+    if opts.chunk_steps < 1 or opts.max_steps < opts.chunk_steps:
+        raise FitInputError("need chunk_steps >= 1 and max_steps >= chunk_steps")
+    path = None if chain_path is None else Path(chain_path)
+    sampler, state, seed = _sampler(t, opts, path, resume)
+    run = _run_chunks(sampler, state, t, opts, progress)
+    result = _summary(t, sampler.backend, run, seed, opts, t_start)
     if emit_warnings:
         emit(result.warnings)
     return result
@@ -411,7 +495,7 @@ chunk; converting the growing chain in one call recompiled for every new length)
 
 
 def _to_physical_samples(
-    kept_z: np.ndarray, static: Static, data: Data, base_z: Array, slots: np.ndarray
+    kept_z: np.ndarray, static: Static, data: Data, base_z: np.ndarray, slots: np.ndarray
 ) -> np.ndarray:
     """Physical values of the free slots for unconstrained samples `(n, p)`."""
     n = kept_z.shape[0]
@@ -420,44 +504,9 @@ def _to_physical_samples(
     n_pad = -n % PHYSICAL_BLOCK
     padded = np.concatenate([kept_z, np.repeat(kept_z[-1:], n_pad, axis=0)], axis=0)
     out = []
+    base = jnp.asarray(base_z)
     for block in padded.reshape(-1, PHYSICAL_BLOCK, kept_z.shape[1]):
-        full = jnp.broadcast_to(base_z, (PHYSICAL_BLOCK, base_z.shape[0]))
+        full = jnp.broadcast_to(base, (PHYSICAL_BLOCK, base.shape[0]))
         full = full.at[:, jnp.asarray(slots)].set(jnp.asarray(block))
         out.append(np.asarray(_batched_physical(full, static, data))[:, slots])
     return np.concatenate(out, axis=0)[:n]
-
-
-def _payload(
-    fit: FitResult,
-    static: Static,
-    data: Data,
-    chain_z: np.ndarray,
-    log_prob: np.ndarray,
-    accepted: np.ndarray,
-    seed: int,
-    rng_state: tuple,
-    fingerprint: str,
-    tau: np.ndarray,
-) -> dict[str, np.ndarray]:
-    """The arrays of a chain file (docs/fitting.md, "Chain file")."""
-    slots = np.asarray(fit.free_slots, dtype=int)
-    n, w, p = chain_z.shape
-    chain = _to_physical_samples(chain_z.reshape(-1, p), static, data, jnp.asarray(fit.z), slots)
-    return {
-        "format_version": np.asarray(CHAIN_FORMAT_VERSION),
-        "names": np.asarray(fit.names),
-        "chain": chain.reshape(n, w, p),
-        "chain_z": chain_z,
-        "log_prob": log_prob,
-        "n_accepted": np.asarray(accepted),
-        "seed": np.asarray(seed),
-        "rng_keys": np.asarray(rng_state[1], dtype=np.uint32),
-        "rng_pos": np.asarray(rng_state[2]),
-        "rng_has_gauss": np.asarray(rng_state[3]),
-        "rng_cached_gaussian": np.asarray(rng_state[4]),
-        "free_slots": slots,
-        "ls_z": np.asarray(fit.z),
-        "tau": np.asarray(tau),
-        "fingerprint": np.asarray(fingerprint),
-        "variant": np.asarray(fit.variant.name),
-    }

@@ -16,29 +16,15 @@ from stairfit import model
 from ._errors import FitInputError
 from ._forward import Data, Static
 from ._observations import Observations, Spectral, check_compatible
-from ._params import DEFAULTS, PARAM_NAMES, Layout, Params, Priors, Variant
-
-
-def rounded_model_available() -> bool:
-    """True when `stairfit.model` provides the rounded-edge model `brdf_rounded`."""
-    return hasattr(model, "brdf_rounded")
+from ._params import DEFAULTS, PARAM_NAMES, Layout, Parameter, Params, Priors, Variant
 
 
 def max_edge_radius_um(obs: Observations) -> float:
-    """Largest edge radius (um) every used wedge can hold: `min over wedges of min(l1, l2)`.
-
-    A circular arc tangent to both facets of a 90-degree convex tip takes a length `r` from each
-    facet [conventions §2], so `r <= min(l1, l2)` with `l2 = l1 cot(beta2)`; the finest wedge
-    sets the bound shared by all. If `stairfit.model` provides `max_edge_radius(beta2,
-    layer_um)` (the rounded model's definition), that is used instead.
-    """
+    """Largest edge radius (um) every used wedge can hold: the smallest
+    `stairfit.model.max_edge_radius(beta2, layer_um)` (`min(l1, l2)`) over the used wedges;
+    the finest wedge sets the bound shared by all [conventions §2]."""
     used = obs.use
-    beta2 = obs.beta2_rad[used]
-    layer = obs.layer_um[used]
-    fn = getattr(model, "max_edge_radius", None)
-    if fn is not None:
-        return float(np.min(np.asarray(fn(beta2, layer))))
-    return float(np.min(np.minimum(layer, layer / np.tan(beta2))))
+    return float(np.min(np.asarray(model.max_edge_radius(obs.beta2_rad[used], obs.layer_um[used]))))
 
 
 class FreeSpec(NamedTuple):
@@ -50,6 +36,12 @@ class FreeSpec(NamedTuple):
     own_sigma: frozenset[int] = frozenset()
     overrides: tuple[tuple[str, float], ...] = ()
     fixed_sigma: tuple[tuple[int, float], ...] = ()
+
+    def fixing(self, param: str, value: float) -> FreeSpec:
+        """A copy with `param` fixed at `value` (on a bound, or unidentified)."""
+        return self._replace(
+            free=self.free - {param}, overrides=(*self.overrides, (param, float(value)))
+        )
 
 
 class Problem(NamedTuple):
@@ -77,7 +69,7 @@ class Problem(NamedTuple):
         rounded = "edge_radius_um" in spec.free or float(fixed.edge_radius_um) > 0.0
         model_error = "model_error_frac" in spec.free or float(fixed.model_error_frac) > 0.0
         return Static(
-            kinds=self.layout.kinds,
+            layout=self.layout,
             rounded=rounded,
             model_error=model_error,
             aperture=self.aperture,
@@ -86,34 +78,66 @@ class Problem(NamedTuple):
 
     def arrays_for(self, spec: FreeSpec) -> Data:
         """The traced arrays for a variant: free mask, fixed values, width tying."""
+        source, free = _tying(self.layout, spec)
+        arrays = {"free": free, "x_fixed": self._fixed_values(spec), "sigma_source": source}
+        return self.data._replace(**jax.device_put(arrays))
+
+    def parameters(self, spec: FreeSpec) -> tuple[Parameter, ...]:
+        """One record per slot of `z` for a variant: resolved prior, free flag, the scene's
+        `r_max` as the edge radius's upper bound, the wedge angle of each per-wedge width."""
+        _, free = _tying(self.layout, spec)
+        out = []
+        for p in self.layout.parameters():
+            upper = self.r_max_um if p.param == "edge_radius_um" else p.bounds[1]
+            deg = None if p.wedge is None else float(self.wedge_deg[p.wedge])
+            prior = getattr(self.priors, p.param)
+            out.append(
+                p._replace(bounds=(p.bounds[0], upper), prior=prior, free=bool(free[p.slot]),
+                           wedge_deg=deg)
+            )  # fmt: skip
+        return tuple(out)
+
+    def _fixed_values(self, spec: FreeSpec) -> np.ndarray:
+        """Physical value of every slot when fixed (`Problem.fixed`, then the spec's
+        overrides and pinned widths; the shared width is the widths' geometric mean)."""
         lay = self.layout
-        free = np.zeros(lay.size, dtype=bool)
-        x_fixed = np.zeros(lay.size)
+        x = np.zeros(lay.size)
         sigma_w = self.fixed.sigma_per_wedge(lay.n_wedges)
-        x_fixed[0] = float(np.exp(np.mean(np.log(sigma_w))))
-        x_fixed[1 : 1 + lay.n_wedges] = sigma_w
+        x[lay.slot("sigma_rad")] = float(np.exp(np.mean(np.log(sigma_w))))
+        for w, value in enumerate(sigma_w):
+            x[lay.slot("sigma_rad", w)] = value
         for name in PARAM_NAMES[1:]:
-            x_fixed[lay.slot(name)] = float(getattr(self.fixed, name))
+            x[lay.slot(name)] = float(getattr(self.fixed, name))
         for name, value in spec.overrides:
-            x_fixed[lay.slot(name)] = value
-        pinned = dict(spec.fixed_sigma)
-        for w, value in pinned.items():
-            x_fixed[lay.sigma_slot(w)] = value
-        own = spec.own_sigma - set(pinned)
-        source = np.array(
-            [lay.sigma_slot(w) if (w in own or w in pinned) else 0 for w in range(lay.n_wedges)]
-        )
-        if "sigma_rad" in spec.free:
-            for w in own:
-                free[lay.sigma_slot(w)] = True
-            free[0] = bool(np.any(source == 0))
-        else:  # fixed widths: each wedge keeps its own given value
-            source = np.array([lay.sigma_slot(w) for w in range(lay.n_wedges)])
-        for name in PARAM_NAMES[1:]:
-            free[lay.slot(name)] = name in spec.free
-        return self.data._replace(
-            **jax.device_put({"free": free, "x_fixed": x_fixed, "sigma_source": source}),
-        )
+            x[lay.slot(name)] = value
+        for w, value in spec.fixed_sigma:
+            x[lay.slot("sigma_rad", w)] = value
+        return x
+
+
+def _tying(lay: Layout, spec: FreeSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(slot holding each wedge's width, free mask of the slots) for a variant.
+
+    Free widths: a wedge with its own width (free, or pinned by `fixed_sigma`) reads its slot,
+    the others share slot 0 (free when any wedge uses it). Fixed widths: every wedge keeps its
+    own given value.
+    """
+    free = np.zeros(lay.size, dtype=bool)
+    own_slot = np.array([lay.slot("sigma_rad", w) for w in range(lay.n_wedges)], dtype=int)
+    if "sigma_rad" not in spec.free:
+        source = own_slot
+    else:
+        pinned = {w for w, _ in spec.fixed_sigma}
+        own = spec.own_sigma - pinned
+        source = np.where(
+            [w in own or w in pinned for w in range(lay.n_wedges)], own_slot, 0
+        ).astype(int)
+        for w in own:
+            free[lay.slot("sigma_rad", w)] = True
+        free[lay.slot("sigma_rad")] = bool(np.any(source == 0))
+    for name in PARAM_NAMES[1:]:
+        free[lay.slot(name)] = name in spec.free
+    return source, free
 
 
 def check_float64() -> None:
@@ -143,47 +167,17 @@ def prepare(
         )
     check_compatible(obs, spectral)
     lay = Layout(obs.n_wedges)
-    try:
-        fixed.sigma_per_wedge(lay.n_wedges)
-    except ValueError as exc:
-        raise FitInputError(f"fixed parameters: {exc}") from None
-    _check_fixed(fixed)
     r_max = max_edge_radius_um(obs)
-    if not 0.0 <= float(fixed.edge_radius_um) <= r_max:
-        raise FitInputError(
-            f"fixed edge_radius_um = {fixed.edge_radius_um} is outside [0, r_max = {r_max:.4g}] "
-            "um (r_max = the finest wedge's min(l1, l2)); choose a smaller radius"
-        )
-    used = obs.use
-    value_max = float(np.max(np.abs(obs.value[used])))
-    resolved = (priors or Priors()).resolved(r_max, value_max if value_max > 0 else 1.0)
-    n_base = np.asarray(spectral.n_base)
-    weights = np.asarray(spectral.weights, float)
+    _check_fixed(fixed, lay.n_wedges, r_max)
+    value_max = float(np.max(np.abs(obs.value[obs.use])))
     aperture = aperture or model.Aperture()
-    rgrid = rounded_grid(obs, n_base, weights, aperture)
-    data = Data(
-        theta_i=np.asarray(obs.theta_i_rad, float),
-        theta_o=np.asarray(obs.theta_o_rad, float),
-        beta2=np.asarray(obs.beta2_rad, float),
-        layer_um=np.asarray(obs.layer_um, float),
-        wedge=np.asarray(obs.wedge_index),
-        value=np.asarray(obs.value, float),
-        stderr=np.asarray(obs.stderr, float),
-        use=np.asarray(used.astype(float)),
-        **{k: np.asarray(v) for k, v in rgrid.items()},
-        free=np.zeros(lay.size, dtype=bool),
-        x_fixed=np.zeros(lay.size),
-        sigma_source=np.zeros(lay.n_wedges, dtype=int),
-        r_max_um=np.asarray(r_max if r_max > 0 else 1.0),
-    )
-    data = jax.device_put(data)  # one batched transfer instead of one per array
     return Problem(
         observations=obs,
         spectral=spectral,
         layout=lay,
-        data=data,
+        data=_data(obs, spectral, aperture, lay, r_max),
         fixed=fixed,
-        priors=resolved,
+        priors=(priors or Priors()).resolved(r_max, value_max if value_max > 0 else 1.0),
         r_max_um=r_max,
         aperture=aperture,
         resolution=resolution,
@@ -191,11 +185,53 @@ def prepare(
     )
 
 
-def rounded_grid(
+def as_problem(
+    observations: Observations | Problem,
+    spectral: Spectral | None,
+    *,
+    fixed: Params = DEFAULTS,
+    priors: Priors | None = None,
+    aperture: model.Aperture | None = None,
+    resolution: int | None = None,
+) -> Problem:
+    """`observations` if it is a prepared `Problem`, else `prepare` of it with the rest."""
+    if isinstance(observations, Problem):
+        return observations
+    if spectral is None:
+        raise FitInputError("give the spectral setup (spectral_setup(...)) with observations")
+    return prepare(observations, spectral, fixed=fixed, priors=priors, aperture=aperture,
+                   resolution=resolution)  # fmt: skip
+
+
+def _data(
+    obs: Observations, spectral: Spectral, aperture: model.Aperture, lay: Layout, r_max: float
+) -> Data:
+    """The traced arrays of a scene (per variant, `free`, `x_fixed`, `sigma_source` are
+    replaced by `Problem.arrays_for`), moved to the device in one batched transfer."""
+    grid = evaluation_grid(obs, np.asarray(spectral.n_base), np.asarray(spectral.weights, float),
+                           aperture)  # fmt: skip
+    data = Data(
+        theta_i=np.asarray(obs.theta_i_rad, float),
+        theta_o=np.asarray(obs.theta_o_rad, float),
+        beta2=np.asarray(obs.beta2_rad, float),
+        layer_um=np.asarray(obs.layer_um, float),
+        value=np.asarray(obs.value, float),
+        stderr=np.asarray(obs.stderr, float),
+        use=np.asarray(obs.use.astype(float)),
+        **{k: np.asarray(v) for k, v in grid.items() if k != "r_layer"},
+        free=np.zeros(lay.size, dtype=bool),
+        x_fixed=np.zeros(lay.size),
+        sigma_source=np.zeros(lay.n_wedges, dtype=int),
+        r_max_um=np.asarray(r_max if r_max > 0 else 1.0),
+    )
+    return jax.device_put(data)
+
+
+def evaluation_grid(
     obs: Observations, n_base: np.ndarray, weights: np.ndarray, aperture: model.Aperture
 ) -> dict:
-    """Where the rounded model is evaluated: its geometry depends on (theta_i, wedge) only,
-    its broadening also on `theta_o`, and only its Fresnel factors on the channel.
+    """Where the model is evaluated: its geometry depends on (theta_i, wedge) only, its
+    broadening also on `theta_o`, and only its Fresnel factors on the channel.
 
     Keys (R) are the distinct (theta_i, wedge) combinations if the full key x view grid (T
     distinct viewing angles) is at most twice as large as the number of distinct (theta_i,
@@ -236,11 +272,10 @@ def rounded_grid(
 
 
 def _geometry_keys(grid: dict, aperture: model.Aperture) -> dict:
-    """Distinct (theta_i at each aperture node, beta2, layer_um) of the rounded keys: the
-    rounded geometry depends on nothing else, so a fit computes it once per entry."""
-    di = aperture.nodes()[0]
-    ti = np.clip(np.asarray(grid["r_ti"], float)[:, None] + di, -np.pi / 2, np.pi / 2)  # (R, M)
-    shape = ti.shape
+    """Distinct (theta_i at each aperture node, beta2, layer_um) of the keys: the rounded
+    geometry depends on nothing else, so a fit computes it once per entry."""
+    ti = np.asarray(model.node_angles(np.asarray(grid["r_ti"], float), aperture.nodes()[0]))
+    shape = ti.shape  # (R, M)
     b2 = np.broadcast_to(np.asarray(grid["r_b2"], float)[:, None], shape)
     layer = np.broadcast_to(np.asarray(grid["r_layer"], float)[:, None], shape)
     combo = np.stack([ti.ravel(), b2.ravel(), layer.ravel()], axis=1)
@@ -253,8 +288,13 @@ def _geometry_keys(grid: dict, aperture: model.Aperture) -> dict:
     }
 
 
-def _check_fixed(fixed: Params) -> None:
-    """Fixed values must be physical: positive widths and scale, non-negative floor/error."""
+def _check_fixed(fixed: Params, n_wedges: int, r_max: float) -> None:
+    """Fixed values must be physical: positive widths (one or one per wedge) and scale,
+    non-negative floor and model error, an edge radius in `[0, r_max]`."""
+    try:
+        fixed.sigma_per_wedge(n_wedges)
+    except ValueError as exc:
+        raise FitInputError(f"fixed parameters: {exc}") from None
     sigma = np.asarray(fixed.sigma_rad, float)
     checks = (
         ("sigma_rad", np.all(np.isfinite(sigma)) and np.all(sigma > 0), "> 0 rad"),
@@ -274,6 +314,11 @@ def _check_fixed(fixed: Params) -> None:
                 f"fixed parameter {name} = {getattr(fixed, name)!r} must be {need}; pass a "
                 "valid value in Params"
             )
+    if not 0.0 <= float(fixed.edge_radius_um) <= r_max:
+        raise FitInputError(
+            f"fixed edge_radius_um = {fixed.edge_radius_um} is outside [0, r_max = {r_max:.4g}] "
+            "um (r_max = the finest wedge's min(l1, l2)); choose a smaller radius"
+        )
 
 
 def spec_for(variant: Variant, problem: Problem) -> FreeSpec:

@@ -10,14 +10,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 from stairfit import model
 
 from ._errors import FitError, FitInputError, emit
-from ._least_squares import DEFAULT_SIGMA_STARTS_RAD, FitResult, fit_least_squares
+from ._least_squares import LeastSquaresOptions, fit_least_squares
 from ._observations import Observations, Spectral
 from ._params import DEFAULT_LADDER, DEFAULTS, Params, Priors, Variant
-from ._problem import Problem, prepare, rounded_model_available
+from ._problem import Problem, as_problem
+from ._result import FitResult
 
 CRITERIA: tuple[str, ...] = ("bic", "laplace")
 """`bic`: `-2 log L + k ln N`. `laplace`: `-2 x` the Laplace-approximated log evidence."""
@@ -51,6 +53,12 @@ class ComparisonRow:
     notes: str
 
 
+def not_fitted_row(v: Variant, status: str) -> ComparisonRow:
+    """The table row of a variant that was not fitted (numbers NaN), with its `status`."""
+    nan = math.nan
+    return ComparisonRow(v.name, v.features, 0, nan, nan, nan, nan, None, nan, status, "")
+
+
 @dataclass(frozen=True)
 class Selection:
     """The outcome of model selection.
@@ -77,29 +85,25 @@ class Selection:
             f"model selection by {crit} (threshold {self.threshold:g}): chose {self.chosen!r}",
             f"  {'variant':<40} {'k':>3} {'chi2':>10} {crit:>12} {'delta':>9}  status / notes",
         ]
-        for row in self.table:
-            mark = "*" if row.name == self.chosen else " "
-            if row.status.startswith("skipped"):
-                lines.append(
-                    f" {mark}{row.name:<40} {'':>3} {'':>10} {'':>12} {'':>9}  {row.status}"
-                )
-                continue
-            value = (
-                row.bic
-                if self.criterion == "bic"
-                else (
-                    float("nan")
-                    if row.laplace_log_evidence is None
-                    else -2 * row.laplace_log_evidence
-                )
-            )
-            notes = f"{row.status}{'; ' + row.notes if row.notes else ''}"
-            lines.append(
-                f" {mark}{row.name:<40} {row.n_free:>3} {row.chi2:>10.4g} {value:>12.6g} "
-                f"{row.delta:>9.3g}  {notes}"
-            )
+        lines += [self._line(row) for row in self.table]
         lines.append(f"  reason: {self.reason}")
         return "\n".join(lines)
+
+    def _line(self, row: ComparisonRow) -> str:
+        mark = "*" if row.name == self.chosen else " "
+        if row.status.startswith("skipped"):
+            return f" {mark}{row.name:<40} {'':>3} {'':>10} {'':>12} {'':>9}  {row.status}"
+        if self.criterion == "bic":
+            value = row.bic
+        elif row.laplace_log_evidence is None:
+            value = float("nan")
+        else:
+            value = -2 * row.laplace_log_evidence
+        notes = f"{row.status}{'; ' + row.notes if row.notes else ''}"
+        return (
+            f" {mark}{row.name:<40} {row.n_free:>3} {row.chi2:>10.4g} {value:>12.6g} "
+            f"{row.delta:>9.3g}  {notes}"
+        )
 
 
 def _criterion(fit: FitResult, criterion: str) -> float | None:
@@ -121,59 +125,63 @@ def select_model(
     model_error: bool = False,
     fixed: Params = DEFAULTS,
     priors: Priors | None = None,
-    solver: str = "lm",
-    max_steps: int = 256,
-    sigma_starts_rad: tuple[float, ...] = DEFAULT_SIGMA_STARTS_RAD,
     aperture: model.Aperture | None = None,
     resolution: int | None = None,
+    options: LeastSquaresOptions | None = None,
+    **option_overrides: Any,
 ) -> Selection:
     """Fit every variant of `ladder` and choose the simplest the data support (module doc).
 
     `force` (a variant or a ladder name) skips the comparison and fits only that variant.
-    `model_error=True` frees `model_error_frac` in every variant. Variants that need the
-    rounded-edge model are skipped (with a note) when it is not available. Warnings of the
-    chosen fit are emitted; those of the others are only recorded in their results.
+    `model_error=True` frees `model_error_frac` in every variant. `options` (and keywords
+    naming its fields, e.g. `solver`, `max_steps`, `sigma_starts_rad`) set each least-squares
+    fit; failures are recorded in the table (`on_failure="flag"`), and warnings of the chosen
+    fit are emitted while those of the others are only recorded in their results.
     """
     if criterion not in CRITERIA:
         raise FitInputError(f"criterion = {criterion!r}; choose one of {', '.join(CRITERIA)}")
     if not threshold >= 0:
         raise FitInputError(f"threshold = {threshold!r}; give a non-negative number")
-    problem = (
-        observations
-        if isinstance(observations, Problem)
-        else _prepare(observations, spectral, fixed, priors, aperture, resolution)
-    )
-    options = {
-        "solver": solver,
-        "max_steps": max_steps,
-        "sigma_starts_rad": sigma_starts_rad,
-        "on_failure": "flag",
-        "emit_warnings": False,
-    }
+    problem = as_problem(observations, spectral, fixed=fixed, priors=priors, aperture=aperture,
+                         resolution=resolution)  # fmt: skip
+    opts = (options or LeastSquaresOptions()).updated(**option_overrides)
+    opts = opts._replace(on_failure="flag", emit_warnings=False)
     if force is not None:
-        chosen_v = _find(force, ladder)
-        if model_error:
-            chosen_v = chosen_v.with_free(model_error=True)
-        fit = fit_least_squares(problem, variant=chosen_v, **options)
-        if not fit.success:
-            raise FitError(f"the forced variant {chosen_v.name!r} did not converge: {fit.message}")
-        emit(fit.warnings)
-        row = _row(fit, chosen_v, criterion, 0.0)
-        return Selection(
-            chosen_v.name, fit, (row,), f"{chosen_v.name!r} was forced by the caller",
-            criterion, threshold, True, {chosen_v.name: fit},
-        )  # fmt: skip
+        return _forced(problem, _find(force, ladder), model_error, criterion, threshold, opts)
     if len(ladder) == 0:
         raise FitInputError("the ladder is empty; give at least one variant")
+    fits, skipped = _fit_ladder(problem, ladder, model_error, opts)
+    return _choose(ladder, fits, skipped, criterion, threshold)
+
+
+def _forced(
+    problem: Problem,
+    v: Variant,
+    model_error: bool,
+    criterion: str,
+    threshold: float,
+    opts: LeastSquaresOptions,
+) -> Selection:
+    v = v.with_free(model_error=True) if model_error else v
+    fit = fit_least_squares(problem, variant=v, options=opts)
+    if not fit.success:
+        raise FitError(f"the forced variant {v.name!r} did not converge: {fit.message}")
+    emit(fit.warnings)
+    row = _row(fit, v, 0.0)
+    return Selection(v.name, fit, (row,), f"{v.name!r} was forced by the caller", criterion,
+                     threshold, True, {v.name: fit})  # fmt: skip
+
+
+def _fit_ladder(
+    problem: Problem, ladder: tuple[Variant, ...], model_error: bool, opts: LeastSquaresOptions
+) -> tuple[dict[str, FitResult], dict[str, str]]:
+    """(converged fits by variant name, status of every variant that failed)."""
     fits: dict[str, FitResult] = {}
     skipped: dict[str, str] = {}
     for v in ladder:
         v_run = v.with_free(model_error=True) if model_error else v
-        if "edge_radius_um" in v.free and not rounded_model_available():
-            skipped[v.name] = "skipped: rounded-edge model not available"
-            continue
         try:
-            fit = fit_least_squares(problem, variant=v_run, **options)
+            fit = fit_least_squares(problem, variant=v_run, options=opts)
         except FitError as err:  # e.g. a variant whose width the data cannot constrain
             skipped[v.name] = f"failed: {err}"
             continue
@@ -181,6 +189,17 @@ def select_model(
             fits[v.name] = fit
         else:
             skipped[v.name] = f"not converged ({fit.message.split(':')[0]})"
+    return fits, skipped
+
+
+def _choose(
+    ladder: tuple[Variant, ...],
+    fits: dict[str, FitResult],
+    skipped: dict[str, str],
+    criterion: str,
+    threshold: float,
+) -> Selection:
+    """Apply the rule (module doc) to the fitted variants and build the table."""
     scored = {n: _criterion(f, criterion) for n, f in fits.items()}
     scored = {n: c for n, c in scored.items() if c is not None and math.isfinite(c)}
     if not scored:
@@ -195,32 +214,14 @@ def select_model(
     chosen = min(candidates, key=lambda n: (fits[n].n_free, round(scored[n], 6), order[n]))
     table = []
     for v in ladder:
-        if v.name in fits:
-            c = scored.get(v.name)
-            delta = float("nan") if c is None else c - best
-            table.append(_row(fits[v.name], v, criterion, delta))
-        else:
-            table.append(
-                ComparisonRow(v.name, v.features, 0, math.nan, math.nan, math.nan, math.nan,
-                              None, math.nan, skipped[v.name], "")
-            )  # fmt: skip
+        if v.name not in fits:
+            table.append(not_fitted_row(v, skipped[v.name]))
+            continue
+        c = scored.get(v.name)
+        table.append(_row(fits[v.name], v, float("nan") if c is None else c - best))
     reason = _reason(chosen, best_name, fits, scored, criterion, threshold)
     emit(fits[chosen].warnings)
     return Selection(chosen, fits[chosen], tuple(table), reason, criterion, threshold, False, fits)
-
-
-def _prepare(
-    obs: Observations,
-    spectral: Spectral | None,
-    fixed: Params,
-    priors: Priors | None,
-    aperture: model.Aperture | None,
-    resolution: int | None,
-) -> Problem:
-    if spectral is None:
-        raise FitInputError("give the spectral setup (spectral_setup(...)) with observations")
-    return prepare(obs, spectral, fixed=fixed, priors=priors, aperture=aperture,
-                   resolution=resolution)  # fmt: skip
 
 
 def _find(force: str | Variant, ladder: tuple[Variant, ...]) -> Variant:
@@ -233,7 +234,7 @@ def _find(force: str | Variant, ladder: tuple[Variant, ...]) -> Variant:
     raise FitInputError(f"force = {force!r} is not a variant of the ladder; choose one of {names}")
 
 
-def _row(fit: FitResult, v: Variant, criterion: str, delta: float) -> ComparisonRow:
+def _row(fit: FitResult, v: Variant, delta: float) -> ComparisonRow:
     notes = ", ".join(f"{w.parameter} {w.code.replace('_', ' ')}" for w in fit.warnings
                       if w.code in ("unidentified", "at_bound"))  # fmt: skip
     return ComparisonRow(

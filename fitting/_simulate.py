@@ -12,13 +12,13 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array
 
 from stairfit import model
 
 from ._errors import FitInputError
 from ._observations import Observations, Spectral
-from ._params import N_MIN, Params
-from ._problem import rounded_model_available
+from ._params import Params, clamp_index
 
 STANDARD_WEDGES_DEG: tuple[float, ...] = (10.0, 20.0, 30.0, 40.0, 45.0, 60.0)
 """The paper's six wedges (Pranovich et al. 2020, Fig. 9)."""
@@ -76,7 +76,7 @@ class Noise(NamedTuple):
     absolute: float | None = None
 
 
-def predict(
+def model_radiance(
     params: Params,
     observations: Observations,
     spectral: Spectral,
@@ -91,20 +91,10 @@ def predict(
     """
     obs = observations
     sigma = params.sigma_per_wedge(obs.n_wedges)[obs.wedge_index]
-    n = np.asarray(spectral.n_base)[obs.channel_index] + params.delta_n
-    n = (
-        np.where(np.real(n) < N_MIN, N_MIN + 1j * np.imag(n), n)
-        if np.iscomplexobj(n)
-        else (np.maximum(n, N_MIN))
-    )
+    n = clamp_index(np.asarray(spectral.n_base)[obs.channel_index] + params.delta_n)
     w = np.asarray(spectral.weights)[obs.channel_index]
     ti, to = jnp.asarray(obs.theta_i_rad), jnp.asarray(obs.theta_o_rad)
     if float(params.edge_radius_um) > 0.0:
-        if not rounded_model_available():
-            raise FitInputError(
-                "edge_radius_um > 0 needs the rounded-edge model (stairfit.model.brdf_rounded), "
-                "which this installation lacks"
-            )
         dens = _rounded_rows(params, obs, n, w, sigma, aperture, resolution)
     else:
         dens = model.band_density(ti, to, jnp.asarray(obs.beta2_rad), n, w, sigma, aperture)
@@ -114,21 +104,19 @@ def predict(
 def _rounded_rows(
     params: Params,
     obs: Observations,
-    n: np.ndarray,
+    n: Array,
     w: np.ndarray,
     sigma: np.ndarray,
     aperture: model.Aperture | None,
     resolution: int | None,
 ) -> np.ndarray:
     """Rounded-model band density per row, straight from `stairfit.model.brdf_rounded`."""
-    di, do, dw = (aperture or model.Aperture()).nodes()
-    half = np.pi / 2
-    ti = np.clip(obs.theta_i_rad[:, None] + di, -half, half)[..., None]  # (N, M, 1)
-    to_nominal = obs.theta_o_rad[:, None]
-    offsets = np.asarray(model.view_offsets(aperture or model.Aperture(), to_nominal, do))
-    to = np.clip(to_nominal + offsets, -half, half)[..., None]
+    ap = aperture or model.Aperture()
+    di, do, dw = ap.nodes()
+    ti = model.node_angles(obs.theta_i_rad, di)[..., None]  # (N, M, 1)
+    to = model.node_angles(obs.theta_o_rad, do, ap.foreshortened)[..., None]
     kwargs = {} if resolution is None else {"resolution": resolution}
-    rho = model.brdf_rounded(  # type: ignore[attr-defined]
+    rho = model.brdf_rounded(
         ti,
         to,
         obs.beta2_rad[:, None, None],
@@ -184,7 +172,7 @@ def simulate_observations(
     """
     noise = noise or Noise()
     skeleton = design_observations(design)
-    clean = predict(truth, skeleton, spectral, aperture=aperture, resolution=resolution)
+    clean = model_radiance(truth, skeleton, spectral, aperture=aperture, resolution=resolution)
     absolute = 1e-3 * float(np.max(np.abs(clean))) if noise.absolute is None else noise.absolute
     stderr = np.sqrt((noise.relative * clean) ** 2 + absolute**2)
     if not np.all(stderr > 0):

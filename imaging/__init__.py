@@ -26,6 +26,8 @@ from ._decode import RawFrame as RawFrame
 from ._decode import decode_raw as decode_raw
 from ._decode import file_sha256 as file_sha256
 from ._errors import ImagingError as ImagingError
+from ._errors import ImagingWarning as ImagingWarning
+from ._errors import PhotosFailedError as PhotosFailedError
 from ._exposure import Exposure as Exposure
 from ._exposure import resolve_exposure as resolve_exposure
 from ._extract import ChannelStats as ChannelStats
@@ -35,6 +37,9 @@ from ._hdr import BracketMember as BracketMember
 from ._hdr import Radiometry as Radiometry
 from ._hdr import prepare_radiometry as prepare_radiometry
 from ._markers import ARUCO_DICTIONARIES as ARUCO_DICTIONARIES
+from ._markers import LEGACY_DETECTOR as LEGACY_DETECTOR
+from ._markers import TONE_MAPS as TONE_MAPS
+from ._markers import DetectorSettings as DetectorSettings
 from ._markers import MarkerDetection as MarkerDetection
 from ._markers import MarkerLayout as MarkerLayout
 from ._markers import Placement as Placement
@@ -48,9 +53,18 @@ from ._pipeline import decode_view as decode_view
 from ._pipeline import measure_frame as measure_frame
 from ._pipeline import measure_photo as measure_photo
 from ._pipeline import measure_photos as measure_photos
+from ._pipeline import place_faces as place_faces
 from ._pipeline import preview_path as preview_path
+from ._placement import MIN_DETECTABLE_CELL_PX as MIN_DETECTABLE_CELL_PX
+from ._placement import PLACEMENT_MODELS as PLACEMENT_MODELS
+from ._placement import CameraPose as CameraPose
+from ._placement import PinholeCamera as PinholeCamera
+from ._placement import face_outline_3d as face_outline_3d
+from ._placement import face_polygon as face_polygon
+from ._placement import fit_camera_pose as fit_camera_pose
 from ._preview import render_preview as render_preview
 from ._preview import write_preview as write_preview
+from ._roi import MAX_ERODE_PX as MAX_ERODE_PX
 from ._roi import Polygon as Polygon
 from ._roi import RoiMask as RoiMask
 from ._roi import roi_mask as roi_mask

@@ -26,10 +26,17 @@ CHANNELS: tuple[str, str, str] = ("R", "G", "B")
 
 _CHANNEL_INDEX = {"R": 0, "G": 1, "B": 2}
 
-# exifread tag names for the exposure values, in order of preference.
-_EXIF_EXPOSURE_TIME = ("EXIF ExposureTime",)
-_EXIF_F_NUMBER = ("EXIF FNumber",)
-_EXIF_ISO = ("EXIF ISOSpeedRatings", "EXIF PhotographicSensitivity")
+# exifread tag names for the exposure values and where each lives, in order of preference: the
+# EXIF sub-IFD first, then IFD0 (where TIFF/EP and some DNG writers put them).
+_EXIF_EXPOSURE_TIME = (("EXIF ExposureTime", "exif"), ("Image ExposureTime", "ifd0"))
+_EXIF_F_NUMBER = (("EXIF FNumber", "exif"), ("Image FNumber", "ifd0"))
+_EXIF_ISO = (
+    ("EXIF ISOSpeedRatings", "exif"),
+    ("EXIF PhotographicSensitivity", "exif"),
+    ("Image ISOSpeedRatings", "ifd0"),
+)
+EXPOSURE_TAG_SOURCES: tuple[str, str] = ("exif", "ifd0")
+"""Where `decode_raw` finds exposure tags: the EXIF sub-IFD ("exif") or IFD0 ("ifd0")."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,8 +59,12 @@ class RawFrame:
         white_level: the raw value at which the sensor saturates (DN).
         camera_whitebalance: the camera's as-shot (R, G, B) multipliers as LibRaw reports them;
             metadata only, never applied to the data.
-        exif_exposure_time_s, exif_f_number, exif_iso: the EXIF exposure values, or None when
-            the tag is absent or 0 (a missing value, as in files written by Magic Lantern).
+        exif_exposure_time_s, exif_f_number, exif_iso: the exposure values from the file's
+            tags, or None when the tag is absent or 0 (a missing value, as in files written by
+            Magic Lantern). Each is read from the EXIF sub-IFD, or from IFD0 (TIFF/EP's place)
+            when the EXIF IFD has no usable value.
+        exposure_sources: where each of the three values came from, in the order (time,
+            f-number, ISO): "exif", "ifd0", or "" when absent.
         make, model: camera make and model from EXIF ("" when absent).
         notes: facts worth knowing about the file that do not stop a measurement.
     """
@@ -72,6 +83,7 @@ class RawFrame:
     make: str
     model: str
     notes: tuple[str, ...] = ()
+    exposure_sources: tuple[str, str, str] = ("", "", "")
 
     @property
     def is_linear(self) -> bool:
@@ -177,15 +189,15 @@ def decode_raw(path: str | Path, name: str | None = None) -> RawFrame:
             f"the median raw value ({median:g}) is below the black level ({float(black.min()):g}): "
             "the black level may not be in the data's units (seen in 8-bit lossy linear DNGs)"
         )
-    values = {}
+    values, sources = {}, []
     for key, names in (
         ("exposure_time_s", _EXIF_EXPOSURE_TIME),
         ("f_number", _EXIF_F_NUMBER),
         ("iso", _EXIF_ISO),
     ):
-        values[key], note = _exif_number(tags, names)
-        if note:
-            notes.append(note)
+        values[key], source, tag_notes = _exif_number(tags, names)
+        sources.append(source)
+        notes.extend(tag_notes)
     return RawFrame(
         path=path,
         name=name,
@@ -201,6 +213,7 @@ def decode_raw(path: str | Path, name: str | None = None) -> RawFrame:
         make=_exif_text(tags, "Image Make"),
         model=_exif_text(tags, "Image Model"),
         notes=tuple(notes),
+        exposure_sources=(sources[0], sources[1], sources[2]),
     )
 
 
@@ -268,9 +281,17 @@ def _read_exif(blob: bytes) -> tuple[dict, str]:
         return {}, f"exifread could not read EXIF ({type(e).__name__}: {e})"
 
 
-def _exif_number(tags: dict, names: tuple[str, ...]) -> tuple[float | None, str]:
-    """The first positive, finite value among `names`, or None and a note saying why not."""
-    for key in names:
+def _exif_number(
+    tags: dict, names: tuple[tuple[str, str], ...]
+) -> tuple[float | None, str, list[str]]:
+    """The first positive, finite value among the tags `names` ((tag, source) pairs).
+
+    Returns (value, its source, notes): a tag that is present but 0 or unreadable is noted and
+    the next place is tried (an EXIF IFD with ExposureTime 0 does not hide a good IFD0 value);
+    (None, "", notes) when no place has a usable value.
+    """
+    notes = []
+    for key, source in names:
         if key not in tags:
             continue
         values = getattr(tags[key], "values", None)
@@ -279,9 +300,11 @@ def _exif_number(tags: dict, names: tuple[str, ...]) -> tuple[float | None, str]
         except (TypeError, ValueError, ZeroDivisionError, IndexError):
             v = float("nan")
         if math.isfinite(v) and v > 0:
-            return v, ""
-        return None, f"{key} is {tags[key]} (treated as absent)"
-    return None, f"{names[0]} is absent"
+            return v, source, notes
+        notes.append(f"{key} is {tags[key]} (treated as absent)")
+    if not notes:
+        notes.append(f"{names[0][0]} is absent (and {names[-1][0]} too)")
+    return None, "", notes
 
 
 def _exif_text(tags: dict, key: str) -> str:

@@ -33,7 +33,7 @@ import numpy as np
 
 from ._decode import RawFrame
 from ._errors import ImagingError
-from ._roi import RoiMask
+from ._roi import MAX_ERODE_PX, RoiMask
 
 
 @dataclass(frozen=True)
@@ -62,8 +62,8 @@ class ExtractionSettings:
     def __post_init__(self) -> None:
         checks = [
             (
-                isinstance(self.erode_px, int) and self.erode_px >= 0,
-                "erode_px must be an integer >= 0",
+                isinstance(self.erode_px, int) and 0 <= self.erode_px <= MAX_ERODE_PX,
+                f"erode_px must be an integer in [0, {MAX_ERODE_PX}]",
             ),
             (
                 isinstance(self.block_px, int) and self.block_px >= 2,

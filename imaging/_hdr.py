@@ -34,7 +34,6 @@ from ._decode import RawFrame
 from ._errors import ImagingError
 from ._exposure import Exposure
 from ._extract import ChannelStats, ExtractionSettings
-from ._markers import MarkerDetection, MarkerLayout, detect_markers
 from ._roi import RoiMask
 
 HDR_HIGH = 0.9
@@ -70,8 +69,8 @@ class Radiometry:
             `data` float32 DN above black at the reference exposure (corrected), NaN where no
             exposure is usable, `black` zero and `white_level` infinite (clipping is already
             decided).
-        members: the decoded exposures, the reference first (markers are found in the one that
-            shows them best).
+        members: the decoded exposures, the reference first (the pipeline finds the markers
+            in the one that shows them best).
         black_per_channel: the mean R, G, B level subtracted (the master dark's, or the black).
         dark_variance: (H, W) float32, or None: the variance (DN^2, reference units) the master
             dark's own noise adds to each pixel of `frame.data`.
@@ -114,18 +113,6 @@ class Radiometry:
                 var += (s.mean_dn * float(self.flat_rel_stderr[c])) ** 2
             out.append(math.sqrt(var))
         return tuple(out)  # type: ignore[return-value]
-
-    def detect_markers(self, layout: MarkerLayout) -> MarkerDetection:
-        """The markers of the exposure that shows most of the layout's markers (ties: the
-        earlier exposure in the list)."""
-        known = {m for m, _ in layout.markers}
-        best: MarkerDetection | None = None
-        for member in self.members:
-            det = detect_markers(member, layout.dictionary)
-            if best is None or len(known & set(det.ids)) > len(known & set(best.ids)):
-                best = det
-        assert best is not None
-        return best
 
 
 def _check_members(frames: Sequence[RawFrame], photo: str) -> None:

@@ -13,7 +13,6 @@ import json
 import math
 import multiprocessing
 import os
-import warnings
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -23,20 +22,34 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from ._cache import prune_previews, read_cache, write_cache
 from ._calibration import Calibration, CalibrationSpec, build_calibration, combined_sha256
+from ._checks import low_signal_warnings, same_bytes_warnings
 from ._decode import CHANNELS, RawFrame, decode_raw, file_sha256
-from ._errors import ImagingError
+from ._errors import ImagingError, PhotosFailedError
 from ._exposure import Exposure, resolve_exposure
 from ._extract import ChannelStats, ExtractionSettings, roi_channel_stats
 from ._hdr import BracketMember, Radiometry, prepare_radiometry
 from ._io import atomic_write_bytes
-from ._markers import MarkerDetection, MarkerLayout, Placement, detect_markers, fit_placement
+from ._markers import MarkerDetection, MarkerLayout, detect_markers
+from ._placement import (
+    CameraPose,
+    PinholeCamera,
+    check_in_image,
+    face_polygon,
+    fit_camera_pose,
+    hidden_fraction,
+)
 from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import Polygon, RoiMask, as_polygon, roi_mask
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 2
-"""Part of every cache key: bump it when a change to the code changes measured values."""
+TABLE_VERSION = 5
+"""Part of every cache key: bump it when a change to the code changes measured values.
+
+3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
+4: rows flagged below_black carry NaN (were negative values).
+"""
 
 
 def _named_polygons(
@@ -67,6 +80,15 @@ class PhotoSpec:
         markers: the marker layout, needed when some name is only in `faces_mm`.
         reference: the name (in `rois` or `faces_mm`) of a reference patch: every other ROI's
             value is divided by the reference's value in the same photo and channel.
+        face_angles_deg: the wedge angle beta2 (deg) of faces in `faces_mm`, name -> angle: the
+            face rises along +x from its outline's foot and is placed in 3-D (docs/imaging.md
+            §3-D placement). A face without an angle lies on the base.
+        view_deg: the camera's direction from the base normal, a rotation about the layer lines
+            (y; positive: the uphill side), base frame; needed to place rising faces without
+            `camera`.
+        camera: pinhole intrinsics (`PinholeCamera`), or None for an affine camera.
+        occluders_mm: (name, outline on the base, beta2) of every wedge that may hide a placed
+            face from the camera (default: the placed faces themselves).
         bracket: further exposures of the same view (an HDR bracket; `path` is the first and
             the reference: values are expressed at its exposure). docs/imaging.md §HDR brackets.
         calibration: flat-field photos and dark frames to correct with (docs/imaging.md §Flat
@@ -82,6 +104,10 @@ class PhotoSpec:
     faces_mm: tuple[tuple[str, Polygon], ...] = ()
     markers: MarkerLayout | None = None
     reference: str | None = None
+    face_angles_deg: tuple[tuple[str, float], ...] = ()
+    view_deg: float | None = None
+    camera: PinholeCamera | None = None
+    occluders_mm: tuple[tuple[str, Polygon, float], ...] = ()
     bracket: tuple[BracketMember, ...] = ()
     calibration: CalibrationSpec | None = None
 
@@ -98,6 +124,7 @@ class PhotoSpec:
         object.__setattr__(
             self, "faces_mm", _named_polygons(self.faces_mm, f"photo {name!r}, face_mm")
         )
+        _check_geometry_fields(self)
         names = self.roi_names()
         if not names:
             raise ImagingError(f"photo {name!r}: no ROIs; give pixel polygons or faces in mm")
@@ -124,6 +151,35 @@ class PhotoSpec:
         px = {n for n, _ in self.rois}
         return tuple(n for n, _ in self.faces_mm if n not in px)
 
+    def occluders(self) -> tuple[tuple[str, Polygon, float], ...]:
+        """The wedges that may hide a face: `occluders_mm`, else every face with an angle."""
+        if self.occluders_mm:
+            return self.occluders_mm
+        angles = dict(self.face_angles_deg)
+        return tuple((n, p, angles[n]) for n, p in self.faces_mm if n in angles)
+
+
+def _check_geometry_fields(spec: PhotoSpec) -> None:
+    """Normalise and check `face_angles_deg`, `view_deg` and `occluders_mm` of a PhotoSpec."""
+    name = spec.name
+    angles = tuple((str(n), float(a)) for n, a in dict(spec.face_angles_deg).items())
+    faces = {n for n, _ in spec.faces_mm}
+    for n, a in angles:
+        if n not in faces:
+            raise ImagingError(f"photo {name!r}: face_angles_deg names {n!r}, not in faces_mm")
+        if not (math.isfinite(a) and 0 <= a < 90):
+            raise ImagingError(f"photo {name!r}, face {n!r}: the wedge angle {a} is not in [0, 90)")
+    view = spec.view_deg
+    if view is not None and not (math.isfinite(float(view)) and abs(float(view)) < 89.9):
+        raise ImagingError(f"photo {name!r}: view_deg = {view!r} must be in (-89.9, 89.9)")
+    occ = tuple(
+        (str(n), as_polygon(p, f"photo {name!r}, occluder {n!r}"), float(a))
+        for n, p, a in spec.occluders_mm
+    )
+    object.__setattr__(spec, "face_angles_deg", angles)
+    object.__setattr__(spec, "view_deg", None if view is None else float(view))
+    object.__setattr__(spec, "occluders_mm", occ)
+
 
 @dataclass(frozen=True, eq=False)
 class FrameMeasurement:
@@ -133,7 +189,7 @@ class FrameMeasurement:
     rois: dict[str, RoiMask]
     exposure: Exposure
     detection: MarkerDetection | None
-    placement: Placement | None
+    placement: CameraPose | None
 
 
 def cache_key(spec: PhotoSpec, settings: ExtractionSettings) -> str:
@@ -143,6 +199,14 @@ def cache_key(spec: PhotoSpec, settings: ExtractionSettings) -> str:
         "rois": spec.rois,
         "faces_mm": spec.faces_mm,
         "markers": asdict(spec.markers) if spec.markers and spec.placed_names() else None,
+        "geometry": [
+            spec.face_angles_deg,
+            spec.view_deg,
+            asdict(spec.camera) if spec.camera else None,
+            spec.occluders_mm,
+        ]
+        if spec.placed_names()
+        else None,
         "reference": spec.reference,
         "exposure": [spec.exposure_time_s, spec.f_number, spec.iso],
         "settings": asdict(settings),
@@ -191,6 +255,15 @@ def _flags(s: ChannelStats, settings: ExtractionSettings) -> list[str]:
     return flags
 
 
+def _radiance(
+    mean_dn: float, stderr_dn: float, scale: float, flags: list[str]
+) -> tuple[float, float]:
+    """(value, stderr) in relative radiance; NaN when below black (never a negative value)."""
+    if "below_black" in flags:
+        return math.nan, math.nan
+    return mean_dn * scale, stderr_dn * scale
+
+
 def measure_frame(
     frame: RawFrame,
     spec: PhotoSpec,
@@ -211,15 +284,8 @@ def measure_frame(
     photo = spec.name
     exposure = resolve_exposure(frame, spec.exposure_time_s, spec.f_number, spec.iso)
     polygons: dict[str, tuple[Polygon, str]] = {n: (p, "polygon") for n, p in spec.rois}
-    detection = placement = None
-    placed = spec.placed_names()
-    if placed:
-        assert spec.markers is not None  # checked by PhotoSpec
-        detection = _detect(frame, spec.markers, radiometry)
-        placement = fit_placement(detection, spec.markers, photo=photo, wedges=placed)
-        faces = dict(spec.faces_mm)
-        for n in placed:
-            polygons[n] = (placement.polygon(faces[n]), "markers")
+    detection, placement, placed_polygons = place_faces(frame, spec, radiometry)
+    polygons |= {n: (p, "markers") for n, p in placed_polygons.items()}
     rois = {
         n: roi_mask(
             polygons[n][0],
@@ -231,6 +297,8 @@ def measure_frame(
         )
         for n in spec.roi_names()
     }
+    if placement is not None:  # before the overlap check: a hidden face overlaps its hider
+        _check_hidden(spec, placement, rois)
     _check_overlaps(rois, photo)
     key = cache_key(spec, settings)
     stats_frame, black = _stats_source(frame, radiometry)
@@ -243,14 +311,15 @@ def measure_frame(
         by_marker = roi.source == "markers" and placement is not None
         for c, s in enumerate(stats[n]):
             se_dn = math.hypot(s.stderr_dn, common[n][c])
-            value, stderr = s.mean_dn * exposure.scale, se_dn * exposure.scale
             flags = _flags(s, settings)
+            value, stderr = _radiance(s.mean_dn, se_dn, exposure.scale, flags)
             normalised_by = ""
             if ref is not None and ref_flags is not None and n != spec.reference:
                 normalised_by = spec.reference or ""
+                flags += [f"reference-{f}" for f in ref_flags[c]]
                 r_se = math.hypot(ref[c].stderr_dn, common[normalised_by][c])
-                value, stderr, extra = _ratio(s.mean_dn, se_dn, ref[c].mean_dn, r_se)
-                flags += [f"reference-{f}" for f in ref_flags[c]] + extra
+                value, stderr, extra = _ratio(s.mean_dn, se_dn, ref[c].mean_dn, r_se, flags)
+                flags += extra
             rows.append(
                 MeasurementRow(
                     photo=photo,
@@ -269,25 +338,123 @@ def measure_frame(
                     exposure_time_s=exposure.exposure_time_s,
                     f_number=exposure.f_number,
                     iso=exposure.iso,
+                    exposure_source=exposure.source,
                     black_level=black[c],
                     white_level=frame.white_level,
                     roi_source=roi.source,
                     reprojection_error_px=placement.rms_error_px if by_marker else None,  # type: ignore[union-attr]
                     n_markers=len(placement.ids) if by_marker else None,  # type: ignore[union-attr]
                     camera=frame.camera,
+                    **_marker_columns(placement if by_marker else None, detection),
                     radiometry=radiometry.description if radiometry is not None else "",
                 )
             )
     return FrameMeasurement(tuple(rows), rois, exposure, detection, placement)
 
 
-def _detect(
-    frame: RawFrame, layout: MarkerLayout, radiometry: Radiometry | None
-) -> MarkerDetection:
-    """The markers of a photo; of a bracket, those of the exposure that shows most of them."""
-    if radiometry is not None:
-        return radiometry.detect_markers(layout)
-    return detect_markers(frame, layout.dictionary)
+def place_faces(
+    frame: RawFrame, spec: PhotoSpec, radiometry: Radiometry | None = None
+) -> tuple[MarkerDetection | None, CameraPose | None, dict[str, Polygon]]:
+    """Detect the markers and place the faces of `spec.placed_names()`: (detection, camera,
+    image polygons by name); (None, None, {}) when nothing is placed from markers.
+
+    Faces with a wedge angle are placed in 3-D (docs/imaging.md §3-D placement). With
+    `radiometry` of an HDR bracket, the markers are those of the exposure that places the
+    camera best (`_best_exposure_pose`).
+
+    Raises:
+        ImagingError: too few markers, an inconsistent camera, or a face outside the image.
+    """
+    placed = spec.placed_names()
+    if not placed:
+        return None, None, {}
+    layout = spec.markers
+    assert layout is not None  # checked by PhotoSpec
+    angles = dict(spec.face_angles_deg)
+    size = (frame.width, frame.height)
+
+    def fit(detection: MarkerDetection) -> CameraPose:
+        return fit_camera_pose(
+            detection,
+            layout,
+            photo=spec.name,
+            image_size=size,
+            rising=any(angles.get(n, 0.0) > 0 for n in placed),
+            view_deg=spec.view_deg,
+            camera=spec.camera,
+            wedges=placed,
+        )
+
+    members = radiometry.members if radiometry is not None else (frame,)
+    detection, pose = _best_exposure_pose([_detect_layout(m, layout) for m in members], fit)
+    faces = dict(spec.faces_mm)
+    polygons = {}
+    for n in placed:
+        polygons[n] = face_polygon(pose, faces[n], angles.get(n, 0.0))
+        check_in_image(polygons[n], size, photo=spec.name, wedge=n)
+    return detection, pose, polygons
+
+
+def _check_hidden(spec: PhotoSpec, pose: CameraPose, rois: dict[str, RoiMask]) -> None:
+    """ImagingError when another wedge hides part of a placed face's eroded ROI."""
+    faces, angles = dict(spec.faces_mm), dict(spec.face_angles_deg)
+    occluders = spec.occluders()
+    for n in spec.placed_names():
+        others = [o for o in occluders if o[0] != n]
+        if not others:
+            continue
+        fraction, by = hidden_fraction(pose, faces[n], angles.get(n, 0.0), others, rois[n])
+        if fraction > 0:
+            raise ImagingError(
+                f"photo {spec.name!r}, wedge {n!r}: {100 * fraction:.0f}% of the face's ROI is "
+                f"hidden behind wedge {by!r} from this view; give a roi_px polygon for {n!r} in "
+                "this photo that keeps to the visible part, or leave the photo out"
+            )
+
+
+def _marker_columns(pose: CameraPose | None, detection: MarkerDetection | None) -> dict:
+    """The marker columns of a row: ids used, their smallest cell (px) and the camera model."""
+    if pose is None or detection is None:
+        return {"marker_ids": "", "marker_cell_px": None, "placement": ""}
+    cells = dict(zip(detection.ids, detection.cell_px, strict=True))
+    return {
+        "marker_ids": " ".join(str(i) for i in pose.ids),
+        "marker_cell_px": min(cells[i] for i in pose.ids),
+        "placement": pose.model,
+    }
+
+
+def _detect_layout(frame: RawFrame, layout: MarkerLayout) -> MarkerDetection:
+    """The markers of `layout` in one exposure (its dictionary, detector settings and ids)."""
+    ids = [m for m, _ in layout.markers]
+    return detect_markers(frame, layout.dictionary, layout.detector, expected_ids=ids)
+
+
+def _best_exposure_pose(
+    detections: Sequence[MarkerDetection], fit: Callable[[MarkerDetection], CameraPose]
+) -> tuple[MarkerDetection, CameraPose]:
+    """The (detection, camera) of the exposure that shows the markers best: of the exposures
+    whose markers give a consistent camera, the one using most markers, then the smallest RMS
+    reprojection error (docs/imaging.md §HDR brackets). One photo: its own.
+
+    Raises:
+        ImagingError: no exposure gives a consistent camera: the error of the exposure with
+            most markers found (ties: the earlier file).
+    """
+    best: tuple[tuple[int, float], MarkerDetection, CameraPose] | None = None
+    errors: list[tuple[int, ImagingError]] = []
+    for det in detections:
+        try:
+            pose = fit(det)
+        except ImagingError as e:
+            errors.append((len(det.ids), e))
+            continue
+        key = (-len(pose.ids), pose.rms_error_px)
+        if best is None or key < best[0]:
+            best = (key, det, pose)
+    if best is None:
+        raise max(errors, key=lambda x: x[0])[1]
+    return best[1], best[2]
 
 
 def _stats_source(
@@ -299,9 +466,14 @@ def _stats_source(
     return radiometry.frame, radiometry.black_per_channel
 
 
-def _ratio(mean: float, se: float, ref: float, ref_se: float) -> tuple[float, float, list[str]]:
+def _ratio(
+    mean: float, se: float, ref: float, ref_se: float, flags: Sequence[str]
+) -> tuple[float, float, list[str]]:
     """(value, stderr, extra flags) of `mean / ref` (independent errors; docs/imaging.md
-    §Reference patch); NaN and "reference-nonpositive" when the reference mean is <= 0."""
+    §Reference patch); NaN and "reference-nonpositive" when the reference mean is <= 0; NaN
+    when the value itself is flagged below_black (no ratio of a value below black)."""
+    if "below_black" in flags:
+        return math.nan, math.nan, []
     if ref > 0:
         ratio = mean / ref
         return ratio, math.hypot(se / ref, ratio * ref_se / ref), []
@@ -412,8 +584,10 @@ def _measure_decoded(
     except ImagingError as e:
         if preview is None:
             raise
-        det = detect_markers(frame, spec.markers.dictionary) if spec.markers else None
-        return e, partial(_write_previews, frame, {}, det, settings, [Path(preview)])
+        det = _detect_layout(frame, spec.markers) if spec.markers else None
+        # for drawing roi_px by hand: the markers found, the given polygons, a pixel grid
+        job = partial(_write_previews, frame, {}, det, settings, [Path(preview)], dict(spec.rois))
+        return e, job
     if preview is None:
         return result.rows, None
     paths = [Path(preview)]
@@ -430,12 +604,30 @@ def _write_previews(
     detection: MarkerDetection | None,
     settings: ExtractionSettings,
     paths: Sequence[Path],
+    failed: dict[str, Polygon] | None = None,
 ) -> None:
-    """Render a photo's preview once and write it (atomically) to each of `paths`."""
+    """Render a photo's preview once and write it (atomically) to each of `paths`.
+
+    Only the first path is required; the others are cached copies, skipped when they cannot be
+    written (a read-only photo folder: the next run renders the preview again). `failed` (the
+    pixel polygons of a photo that could not be measured) draws those and a pixel grid.
+    """
     level = settings.saturation_level
-    png = preview_png(frame, rois, detection, saturation_level=level, max_size=PREVIEW_MAX_SIZE)
-    for path in paths:
-        atomic_write_bytes(path, png)
+    png = preview_png(
+        frame,
+        rois,
+        detection,
+        saturation_level=level,
+        max_size=PREVIEW_MAX_SIZE,
+        grid=failed is not None,
+        outlines=failed,
+    )
+    for k, path in enumerate(paths):
+        try:
+            atomic_write_bytes(path, png)
+        except OSError:
+            if k == 0:
+                raise
 
 
 def _measure_in_process(
@@ -495,8 +687,14 @@ def _measure_in_process(
 
 
 def preview_path(preview_dir: str | Path, spec: PhotoSpec) -> Path:
-    """Where `measure_photos` writes a photo's preview: `<preview_dir>/<name>.png`."""
-    return Path(preview_dir) / f"{spec.name}.png"
+    """Where `measure_photos` writes a photo's preview: `<preview_dir>/<name>.png`.
+
+    Always directly inside `preview_dir`: a name with folders (`raw/IMG_1.dng`) is flattened
+    to `raw__IMG_1.dng.png`, and `.`/`..` parts are dropped, so a photo's name can never place
+    its preview elsewhere.
+    """
+    parts = [p for p in spec.name.replace("\\", "/").split("/") if p not in ("", ".", "..")]
+    return Path(preview_dir) / f"{'__'.join(parts) or 'photo'}.png"
 
 
 def preview_cache_dir(cache: str | Path) -> Path:
@@ -536,23 +734,9 @@ def _cached_preview(folder: Path, rows: Sequence[MeasurementRow]) -> bytes | Non
     return png if png.startswith(_PNG_START) and png.endswith(_PNG_END) else None
 
 
-def _prune_preview_cache(folder: Path, table: MeasurementTable) -> None:
-    """Delete the cached previews of rows that are no longer in the cache file."""
-    if not folder.is_dir():
-        return
-    keep = {cached_preview_name(r.photo_sha256, r.settings_key) for r in table.rows}
-    for path in folder.glob("*.png"):
-        if path.name not in keep:
-            path.unlink(missing_ok=True)
-
-
 def _load_cache(cache: Path | None) -> dict[str, tuple[MeasurementRow, ...]]:
-    if cache is None or not cache.exists():
-        return {}
-    try:
-        table = MeasurementTable.read_csv(cache)
-    except ImagingError as e:
-        warnings.warn(f"ignoring the cache: {e}", stacklevel=3)
+    table = read_cache(cache, TABLE_VERSION)
+    if table is None:
         return {}
     return {p: table.for_photo(p) for p in table.photos()}
 
@@ -583,6 +767,7 @@ def measure_photos(
     preview_dir: str | Path | None = None,
     progress: bool = False,
     max_workers: int | None = None,
+    raise_on_failure: bool = True,
 ) -> MeasurementTable:
     """Measure a set of photos: the measurement table, one row per photo x ROI x channel.
 
@@ -602,14 +787,19 @@ def measure_photos(
         max_workers: worker processes; default min(2, CPU count, photos to decode). With 1,
             photos are measured in this process. Each worker holds one photo at a time, so
             memory stays bounded by a few photos.
+        raise_on_failure: False returns the rows of the photos that succeeded, with the
+            failures in the table's `failed` ((photo, one-line reason) pairs), instead of
+            raising (`stairfit measure` reports them).
 
     Returns:
         The table, rows in the order of `specs`.
 
     Raises:
-        ImagingError: one or more photos failed; the message, one line, lists each (photo,
-            wedge, fix), photos that failed alike together. Rows of the photos that succeeded
-            are written to the cache first.
+        PhotosFailedError: one or more photos failed (an ImagingError; `failed_photos` names them);
+            the message, one line, lists each (photo, wedge, fix), photos that failed alike
+            together. Rows of the photos that succeeded are written to the cache first, and the
+            failed photos' previews (with `preview_dir`) show the markers found, their pixel
+            ROIs and a pixel grid.
     """
     settings = settings or ExtractionSettings()
     names = [s.name for s in specs]
@@ -662,32 +852,59 @@ def measure_photos(
                     ): spec
                     for spec in todo
                 }
-                for fut in as_completed(futures):
-                    spec = futures[fut]
-                    try:
-                        done[spec.name] = fut.result()
-                    except ImagingError as e:
-                        errors[spec.name] = str(e)
-                    except BrokenProcessPool as e:
-                        raise ImagingError(
-                            f"photo {spec.name!r}: a worker process died ({e}); it may have run "
-                            "out of memory, or measure_photos was called while a script was "
-                            "being imported (put the call under `if __name__ == '__main__':`). "
-                            "Retry with max_workers=1"
-                        ) from e
-                    bar.update(1)
+                try:
+                    _collect(futures, done, errors, bar)
+                except BaseException:  # an interruption: do not start the photos still queued
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    raise
     finally:
         bar.close()
     table = MeasurementTable(tuple(r for s in specs if s.name in done for r in done[s.name]))
-    if cache_path is not None:
-        table.write_csv(cache_path)
-        _prune_preview_cache(preview_cache_dir(cache_path), table)
-    if errors:
-        raise ImagingError(
-            f"{len(errors)} of {len(specs)} photos could not be measured: "
-            + _summarise_failures([(n, errors[n]) for n in names if n in errors])
+    if cache_path is not None and write_cache(cache_path, table, TABLE_VERSION):
+        keep = {cached_preview_name(r.photo_sha256, r.settings_key) for r in table.rows}
+        prune_previews(preview_cache_dir(cache_path), keep)
+    same_bytes_warnings(table)
+    low_signal_warnings(table)
+    return _with_failures(table, [(n, errors[n]) for n in names if n in errors], raise_on_failure)
+
+
+def _with_failures(
+    table: MeasurementTable, failures: list[tuple[str, str]], raise_on_failure: bool
+) -> MeasurementTable:
+    """`measure_photos`'s result: the table, or a `PhotosFailedError` listing the failures (one
+    line), or with `raise_on_failure=False` the table with the failures in `failed`."""
+    if failures and raise_on_failure:
+        raise PhotosFailedError(
+            f"{len(failures)} of {len(table.photos()) + len(failures)} photos could not be "
+            f"measured: {_summarise_failures(failures)}",
+            tuple(n for n, _ in failures),
         )
-    return table
+    if not failures:
+        return table
+    return MeasurementTable(table.rows, tuple((n, " ".join(m.split())) for n, m in failures))
+
+
+def _collect(
+    futures: dict[Future, PhotoSpec],
+    done: dict[str, tuple[MeasurementRow, ...]],
+    errors: dict[str, str],
+    bar: tqdm,
+) -> None:
+    """Gather the worker processes' results into `done` and `errors` as they complete."""
+    for fut in as_completed(futures):
+        spec = futures[fut]
+        try:
+            done[spec.name] = fut.result()
+        except ImagingError as e:
+            errors[spec.name] = str(e)
+        except BrokenProcessPool as e:
+            raise ImagingError(
+                f"photo {spec.name!r}: a worker process died ({e}); it may have run "
+                "out of memory, or measure_photos was called while a script was "
+                "being imported (put the call under `if __name__ == '__main__':`). "
+                "Retry with max_workers=1"
+            ) from e
+        bar.update(1)
 
 
 def _build_calibrations(

@@ -17,7 +17,7 @@ about as small as the default and faster to write.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import cv2
@@ -163,6 +163,47 @@ def _saturated(frame: RawFrame, saturation_level: float) -> np.ndarray | None:
     return sat
 
 
+_GRID_STEPS = (10, 20, 25, 50, 100, 200, 250, 500, 1000, 2000, 2500, 5000, 10000)
+_GREY = (160, 160, 160)
+
+
+def grid_step(width: int, height: int, lines: int = 12) -> int:
+    """A round spacing (raw px) giving at most about `lines` grid lines on the longer side."""
+    need = max(width, height) / lines
+    return next((s for s in _GRID_STEPS if s >= need), _GRID_STEPS[-1])
+
+
+def _draw_grid(img: np.ndarray, width: int, height: int, scale: float) -> None:
+    """Grey lines every `grid_step` raw pixels, labelled in raw pixel coordinates at the edges.
+
+    For drawing `roi_px` by hand on a photo that could not be measured (docs/imaging.md §Pixels).
+    """
+    step = grid_step(width, height)
+    font = max(0.35, img.shape[1] / 2000)
+    for x in range(0, width, step):
+        u = round((x + 0.5) * scale - 0.5)
+        cv2.line(img, (u, 0), (u, img.shape[0] - 1), _GREY, 1)
+        cv2.putText(img, f"x {x}", (u + 2, 12), cv2.FONT_HERSHEY_SIMPLEX, font, _GREY, 1)
+    for y in range(0, height, step):
+        v = round((y + 0.5) * scale - 0.5)
+        cv2.line(img, (0, v), (img.shape[1] - 1, v), _GREY, 1)
+        cv2.putText(img, f"y {y}", (2, v - 3), cv2.FONT_HERSHEY_SIMPLEX, font, _GREY, 1)
+
+
+Outlines = Mapping[str, Sequence[Sequence[float]]]
+"""Named polygons in raw pixel coordinates."""
+
+
+def _draw_outlines(img: np.ndarray, outlines: Outlines, scale: float) -> None:
+    """Polygons (raw pixel coordinates) in yellow with their names, wherever they lie."""
+    for name, poly in outlines.items():
+        pts = np.round(((np.asarray(poly, dtype=np.float64) + 0.5) * scale - 0.5) * 16)
+        cv2.polylines(img, [pts.astype(np.int32)], True, _YELLOW, 1, cv2.LINE_AA, shift=4)
+        cx, cy = np.asarray(poly, dtype=np.float64).mean(axis=0)
+        org = (int((cx + 0.5) * scale), int((cy + 0.5) * scale))
+        cv2.putText(img, name, org, cv2.FONT_HERSHEY_SIMPLEX, 0.5, _YELLOW, 1, cv2.LINE_AA)
+
+
 def render_preview(
     frame: RawFrame,
     rois: Mapping[str, RoiMask] | Iterable[RoiMask] = (),
@@ -170,10 +211,14 @@ def render_preview(
     *,
     saturation_level: float = 0.98,
     max_size: int = PREVIEW_MAX_SIZE,
+    grid: bool = False,
+    outlines: Outlines | None = None,
 ) -> np.ndarray:
     """The preview as an 8-bit BGR image (see the module docstring).
 
-    A preview pixel is magenta when any raw pixel it covers is saturated.
+    A preview pixel is magenta when any raw pixel it covers is saturated. `grid` adds a pixel
+    grid labelled in raw coordinates and `outlines` polygons (raw px) that are not ROIs, e.g.
+    the given ROIs of a photo that could not be measured.
     """
     size = preview_size(frame, max_size)
     colour = _colour_planes(frame, size)
@@ -192,6 +237,10 @@ def render_preview(
     def to_preview(xy: np.ndarray) -> np.ndarray:
         return np.round(((xy + 0.5) * scale - 0.5) * 16).astype(np.int32)  # 4 fractional bits
 
+    if grid:
+        _draw_grid(img, frame.width, frame.height, scale)
+    if outlines:
+        _draw_outlines(img, outlines, scale)
     roi_list = list(rois.values()) if isinstance(rois, Mapping) else list(rois)
     for roi in roi_list:
         poly = to_preview(np.asarray(roi.polygon, dtype=np.float64))
@@ -230,9 +279,19 @@ def preview_png(
     *,
     saturation_level: float = 0.98,
     max_size: int = PREVIEW_MAX_SIZE,
+    grid: bool = False,
+    outlines: Outlines | None = None,
 ) -> bytes:
     """The preview of a photo as PNG bytes (`render_preview`, then `encode_png`)."""
-    img = render_preview(frame, rois, markers, saturation_level=saturation_level, max_size=max_size)
+    img = render_preview(
+        frame,
+        rois,
+        markers,
+        saturation_level=saturation_level,
+        max_size=max_size,
+        grid=grid,
+        outlines=outlines,
+    )
     return encode_png(img, frame.name)
 
 

@@ -21,6 +21,10 @@ Polygon = tuple[tuple[float, float], ...]
 
 _SHIFT = 8  # fixed-point bits for cv2.fillPoly: vertices are placed to 1/256 px
 
+MAX_ERODE_PX = 64
+"""The largest erosion radius: the disk erosion's time grows about as radius^2 x area (1.5 s for
+a 1500 px ROI at 64 px, 7 s at 128 px on the loaded development machine), docs/imaging.md."""
+
 
 def as_polygon(points: Iterable[Sequence[float]], what: str) -> Polygon:
     """`points` as a Polygon of floats; an ImagingError naming `what` if it is not one."""
@@ -36,6 +40,46 @@ def as_polygon(points: Iterable[Sequence[float]], what: str) -> Polygon:
             "e.g. [[10, 10], [200, 10], [200, 150]]"
         )
     return poly
+
+
+def _too_narrow(
+    box: np.ndarray, erode_px: int, inner_y: tuple[bool, bool], inner_x: tuple[bool, bool]
+) -> bool:
+    """Whether erosion by a disk of `erode_px` must leave nothing (checked before eroding).
+
+    A pixel survives only if the whole disk around it, `2 erode_px + 1` pixels across, is
+    inside the filled polygon; along an axis where the box does not reach the image border
+    (`inner_*`: away from the first and last row or column), a fill narrower than that cannot
+    hold it. At the image border the outside counts as inside, so nothing is decided there.
+    """
+    width = 2 * erode_px + 1
+    rows, cols = np.flatnonzero(box.any(axis=1)), np.flatnonzero(box.any(axis=0))
+    if rows.size == 0:
+        return True
+    tall = rows[-1] - rows[0] + 1
+    wide = cols[-1] - cols[0] + 1
+    return (all(inner_y) and tall < width) or (all(inner_x) and wide < width)
+
+
+def _erode(
+    box: np.ndarray, erode_px: int, inner_y: tuple[bool, bool], inner_x: tuple[bool, bool]
+) -> tuple[np.ndarray, bool]:
+    """The filled `box` eroded by a disk of radius `erode_px`, and whether it was too narrow.
+
+    `inner_*` say, per side, whether the box is away from the image border. Outside the box is
+    outside the polygon, except at the image border, which is not an edge of the face: erode
+    with a border of ones only there. A box known to be emptied (`_too_narrow`) is not eroded.
+    """
+    if erode_px == 0:
+        return box, False
+    if _too_narrow(box, erode_px, inner_y, inner_x):  # not worth an erosion of minutes
+        return np.zeros_like(box), True
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
+    top, bottom = (erode_px if inner else 0 for inner in inner_y)
+    left, right = (erode_px if inner else 0 for inner in inner_x)
+    padded = np.pad(box, ((top, bottom), (left, right)))
+    eroded = cv2.erode(padded, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=1)
+    return eroded[top : top + box.shape[0], left : left + box.shape[1]], False
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,27 +166,14 @@ def roi_mask(
     fixed = np.round((pts - (x0, y0)) * (1 << _SHIFT)).astype(np.int32)
     cv2.fillPoly(box, [fixed], 1, lineType=cv2.LINE_8, shift=_SHIFT)
     n_before = int(box.sum())
-    if erode_px > 0:
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
-        # Outside the box is outside the polygon, except at the image border, which is not an
-        # edge of the face: erode with a border of ones only there.
-        pad = erode_px
-        padded = np.pad(
-            box,
-            (
-                (pad if y0 > 0 else 0, pad if y1 < h_img else 0),
-                (pad if x0 > 0 else 0, pad if x1 < w_img else 0),
-            ),
-        )
-        eroded = cv2.erode(padded, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=1)
-        oy, ox = (pad if y0 > 0 else 0), (pad if x0 > 0 else 0)
-        box = eroded[oy : oy + box.shape[0], ox : ox + box.shape[1]]
+    box, narrow = _erode(box, erode_px, (y0 > 0, y1 < h_img), (x0 > 0, x1 < w_img))
     mask = box.astype(bool)
     if not mask.any():
         raise ImagingError(
             f"photo {photo!r}, wedge {wedge!r}: the ROI ({how}) is empty after eroding it by "
-            f"{erode_px} px ({n_before} px before erosion); enlarge the polygon or lower "
-            "extraction.erode_px"
+            f"{erode_px} px ({n_before} px before erosion"
+            + (f"; narrower than the {2 * erode_px + 1} px erosion disk" if narrow else "")
+            + "); enlarge the polygon or lower extraction.erode_px"
         )
     rows = np.flatnonzero(mask.any(axis=1))
     cols = np.flatnonzero(mask.any(axis=0))

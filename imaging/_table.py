@@ -29,7 +29,8 @@ class MeasurementRow:
         wedge: the ROI's name (a wedge, or the reference patch).
         channel: "R", "G" or "B".
         value: mean relative radiance (DN x N^2 / (t x ISO/100)), or, when `normalised_by` is
-            set, the ratio to that reference patch's mean (dimensionless). NaN if no pixels.
+            set, the ratio to that reference patch's mean (dimensionless). NaN if no pixels or
+            when flagged `below_black` (with `stderr`): never a negative radiance.
         stderr: standard error of `value` (block scatter; docs/imaging.md §Standard errors).
         n_pixels: unsaturated pixels averaged.
         n_blocks: non-empty blocks behind the standard error.
@@ -41,12 +42,20 @@ class MeasurementRow:
             "below_black", "no_pixels", "reference-..."). Flagged rows must not be fitted.
         normalised_by: the reference patch `value` is divided by ("" if none).
         exposure_time_s, f_number, iso: the exposure used (EXIF or override).
+        exposure_source: where it came from: "exif" (EXIF IFD), "ifd0" (IFD0), "scene"
+            (scene-file override), or per value "exposure_time_s=scene;f_number=exif;..." when
+            the three differ (`imaging.Exposure.source`).
         black_level: mean black level of the channel (DN).
         white_level: the white (saturation) level (DN).
         roi_source: "polygon" (pixel polygon given) or "markers" (placed from ArUco markers).
         reprojection_error_px: RMS marker reprojection error (px) for marker-placed ROIs.
         n_markers: markers used for the placement, for marker-placed ROIs.
         camera: camera make and model from EXIF ("" when absent).
+        marker_ids: the markers used, space-separated ids ("" unless placed from markers).
+        marker_cell_px: the smallest cell of those markers (full-resolution px, its
+            foreshortened side; docs/imaging.md §Markers).
+        placement: the camera model that placed the ROI: "homography" (a face on the base),
+            "affine" or "pinhole" (docs/imaging.md §3-D placement); "" for pixel polygons.
         radiometry: the corrections applied, e.g. "dark(8)+flat(2)+bracket(3)" ("" for none:
             the black level subtracted, no flat field, one file); docs/imaging.md.
     """
@@ -67,12 +76,16 @@ class MeasurementRow:
     exposure_time_s: float
     f_number: float
     iso: float
+    exposure_source: str
     black_level: float
     white_level: float
     roi_source: str
     reprojection_error_px: float | None
     n_markers: int | None
     camera: str
+    marker_ids: str
+    marker_cell_px: float | None
+    placement: str
     radiometry: str = ""
 
 
@@ -109,9 +122,14 @@ def _parse(name: str, text: str) -> object:
 
 @dataclass(frozen=True)
 class MeasurementTable:
-    """The measurements of a set of photos: an immutable sequence of `MeasurementRow`s."""
+    """The measurements of a set of photos: an immutable sequence of `MeasurementRow`s.
+
+    `failed` lists (photo, one-line reason) of photos that could not be measured, when
+    `measure_photos` was asked not to raise (it is not written to CSV).
+    """
 
     rows: tuple[MeasurementRow, ...] = ()
+    failed: tuple[tuple[str, str], ...] = ()
 
     def __len__(self) -> int:
         return len(self.rows)

@@ -38,6 +38,9 @@ _XYZ_TO_CAMERA = (
 )
 _SHIFT = 8
 
+EXPOSURE_TAG_PLACES: tuple[str, ...] = ("exif", "ifd0", "both", "none")
+"""Where `SyntheticPhoto.write_dng` can put the exposure tags."""
+
 
 @dataclass(frozen=True)
 class SensorModel:
@@ -127,17 +130,28 @@ class SyntheticPhoto:
         path: str | Path,
         *,
         exif: bool = True,
+        exposure_tags: str = "exif",
         make: str = "stairfit",
         model: str = "synthetic",
     ) -> Path:
-        """Write the photo as a DNG (see `write_dng`); `exif=False` leaves the exposure out."""
+        """Write the photo as a DNG (see `write_dng`); `exif=False` leaves the exposure out.
+
+        `exposure_tags` says where the exposure goes: one of `EXPOSURE_TAG_PLACES`, "exif" (the
+        EXIF sub-IFD), "ifd0" (IFD0, as TIFF/EP puts it), "both", or "none".
+        """
+        if exposure_tags not in EXPOSURE_TAG_PLACES:
+            raise ImagingError(
+                f"write_dng: exposure_tags {exposure_tags!r}; use one of {EXPOSURE_TAG_PLACES}"
+            )
+        where = exposure_tags if exif else "none"
         return write_dng(
             path,
             self.mosaic,
             cfa=self.sensor.cfa,
             black_level=self.sensor.black_level,
             white_level=self.sensor.white,
-            exposure=self.exposure if exif else None,
+            exposure=self.exposure if where in ("exif", "both") else None,
+            ifd0_exposure=self.exposure if where in ("ifd0", "both") else None,
             make=make,
             model=model,
         )
@@ -161,8 +175,12 @@ def _draw_markers(
     background: np.ndarray,
     white: np.ndarray,
     black: np.ndarray,
+    quiet_cells: float = 1.0,
 ) -> dict[int, np.ndarray]:
-    """Draw the markers (with a one-cell white quiet zone) on the background pixels, in place."""
+    """Draw the markers, each in a white quiet zone `quiet_cells` cells wide (0: none, the black
+    border lies directly on the background), on the background pixels, in place."""
+    if not (math.isfinite(quiet_cells) and quiet_cells >= 0):
+        raise ImagingError("render_photo: marker_quiet_zone_cells must be >= 0")
     h_img, w_img = field.shape
     dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, layout.dictionary))
     cells = dictionary.markerSize + 2  # data bits plus the black border, per side
@@ -175,25 +193,24 @@ def _draw_markers(
         loc_to_px = plane_to_image @ loc_to_mm
         pts = cv2.perspectiveTransform(corners_mm.reshape(-1, 1, 2), plane_to_image).reshape(4, 2)
         corners_px[mid] = pts
-        quiet = np.array(
-            [[-1, -1], [cells + 1, -1], [cells + 1, cells + 1], [-1, cells + 1]], float
-        )
+        q0, q1 = -quiet_cells, cells + quiet_cells
+        quiet = np.array([[q0, q0], [q1, q0], [q1, q1], [q0, q1]], float)
         q = cv2.perspectiveTransform(quiet.reshape(-1, 1, 2), loc_to_px).reshape(4, 2)
         x0, y0 = max(0, math.floor(q[:, 0].min())), max(0, math.floor(q[:, 1].min()))
         x1, y1 = min(w_img, math.ceil(q[:, 0].max()) + 1), min(h_img, math.ceil(q[:, 1].max()) + 1)
         if x0 >= x1 or y0 >= y1:
             continue
-        cell_px = float(np.linalg.norm(pts[1] - pts[0])) / cells
-        p = max(4, math.ceil(2 * cell_px))  # marker-image pixels per cell: 2x oversampled
+        sides = [float(np.linalg.norm(pts[1] - pts[0])), float(np.linalg.norm(pts[3] - pts[0]))]
+        p = max(4, math.ceil(2 * max(sides) / cells))  # marker-image px per cell: 2x oversampled
         img = cv2.aruco.generateImageMarker(dictionary, mid, cells * p, borderBits=1)
-        img = np.pad(img, p, constant_values=255).astype(np.float32) / 255.0
-        to_local = np.array([[1 / p, 0, 0.5 / p - 1], [0, 1 / p, 0.5 / p - 1], [0, 0, 1]])
+        pad = round(quiet_cells * p)
+        img = np.pad(img, pad, constant_values=255).astype(np.float32) / 255.0
+        off = 0.5 / p - pad / p
+        to_local = np.array([[1 / p, 0, off], [0, 1 / p, off], [0, 0, 1]])
         shift = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1]], dtype=np.float64)
         m = shift @ loc_to_px @ to_local
-        size = (x1 - x0, y1 - y0)
-        flags = cv2.INTER_LINEAR
-        whiteness = cv2.warpPerspective(img, m, size, flags=flags, borderValue=0)
-        cover = cv2.warpPerspective(np.ones_like(img), m, size, flags=flags, borderValue=0)
+        supersample = min(8, math.ceil(max(sides) / max(min(sides), 1e-9)))
+        whiteness, cover = _warped(img, m, (x1 - x0, y1 - y0), supersample)
         ys, xs = np.arange(y0, y1), np.arange(x0, x1)
         chan = pattern[(ys % 2)[:, None], (xs % 2)[None, :]]
         value = background[chan] * (1 - cover) + black[chan] * cover
@@ -202,6 +219,23 @@ def _draw_markers(
         bg = label[y0:y1, x0:x1] == 0
         box[bg] = value[bg]
     return corners_px
+
+
+def _warped(
+    img: np.ndarray, m: np.ndarray, size: tuple[int, int], k: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The marker image and its coverage warped by `m` into a box of `size` (width, height),
+    rendered k x k times finer and area-averaged: a foreshortened marker (k = the ratio of its
+    sides) is anti-aliased across its short side too, so its edges do not snap to pixels."""
+    fine = np.array([[k, 0, (k - 1) / 2], [0, k, (k - 1) / 2], [0, 0, 1]]) @ m
+    fsize = (size[0] * k, size[1] * k)
+    flags = cv2.INTER_LINEAR
+    whiteness = cv2.warpPerspective(img, fine, fsize, flags=flags, borderValue=0)
+    cover = cv2.warpPerspective(np.ones_like(img), fine, fsize, flags=flags, borderValue=0)
+    if k > 1:
+        whiteness = cv2.resize(whiteness, size, interpolation=cv2.INTER_AREA)
+        cover = cv2.resize(cover, size, interpolation=cv2.INTER_AREA)
+    return whiteness, cover
 
 
 def _vignetting(h: int, w: int, falloff: float) -> np.ndarray | None:
@@ -240,6 +274,7 @@ def render_photo(
     plane_to_image: np.ndarray | None = None,
     marker_white: Sequence[float] | None = None,
     marker_black: Sequence[float] | None = None,
+    marker_quiet_zone_cells: float = 1.0,
     texture_amplitude: float = 0.02,
     texture_sigma_px: float = 1.5,
     vignetting: float = 0.04,
@@ -262,6 +297,8 @@ def render_photo(
         plane_to_image: 3 x 3 homography from base-plane mm to pixels.
         marker_white, marker_black: (R, G, B) radiance of the markers' white and black cells
             (default: the background, and a tenth of it).
+        marker_quiet_zone_cells: the white margin around each marker's black border, in
+            cells (0: none, the border lies on the background as on a dark plate).
         texture_amplitude: relative standard deviation of the multiplicative texture.
         texture_sigma_px: correlation scale of the texture: Gaussian smoothing (px) of white
             noise; the texture's autocorrelation is a Gaussian of width sigma * sqrt(2).
@@ -300,9 +337,8 @@ def render_photo(
             raise ImagingError("render_photo: markers need plane_to_image (a 3 x 3 homography)")
         white = np.asarray(marker_white if marker_white is not None else bg, np.float32)
         black = np.asarray(marker_black if marker_black is not None else 0.1 * bg, np.float32)
-        corners_px = _draw_markers(
-            field, label, pattern, markers, np.asarray(plane_to_image, float), bg, white, black
-        )
+        corners_px = _draw_markers(field, label, pattern, markers, np.asarray(plane_to_image,
+                                   float), bg, white, black, marker_quiet_zone_cells)  # fmt: skip
     del label
     vig = _vignetting(h_img, w_img, vignetting)
     if vig is not None:
@@ -364,6 +400,7 @@ def write_dng(
     black_level: int = 1024,
     white_level: int = 16383,
     exposure: Exposure | None = None,
+    ifd0_exposure: Exposure | None = None,
     make: str = "stairfit",
     model: str = "synthetic",
 ) -> Path:
@@ -372,14 +409,16 @@ def write_dng(
     The file has PhotometricInterpretation 32803 (CFA), CFARepeatPatternDim 2 x 2, CFAPattern,
     BlackLevel, WhiteLevel, a colour matrix (linear sRGB camera, D65) and, when `exposure` is
     given, an EXIF sub-IFD with ExposureTime, FNumber and ISOSpeedRatings (rawpy reports ISO only
-    from there). Data are stored unpacked as uint16, so rawpy reads them back bit-exactly.
+    from there); `ifd0_exposure` puts the same three tags in IFD0 instead (or as well), where
+    TIFF/EP puts them. Data are stored unpacked as uint16, so rawpy reads them back bit-exactly.
 
     Args:
         path: the .dng file to write.
         mosaic: (H, W) uint16 raw values.
         cfa: the 2 x 2 CFA tile, e.g. "RGGB".
         black_level, white_level: in DN.
-        exposure: exposure tags to write; None writes no EXIF exposure.
+        exposure: exposure tags to write to the EXIF IFD; None writes no EXIF exposure.
+        ifd0_exposure: exposure tags to write to IFD0; None writes none there.
         make, model: camera make and model tags.
     """
     mosaic = np.asarray(mosaic)
@@ -407,6 +446,7 @@ def write_dng(
         (50721, "2i", 9, tuple(cm), True),  # ColorMatrix1
         (50728, "2I", 3, (1, 1, 1, 1, 1, 1), True),  # AsShotNeutral
         (50778, "H", 1, 21, True),  # CalibrationIlluminant1: D65
+        *_ifd0_exposure_tags(ifd0_exposure),
     ]
     path = Path(path)
     tmp = temporary_sibling(path)
@@ -430,6 +470,26 @@ def write_dng(
     return path
 
 
+def _ifd0_exposure_tags(exposure: Exposure | None) -> list[tuple]:
+    """tifffile extratags for ExposureTime, FNumber and ISOSpeedRatings in IFD0 (TIFF/EP)."""
+    if exposure is None:
+        return []
+    iso = _iso_short(exposure)
+    return [
+        (33434, "2I", 1, _rational(exposure.exposure_time_s, 1_000_000), True),  # ExposureTime
+        (33437, "2I", 1, _rational(exposure.f_number, 1000), True),  # FNumber
+        (34855, "H", 1, iso, True),  # ISOSpeedRatings
+    ]
+
+
+def _iso_short(exposure: Exposure) -> int:
+    """The ISO as an EXIF SHORT (an ImagingError when it does not fit)."""
+    iso = round(exposure.iso)
+    if not 1 <= iso <= 65535:
+        raise ImagingError(f"write_dng: ISO {exposure.iso} does not fit the EXIF SHORT tag")
+    return iso
+
+
 def _append_exif_ifd(path: Path, exposure: Exposure) -> None:
     """Add an EXIF sub-IFD to a little-endian classic TIFF written by tifffile.
 
@@ -450,9 +510,7 @@ def _append_exif_ifd(path: Path, exposure: Exposure) -> None:
         values_at = exif_at + 2 + 12 * n_exif + 4
         t_num, t_den = _rational(exposure.exposure_time_s, 1_000_000)
         f_num, f_den = _rational(exposure.f_number, 1000)
-        iso = round(exposure.iso)
-        if not 1 <= iso <= 65535:
-            raise ImagingError(f"write_dng: ISO {exposure.iso} does not fit the EXIF SHORT tag")
+        iso = _iso_short(exposure)
         payload = struct.pack("<IIII", t_num, t_den, f_num, f_den)
         exif_entries = [
             struct.pack("<HHII", 33434, 5, 1, values_at),  # ExposureTime, RATIONAL
@@ -471,3 +529,54 @@ def _append_exif_ifd(path: Path, exposure: Exposure) -> None:
         f.write(ifd)
         f.seek(4)
         f.write(struct.pack("<I", new_ifd0))
+
+
+def marker_test_photo(
+    cell_px: float,
+    *,
+    view_deg: float = 0.0,
+    paper_to_peak: float = 0.5,
+    quiet_zone_cells: float = 1.0,
+    dictionary: str = "DICT_4X4_50",
+    seed: int = 0,
+) -> tuple[SyntheticPhoto, MarkerLayout]:
+    """A small photo of four ArUco markers around a bright face, for detection sweeps.
+
+    An orthographic camera at `view_deg` (a rotation about the base's y axis) sees 12 mm
+    markers at the corners of a 64 x 64 mm square and a 20 x 20 mm face in its middle, all on
+    the base. The markers' cells are `cell_px` pixels along x (foreshortened by cos(view)) and
+    cell_px / cos(view) along y. The exposure puts the face at half the raw range, as a session
+    exposed for the wedges would; the markers' white paper has `paper_to_peak` of the face's
+    radiance, the ink 4% and the base plate 10% of the paper.
+
+    Returns:
+        The photo (true marker corners in `marker_corners_px`) and the marker layout.
+    """
+    cells = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)).markerSize + 2
+    side_mm, cos_v = 12.0, math.cos(math.radians(view_deg))
+    px_per_mm = cell_px * cells / side_mm / cos_v
+    corners = {
+        i: [(x, y), (x, y + side_mm), (x + side_mm, y + side_mm), (x + side_mm, y)]
+        for i, (x, y) in enumerate([(0, 0), (0, 52), (52, 0), (52, 52)])
+    }  # ArUco order as seen by the camera below (image x along +y, image y along +x)
+    layout = MarkerLayout(corners, dictionary=dictionary)
+    margin = 6 * side_mm / 12 + 4 * cell_px / px_per_mm
+    w = math.ceil((64 + 2 * margin) * px_per_mm / 2) * 2
+    h = math.ceil((64 + 2 * margin) * px_per_mm * cos_v / 2) * 2
+    hom = np.array(
+        [[0, px_per_mm, margin * px_per_mm], [px_per_mm * cos_v, 0, margin * px_per_mm * cos_v],
+         [0, 0, 1]]
+    )  # fmt: skip
+    face_mm = np.array([[22, 22], [22, 42], [42, 42], [42, 22]], float)
+    face = cv2.perspectiveTransform(face_mm.reshape(-1, 1, 2), hom).reshape(-1, 2)
+    exposure = Exposure(1 / 100, 5.6, 100)
+    sensor = SensorModel()
+    peak = 0.5 * (sensor.white - sensor.black_level) * exposure.scale
+    paper = paper_to_peak * peak
+    photo = render_photo(
+        (w, h), {"face": face.tolist()}, {"face": np.full(3, peak)}, exposure,
+        background=np.full(3, 0.1 * paper), sensor=sensor, markers=layout, plane_to_image=hom,
+        marker_white=np.full(3, paper), marker_black=np.full(3, 0.04 * paper),
+        marker_quiet_zone_cells=quiet_zone_cells, vignetting=0.0, erode_px=2, seed=seed,
+    )  # fmt: skip
+    return photo, layout

@@ -8,6 +8,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._broadening import hemisphere_gaussian
 from ._fresnel import fresnel_unpolarised
 from ._lobes import sharp_lobes
+from ._shapes import same_rank
 
 
 def brdf(
@@ -19,10 +20,9 @@ def brdf(
     width `sigma` (radians, > 0) centred on the lobe direction [conventions §3, §5]. All
     arguments broadcast; angles in radians [conventions §1]; `n` may be complex [conventions §6].
     """
+    theta_i, theta_o, beta2, n, sigma = same_rank(theta_i, theta_o, beta2, n, sigma)
     lobes = sharp_lobes(theta_i, beta2, n)
-    kernel = hemisphere_gaussian(
-        jnp.asarray(theta_o)[..., None], lobes.theta_o, jnp.asarray(sigma)[..., None]
-    )
+    kernel = hemisphere_gaussian(theta_o[..., None], lobes.theta_o, sigma[..., None])
     return jnp.sum(lobes.ratio * kernel, axis=-1)
 
 

@@ -6,6 +6,8 @@ import jax.numpy as jnp
 from jax.scipy.special import erf
 from jaxtyping import Array, ArrayLike, Float
 
+from ._shapes import same_rank
+
 HALF_PI = jnp.pi / 2
 
 
@@ -20,8 +22,8 @@ def hemisphere_gaussian(
     and must not produce 0/0. The normaliser is then at least 1/2, so no division is near zero;
     `sigma` must be > 0 (1e-6 rad is fine in float64 and float32).
     """
-    theta_o, sigma = jnp.asarray(theta_o), jnp.asarray(sigma)
-    centre = jnp.clip(jnp.asarray(centre), -HALF_PI, HALF_PI)
+    theta_o, centre, sigma = same_rank(theta_o, centre, sigma)
+    centre = jnp.clip(centre, -HALF_PI, HALF_PI)
     z = (theta_o - centre) / sigma
     density = jnp.exp(-0.5 * z * z) / (
         jnp.sqrt(2.0 * jnp.pi) * sigma * hemisphere_mass(centre, sigma)
@@ -36,7 +38,8 @@ def hemisphere_mass(centre: ArrayLike, sigma: ArrayLike) -> Float[Array, "..."]:
     The centre is clipped to the hemisphere (see `hemisphere_gaussian`), so the mass is at
     least 1/2 [conventions §5].
     """
-    centre, sigma = jnp.clip(jnp.asarray(centre), -HALF_PI, HALF_PI), jnp.asarray(sigma)
+    centre, sigma = same_rank(centre, sigma)
+    centre = jnp.clip(centre, -HALF_PI, HALF_PI)
     root2s = jnp.sqrt(2.0) * sigma
     mass = 0.5 * (erf((HALF_PI - centre) / root2s) - erf((-HALF_PI - centre) / root2s))
     return mass

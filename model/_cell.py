@@ -10,6 +10,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from ._shapes import same_rank
+
 
 class UnitCell(NamedTuple):
     """Lengths of one staircase period [conventions §2], in micrometres."""
@@ -26,8 +28,8 @@ def unit_cell(beta2: ArrayLike, layer_um: ArrayLike) -> UnitCell:
     `l` is computed as `l1 / sin(beta2)`, which equals the square root exactly and is finite
     for every `beta2` in `(0, pi/2]` [conventions §2].
     """
-    beta2 = jnp.asarray(beta2)
-    l1 = jnp.asarray(layer_um, dtype=beta2.dtype)
+    beta2, l1 = same_rank(beta2, layer_um)
+    l1 = l1.astype(beta2.dtype)
     sin_b, cos_b = jnp.sin(beta2), jnp.cos(beta2)
     return UnitCell(
         l1_um=l1, l2_um=l1 * cos_b / sin_b, l_um=l1 / sin_b, beta1_rad=jnp.pi / 2 - beta2
@@ -53,7 +55,7 @@ def facet_projections(theta_i: ArrayLike, beta2: ArrayLike) -> Projections:
     from the light gets nothing and its neighbour loses what the step in front shadows
     [conventions §1-§3]. Only `max`/`min` are involved, so gradients are finite everywhere.
     """
-    theta_i, beta2 = jnp.asarray(theta_i), jnp.asarray(beta2)
+    theta_i, beta2 = same_rank(theta_i, beta2)
     u = beta2 + theta_i
     sin_u, cos_u = jnp.sin(u), jnp.cos(u)
     sin_b, cos_b = jnp.sin(beta2), jnp.cos(beta2)

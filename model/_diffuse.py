@@ -10,8 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._broadening import HALF_PI, hemisphere_mass
+from ._broadening import HALF_PI, hemisphere_gaussian
 from ._lobes import sharp_lobes
+from ._shapes import with_rank
 
 # For lobe k the direction is theta_o = slope_k * theta_i + offset_k(beta2) [conventions §3].
 _SLOPES = (1.0, 1.0, -1.0)
@@ -83,7 +84,7 @@ def diffuse_broadened(
     hi = jnp.clip(c + WINDOW_SIGMAS * s3, -HALF_PI, HALF_PI)
     beta1 = HALF_PI - beta2
     kinks = jnp.stack([-beta2, beta1 - beta2, beta1], axis=-1)[..., None, :]  # (..., 1, 3)
-    around = c[..., None] + s3[..., None] * jnp.asarray(_SUBCUTS, dtype)  # (..., 3, 8)
+    around = c[..., None] + s3[..., None] * with_rank(jnp.asarray(_SUBCUTS, dtype), c.ndim + 1)
     cuts = jnp.concatenate([jnp.broadcast_to(kinks, (*c.shape, 3)), around], axis=-1)
     cuts = jnp.sort(jnp.clip(cuts, lo[..., None], hi[..., None]), axis=-1)
     edges = jnp.concatenate([lo[..., None], cuts, hi[..., None]], axis=-1)  # (..., 3, 13)
@@ -91,15 +92,16 @@ def diffuse_broadened(
     xi, wi = jnp.asarray(xi, dtype), jnp.asarray(wi, dtype)
     mid = 0.5 * (edges[..., 1:] + edges[..., :-1])
     half = 0.5 * (edges[..., 1:] - edges[..., :-1])
+    xi, wi = with_rank(xi, mid.ndim + 1), with_rank(wi, mid.ndim + 1)
     nodes = (mid[..., None] + half[..., None] * xi).reshape(*c.shape, -1)  # (..., 3, 12N)
     weights = (half[..., None] * wi).reshape(nodes.shape)
     lobes = sharp_lobes(nodes, beta2[..., None, None], n[..., None, None])  # (..., 3, 12N, 3)
-    pick = jnp.eye(3, dtype=dtype)[:, None, :]  # source window k uses lobe k
+    pick = with_rank(jnp.eye(3, dtype=dtype)[:, None, :], nodes.ndim + 1)  # window k: lobe k
     ratio = jnp.sum(lobes.ratio * pick, axis=-1)
     centre = jnp.sum(lobes.theta_o * pick, axis=-1)
-    s_n = sigma[..., None, None]
-    z = (nodes - c[..., None]) / s_n
-    gauss = jnp.exp(-0.5 * z * z) / (jnp.sqrt(2.0 * jnp.pi) * s_n * hemisphere_mass(centre, s_n))
+    # the lobe's truncated Gaussian at theta_o, centred on its direction from each node
+    # [conventions §5]: as a function of theta_i, a normal density around the source angle c
+    gauss = hemisphere_gaussian(theta_o[..., None, None], centre, sigma[..., None, None])
     integrand = ratio * gauss
     if cosine_weighted:
         integrand = integrand * jnp.cos(nodes)

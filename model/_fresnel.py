@@ -8,6 +8,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from ._shapes import same_rank
+
 
 class SP(NamedTuple):
     """Power reflectances for s (TE) and p (TM) polarisation, each in [0, 1]."""
@@ -25,8 +27,8 @@ def fresnel_sp(cos_gamma: ArrayLike, n: ArrayLike) -> SP:
     is no `arccos` and no `1 / sin` singularity; the square root's argument is bounded away from 0
     for `Re n > 1`, which keeps gradients finite at normal and grazing incidence.
     """
-    c = jnp.clip(jnp.asarray(cos_gamma), 0.0, 1.0)
-    n = jnp.asarray(n)
+    c, n = same_rank(cos_gamma, n)
+    c = jnp.clip(c, 0.0, 1.0)
     if jnp.iscomplexobj(n):
         n2 = n.astype(jnp.result_type(c.dtype, jnp.complex64)) ** 2
     else:  # real n: stay in real arithmetic (about 3x faster); the formulas are the same.

@@ -12,6 +12,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._cell import facet_projections
 from ._fresnel import fresnel_sp
+from ._shapes import same_rank
 
 LOBE_NAMES: tuple[str, str, str] = ("tread", "riser", "retro")
 """Lobe order used by every array with a trailing lobe axis [conventions §3]."""
@@ -47,6 +48,7 @@ def lobe_weights(theta_i: ArrayLike, beta2: ArrayLike) -> Float[Array, "... 3"]:
     All fractions are normalised by `l cos(theta_i)` (paper Sec. 2). Finite values and
     gradients everywhere, including `theta_i = +-pi/2` and the regime boundaries.
     """
+    theta_i, beta2 = same_rank(theta_i, beta2)
     proj = facet_projections(theta_i, beta2)
     both_lit = (proj.riser > 0.0) & (proj.tread > 0.0)
     total = proj.riser + proj.tread  # == cos(theta_i) > 0 whenever both facets are lit
@@ -55,7 +57,7 @@ def lobe_weights(theta_i: ArrayLike, beta2: ArrayLike) -> Float[Array, "... 3"]:
     retro = jnp.where(both_lit, 2.0 * common / total_safe, 0.0)
     # Outside regime B exactly one facet is lit: the tread in A (beta2 + theta_i < 0), the
     # riser in C. Decided from the angle, not from projections that round to 0 at grazing.
-    regime_a = (jnp.asarray(beta2) + jnp.asarray(theta_i)) < jnp.pi / 4
+    regime_a = (beta2 + theta_i) < jnp.pi / 4
     tread = jnp.where(both_lit, (proj.tread - common) / total_safe, jnp.where(regime_a, 1.0, 0.0))
     riser = jnp.where(both_lit, (proj.riser - common) / total_safe, jnp.where(regime_a, 0.0, 1.0))
     return jnp.stack([tread, riser, retro], axis=-1)
@@ -76,7 +78,8 @@ def lobe_fresnel(theta_i: ArrayLike, beta2: ArrayLike, n: ArrayLike) -> Float[Ar
     so the product is taken per polarisation before averaging. Where a facet is unlit its cosine
     is clamped to 0 (its weight is 0 there).
     """
-    u = jnp.asarray(beta2) + jnp.asarray(theta_i)
+    theta_i, beta2, n = same_rank(theta_i, beta2, n)
+    u = beta2 + theta_i
     tread = fresnel_sp(jnp.cos(u), n)
     riser = fresnel_sp(jnp.sin(u), n)
     retro = 0.5 * (tread.s * riser.s + tread.p * riser.p)

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._broadening import hemisphere_gaussian
 from ._lobes import lobe_directions, lobe_fresnel, lobe_weights
+from ._shapes import same_rank, with_rank
 
 COS_THETA_O_FLOOR = float(np.cos(np.deg2rad(89.9)))
 """`cos(theta_o)` is floored here in the radiance conversion [conventions §9]."""
@@ -29,7 +29,7 @@ class Aperture(NamedTuple):
     distance `d` has `half_width_i = atan(D / 2d)`; a wedge face seen across a length `L` at
     distance `d` spans about `half_width_o = atan(L cos(theta_o) / 2d)`. With `foreshortened`,
     `half_width_o_rad` is that spread seen face-on (`atan(L / 2d)`) and every observation uses
-    it times `cos(theta_o)` (`view_offsets`); without, the same spread at every `theta_o`.
+    it times `cos(theta_o)` (`node_angles`); without, the same spread at every `theta_o`.
     """
 
     half_width_i_rad: float = 0.0
@@ -51,14 +51,25 @@ class Aperture(NamedTuple):
         )
 
 
-def view_offsets(aperture: Aperture, theta_o: ArrayLike, offsets: ArrayLike) -> Array:
-    """The aperture's viewing-angle offsets at `theta_o` (broadcast): `offsets`, times
-    `cos(theta_o)` for a `foreshortened` aperture (a face of fixed size seen obliquely spans a
-    smaller range of angles). `theta_o` carries the trailing axes of `offsets`' broadcast."""
-    offsets = jnp.asarray(offsets)
-    if not aperture.foreshortened:
-        return offsets
-    return offsets * jnp.cos(jnp.asarray(theta_o))
+def node_angles(
+    theta: ArrayLike, offsets: ArrayLike, foreshortened: bool = False
+) -> Float[Array, "... n_nodes"]:
+    """Angles at the aperture nodes, `theta + offset` on a new last axis, clipped to the
+    hemisphere `[-pi/2, pi/2]` (a node beyond grazing sees the horizon) [conventions §1, §9].
+
+    With `foreshortened` (viewing angles of a `foreshortened` aperture), the offsets are the
+    spread seen face-on and are scaled by `cos(theta)`: a face of fixed size seen obliquely
+    spans a smaller range of angles.
+
+    The one home of that clip: the sharp and the rounded model, the fit's evaluation grid and
+    the synthetic data all place their aperture nodes with it.
+    """
+    theta = jnp.asarray(theta)
+    node = with_rank(jnp.asarray(offsets, theta.dtype), theta.ndim + 1)
+    if foreshortened:
+        node = node * jnp.cos(theta)[..., None]
+    half = jnp.pi / 2
+    return jnp.clip(theta[..., None] + node, -half, half)
 
 
 def _aperture_angles(
@@ -68,10 +79,8 @@ def _aperture_angles(
     dtype = jnp.result_type(jnp.asarray(theta_i), jnp.asarray(theta_o))
     aperture = aperture or Aperture()
     di, do, dw = (jnp.asarray(a, dtype) for a in aperture.nodes())
-    half = jnp.pi / 2
-    ti = jnp.clip(jnp.asarray(theta_i)[..., None] + di, -half, half)  # (n_obs, n_nodes)
-    to_nominal = jnp.asarray(theta_o)[..., None]
-    to = jnp.clip(to_nominal + view_offsets(aperture, to_nominal, do), -half, half)
+    ti = node_angles(jnp.asarray(theta_i, dtype), di)  # (n_obs, n_nodes)
+    to = node_angles(jnp.asarray(theta_o, dtype), do, aperture.foreshortened)
     return ti, to, dw
 
 
@@ -87,6 +96,7 @@ def band_ratio(
     Geometry does not depend on wavelength and the ratio is linear in the Fresnel factors, so
     the Fresnel factors are averaged over the band first. Shapes as in `band_density`.
     """
+    theta_i, beta2 = same_rank(theta_i, beta2)
     ti, _, _ = _aperture_angles(theta_i, theta_i, aperture)
     dtype = ti.dtype
     b2 = jnp.asarray(beta2)[..., None]
@@ -103,6 +113,7 @@ def band_kernel(
     aperture: Aperture | None = None,
 ) -> Float[Array, "n_obs n_nodes 3"]:
     """Broadening density (1/rad) of each lobe at each aperture node [conventions §5]."""
+    theta_i, theta_o, beta2, sigma = same_rank(theta_i, theta_o, beta2, sigma)
     ti, to, _ = _aperture_angles(theta_i, theta_o, aperture)
     b2 = jnp.asarray(beta2)[..., None]
     return hemisphere_gaussian(
@@ -128,61 +139,11 @@ def band_density(
     approximation) [conventions §4, §8]. `aperture` (default: a point) averages over the finite
     sizes of light and patch. Angles in radians [conventions §1].
     """
+    theta_i, theta_o, beta2, sigma = same_rank(theta_i, theta_o, beta2, sigma)
     ratio = band_ratio(theta_i, beta2, n, spectral_weight, aperture)
     kernel = band_kernel(theta_i, theta_o, beta2, sigma, aperture)
     _, _, dw = _aperture_angles(theta_i, theta_o, aperture)
     return jnp.sum(ratio * kernel, axis=-1) @ dw
-
-
-class BandDerivatives(NamedTuple):
-    """`band_density` and its derivatives for each observation [conventions §4, §5, §8].
-
-    `d_sigma` is per radian of a uniform change of `sigma`; `d_delta_n` is with respect to a
-    uniform offset added to every entry of `n` (the fitted index offset, conventions §7).
-    """
-
-    density: Float[Array, " n_obs"]
-    d_sigma: Float[Array, " n_obs"]
-    d_delta_n: Float[Array, " n_obs"]
-
-
-def band_density_derivatives(
-    theta_i: ArrayLike,
-    theta_o: ArrayLike,
-    beta2: ArrayLike,
-    n: ArrayLike,
-    spectral_weight: ArrayLike,
-    sigma: ArrayLike,
-    aperture: Aperture | None = None,
-) -> BandDerivatives:
-    """`band_density` with its derivatives in `sigma` and a uniform index offset, in one pass.
-
-    The density is `sum(ratio * kernel) @ node_weight` over lobes and aperture nodes, where
-    only `band_ratio` depends on the index and only `band_kernel` on `sigma`. Each factor is
-    differentiated by one forward-mode `jax.jvp` and the product rule combines them, so the
-    Fresnel factors, by far the largest part of the work, are evaluated once with their
-    derivative instead of once per parameter.
-    Arguments as in `band_density`; the result equals `jax.jacfwd` of `band_density` to
-    rounding (tests/test_band_derivatives.py).
-    """
-    n = jnp.asarray(n)
-    sigma = jnp.asarray(sigma)
-    ratio, d_ratio = jax.jvp(
-        lambda nn: band_ratio(theta_i, beta2, nn, spectral_weight, aperture),
-        (n,),
-        (jnp.ones_like(n),),
-    )
-    kernel, d_kernel = jax.jvp(
-        lambda s: band_kernel(theta_i, theta_o, beta2, s, aperture),
-        (sigma,),
-        (jnp.ones_like(sigma),),
-    )
-    _, _, dw = _aperture_angles(theta_i, theta_o, aperture)
-    return BandDerivatives(
-        density=jnp.sum(ratio * kernel, axis=-1) @ dw,
-        d_sigma=jnp.sum(ratio * d_kernel, axis=-1) @ dw,
-        d_delta_n=jnp.sum(d_ratio * kernel, axis=-1) @ dw,
-    )
 
 
 def radiance(
@@ -198,6 +159,7 @@ def radiance(
     intensity x camera gain x out-of-plane spread, `floor` a Lambertian body reflection. The
     `cos(theta_o)` is floored at `cos(89.9 deg)`.
     """
-    cos_i = jnp.cos(jnp.asarray(theta_i))
-    cos_o = jnp.maximum(jnp.cos(jnp.asarray(theta_o)), COS_THETA_O_FLOOR)
-    return jnp.asarray(scale) * cos_i * jnp.asarray(density) / cos_o + jnp.asarray(floor) * cos_i
+    density, theta_i, theta_o, scale, floor = same_rank(density, theta_i, theta_o, scale, floor)
+    cos_i = jnp.cos(theta_i)
+    cos_o = jnp.maximum(jnp.cos(theta_o), COS_THETA_O_FLOOR)
+    return scale * cos_i * density / cos_o + floor * cos_i

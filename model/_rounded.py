@@ -39,6 +39,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._broadening import hemisphere_gaussian, hemisphere_mass
 from ._fresnel import SP, fresnel_sp
 from ._lobes import Lobes, lobe_directions, lobe_fresnel
+from ._shapes import same_rank, with_rank
 
 HALF_PI = np.pi / 2
 
@@ -406,14 +407,14 @@ def _arc_boundaries(g: _ArcGeom, lo: Array, hi: Array) -> Array:
     boundary's smooth function. With gradient: one final Newton step, whose derivative is the
     exact implicit derivative of the boundary (docs/rounded.md §4).
     """
-    ks = jnp.arange(1, 5)
+    ks = with_rank(jnp.arange(1, 5), lo.ndim + 1)
     gs = jax.tree_util.tree_map(jax.lax.stop_gradient, g)
     gs4 = jax.tree_util.tree_map(lambda a: a[..., None], gs)
     # The ends are classified a hair inside: exactly at an end the ray may graze the arc or
     # run along a facet, which the ray cast cannot classify reliably.
     nudge = 1e-7 * (hi - lo)
-    lo_s = jax.lax.stop_gradient(lo + nudge)[..., None] + jnp.zeros(4, lo.dtype)
-    hi_s = jax.lax.stop_gradient(hi - nudge)[..., None] + jnp.zeros(4, lo.dtype)
+    lo_s = jnp.broadcast_to(jax.lax.stop_gradient(lo + nudge)[..., None], (*lo.shape, 4))
+    hi_s = jnp.broadcast_to(jax.lax.stop_gradient(hi - nudge)[..., None], (*hi.shape, 4))
     below_lo = _arc_class(gs4, lo_s) < ks
     below_hi = _arc_class(gs4, hi_s) < ks
 
@@ -583,6 +584,7 @@ def _geometry(
         [edges[..., 1:], ang.tread_tip_hi[..., None], ang.riser_tip_hi[..., None]], axis=-1
     )
     frac_e, frac_n = (jnp.asarray(a, lo.dtype) for a in _panel_fractions(resolution))
+    frac_e, frac_n = with_rank(frac_e, lo.ndim + 1), with_rank(frac_n, lo.ndim + 2)
     t_edges = lo[..., None] + (hi - lo)[..., None] * frac_e  # (..., 7, P + 1)
     t_nodes = lo[..., None, None] + (hi - lo)[..., None, None] * frac_n  # (..., 7, P, 3)
     shape = t_nodes.shape
@@ -765,17 +767,20 @@ def _kernel_moments(
     m1 = (j1 - delta * j0) / h_safe
     m2 = (j2 - 2 * delta * j1 + delta * delta * j0) / (h_safe * h_safe)
     # narrow panels: Gauss-Legendre with the kernel at the standard nodes
-    gl_x, gl_w = (jnp.asarray(a, lo.dtype) for a in (_GL_X, _GL_W))
+    gl_x, gl_w = (with_rank(jnp.asarray(a, lo.dtype), m.ndim + 1) for a in (_GL_X, _GL_W))
     xq = m[..., None] + h[..., None] * gl_x
     fq = h[..., None] * gl_w * _std_pdf((xq - th[..., None]) / sg[..., None]) / sg[..., None]
     narrow = [jnp.sum(fq, -1), jnp.sum(fq * gl_x, -1), jnp.sum(fq * gl_x * gl_x, -1)]
     plain = [jnp.where(wide, a, b) for a, b in zip([j0, m1, m2], narrow, strict=True)]
     # truncation correction near the horizons: window pieces between distances cuts[j] and
     # cuts[j+1] sigma from +pi/2 and from -pi/2, never crossing 0 (so the sides never overlap)
-    xh, wh = (jnp.asarray(a, lo.dtype) for a in np.polynomial.legendre.leggauss(_HORIZON_NODES))
-    near = jnp.asarray(np.tile(_HORIZON_CUTS[:-1], 2), lo.dtype)
-    far = jnp.asarray(np.tile(_HORIZON_CUTS[1:], 2), lo.dtype)
-    upper = np.repeat([True, False], len(_HORIZON_CUTS) - 1)
+    xh, wh = (
+        with_rank(jnp.asarray(a, lo.dtype), lo.ndim + 2)
+        for a in np.polynomial.legendre.leggauss(_HORIZON_NODES)
+    )
+    near = with_rank(jnp.asarray(np.tile(_HORIZON_CUTS[:-1], 2), lo.dtype), lo.ndim + 1)
+    far = with_rank(jnp.asarray(np.tile(_HORIZON_CUTS[1:], 2), lo.dtype), lo.ndim + 1)
+    upper = with_rank(np.repeat([True, False], len(_HORIZON_CUTS) - 1), lo.ndim + 1)
     s6 = sg[..., None]
     piece_lo = jnp.where(upper, jnp.maximum(HALF_PI - far * s6, 0.0), -HALF_PI + near * s6)
     piece_hi = jnp.where(upper, HALF_PI - near * s6, jnp.minimum(-HALF_PI + far * s6, 0.0))
@@ -852,6 +857,12 @@ def rounded_geometry(
     return _geometry(ti, b, l1, r, resolution)
 
 
+def _with_lead_rank(geo: RoundedGeometry, ndim: int) -> RoundedGeometry:
+    """`geo` with unit axes prepended to every leaf so that its leading axes number `ndim`."""
+    extra = ndim - (geo.delta_weight.ndim - 1)
+    return jax.tree_util.tree_map(lambda a: a.reshape((1,) * extra + a.shape), geo)
+
+
 def brdf_rounded_from_geometry(
     geo: RoundedGeometry,
     theta_i: ArrayLike,
@@ -865,11 +876,13 @@ def brdf_rounded_from_geometry(
     `geo`'s leading axes must broadcast with `theta_i` and `beta2` (the angles it was computed
     at, radians) and those with `theta_o`, `n` and `sigma`, as in `brdf_rounded`.
     """
-    ti = jnp.asarray(theta_i, geo.panel_lo.dtype)
-    b = jnp.asarray(beta2, ti.dtype)
-    n = jnp.asarray(n)
-    theta_o = jnp.asarray(theta_o, ti.dtype)
-    sigma = jnp.asarray(sigma, ti.dtype)
+    dtype = geo.panel_lo.dtype
+    lead = geo.delta_weight.ndim - 1  # the leading (broadcast) axes of the geometry
+    ti, b, theta_o, sigma, n = same_rank(
+        jnp.asarray(theta_i, dtype), jnp.asarray(beta2, dtype), jnp.asarray(theta_o, dtype),
+        jnp.asarray(sigma, dtype), n, jnp.zeros((1,) * lead, dtype),
+    )[:5]  # fmt: skip
+    geo = _with_lead_rank(geo, ti.ndim)
     # delta lobes, exactly as the sharp model broadens them
     kernel = hemisphere_gaussian(theta_o[..., None], lobe_directions(ti, b), sigma[..., None])
     ratio = geo.delta_weight * lobe_fresnel(ti, b, n)
@@ -907,13 +920,15 @@ def rounded_binned(
     e = jnp.asarray(bin_edges, s.panel_lo.dtype)
     # delta lobes
     d = s.lobes.theta_o[..., None]  # (..., 3, 1)
-    inside = (d >= e[:-1]) & (d < e[1:])
+    e_d = with_rank(e, d.ndim)
+    inside = (d >= e_d[..., :-1]) & (d < e_d[..., 1:])
     inside = inside.at[..., -1].set(inside[..., -1] | (d[..., 0] == e[-1]))
     delta = jnp.sum(s.lobes.ratio[..., None] * inside, axis=-2)
     # panels: exact integral of the interpolant over each bin
     m, h, coef, _ = _lagrange(s.panel_lo, s.panel_hi, s.node_theta_o)
     h_safe = jnp.where(h > 0, h, 1.0)
-    xe = jnp.clip((e - m[..., None]) / h_safe[..., None], -1.0, 1.0)  # (..., 7, P, n_e)
+    xe = (with_rank(e, m.ndim + 1) - m[..., None]) / h_safe[..., None]
+    xe = jnp.clip(xe, -1.0, 1.0)  # (..., 7, P, n_e)
     powers = jnp.stack([xe, xe**2 / 2, xe**3 / 3], axis=-1)  # (..., 7, P, n_e, 3)
     anti = jnp.einsum("...ik,...ek->...ei", coef, powers)  # (..., 7, P, n_e, 3 basis)
     per_bin = (anti[..., 1:, :] - anti[..., :-1, :]) * h[..., None, None]

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 
@@ -90,6 +91,54 @@ class Tabulated(NamedTuple):
 Dispersion = ConstantIndex | Cauchy | Sellmeier | Tabulated
 
 
+class PerChannel(NamedTuple):
+    """One index per camera channel, in channel order (R, G, B), each constant across its
+    channel's band [conventions §7, §8]: for indices measured or fitted channel by channel.
+
+    Not a dispersion model (it has no wavelength dependence of its own): the fit reads it per
+    channel (`index_per_channel`), and pictures over wavelength use `along_wavelength`.
+    `k` is empty (no absorption) or one extinction coefficient per channel.
+    """
+
+    n: tuple[float, ...]
+    k: tuple[float, ...] = ()
+
+    def values(self) -> Array:
+        """(n_channels,) the complex index `n + i k` per channel (real when `k` is empty or 0)."""
+        n = jnp.asarray(self.n, dtype=float)
+        if not any(self.k):
+            return n
+        return n + 1j * jnp.asarray(self.k, dtype=float)
+
+    def along_wavelength(self, effective_nm: ArrayLike) -> Tabulated:
+        """A wavelength model through each channel's value at its effective wavelength (linear
+        between them, held beyond): for figures over the spectrum only."""
+        eff = np.asarray(effective_nm, float)
+        if eff.shape != (len(self.n),):
+            raise ValueError(f"need one effective wavelength per channel ({len(self.n)})")
+        order = np.argsort(eff)
+        n = np.asarray(self.n, float)[order]
+        k = tuple(np.asarray(self.k, float)[order].tolist()) if any(self.k) else None
+        return Tabulated(tuple(eff[order].tolist()), tuple(n.tolist()), k)
+
+
+def index_per_channel(
+    index: Dispersion | PerChannel, wavelength_nm: ArrayLike
+) -> Float[Array, "channels K"]:
+    """The index each channel sees at its wavelength samples `wavelength_nm` (n_channels, K)
+    [conventions §7]: a dispersion model evaluated there, or a `PerChannel` value per row
+    (ValueError when its length is not the number of channels)."""
+    wl = jnp.asarray(wavelength_nm)
+    if not isinstance(index, PerChannel):
+        return index(wl)
+    if len(index.n) != wl.shape[0] or (index.k and len(index.k) != len(index.n)):
+        raise ValueError(
+            f"a per-channel index needs one value per camera channel ({wl.shape[0]}, in R, G, "
+            f"B order); got n = {list(index.n)}" + (f", k = {list(index.k)}" if index.k else "")
+        )
+    return jnp.broadcast_to(index.values()[:, None], wl.shape)
+
+
 def _complex_if_absorbing(n: Array, k: float, like: Array) -> Array:
     """Return `n` real when `k == 0` (faster Fresnel), else `n + i k`."""
     if k == 0.0:
@@ -102,6 +151,57 @@ def refractive_index(
 ) -> Float[Array, "..."]:
     """`n(lambda) + delta_n` [conventions §7]: the learnable offset shifts the real part only."""
     return dispersion(wavelength_nm) + jnp.asarray(delta_n)
+
+
+# --- checks ---------------------------------------------------------------------------------
+
+
+def index_problem(
+    dispersion: Dispersion,
+    wavelength_nm: ArrayLike,
+    delta_n: float = 0.0,
+    values: ArrayLike | None = None,
+) -> str | None:
+    """Why `dispersion + delta_n` is not a physical index at `wavelength_nm`, or None.
+
+    Physical means [conventions §6, §7]: finite, `Re n > 1`, `k >= 0` at every wavelength;
+    tabulated wavelengths strictly increasing (linear interpolation needs them sorted); no
+    Sellmeier resonance `C_i` (where n^2 diverges) inside the span of the wavelengths.
+    `values`, when given, are `dispersion(wavelength_nm)` already evaluated (e.g. by a compiled
+    call), so that the check adds no evaluation of its own.
+    """
+    wl = np.atleast_1d(np.asarray(wavelength_nm, dtype=float))
+    if isinstance(dispersion, Tabulated):
+        table = np.asarray(dispersion.wavelength_nm, dtype=float)
+        if not (np.all(np.isfinite(table)) and np.all(np.diff(table) > 0)):
+            return "the tabulated wavelengths must increase strictly; sort the table"
+    if isinstance(dispersion, Sellmeier):
+        for b_i, c_i in zip(dispersion.b, dispersion.c_um, strict=True):
+            pole = abs(c_i) * 1e3
+            if b_i != 0 and wl.min() <= pole <= wl.max():
+                return (
+                    f"has a Sellmeier pole (C = {c_i:g} um) at {pole:g} nm, inside the "
+                    f"wavelengths used ({wl.min():g}-{wl.max():g} nm), where n is infinite or NaN"
+                )
+    n = np.asarray(dispersion(wl) if values is None else values).reshape(wl.shape) + delta_n
+    bad = ~np.isfinite(n) | ~(np.real(n) > 1.0) | (np.imag(n) < 0)
+    if np.any(bad):
+        k = int(np.argmax(bad))
+        return (
+            f"gives n({wl[k]:g} nm) = {complex(n[k]):.4g}; need a finite index with Re n > 1 "
+            f"and k >= 0 at every wavelength used ({wl.min():g}-{wl.max():g} nm)"
+        )
+    return None
+
+
+def extrapolated(dispersion: Dispersion, wavelength_nm: ArrayLike) -> np.ndarray:
+    """Which of `wavelength_nm` lie outside the model's validity range `valid_nm` (bool array).
+
+    Outside it a formula is extrapolated and a table is held at its end values.
+    """
+    wl = np.asarray(wavelength_nm, dtype=float)
+    lo, hi = dispersion.valid_nm
+    return (wl < lo) | (wl > hi)
 
 
 # --- datasets -------------------------------------------------------------------------------

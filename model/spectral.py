@@ -1,23 +1,27 @@
 """Spectral sampling, camera channels and colour [conventions §8].
 
-The CIE data, illuminants and camera sensitivities come from colour-science (shipped with the
-pip package; nothing is downloaded). They are turned into plain weight matrices here, once, so
-that everything downstream is a differentiable JAX contraction over wavelength.
+The CIE data, illuminants and camera sensitivities are colour-science's, shipped with stairfit
+as package data (`model/_spectral_data.py`: importing colour-science costs 0.7-1.9 s; nothing is
+downloaded). They are turned into plain weight matrices here, so that everything downstream is a
+differentiable JAX contraction over wavelength.
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
-import colour
 import numpy as np
 from numpy.typing import NDArray
+
+from . import _spectral_data
 
 VISIBLE_NM = np.arange(380.0, 781.0, 5.0)
 """The default spectral grid: 380-780 nm every 5 nm (81 samples) [conventions §8]."""
 
-CAMERAS: tuple[str, ...] = (*colour.MSDS_CAMERA_SENSITIVITIES.keys(), "ideal")
-"""Camera sensitivity sets: colour-science's measured ones plus an ideal Gaussian RGB camera."""
+CAMERAS: tuple[str, ...] = ("Nikon 5100 (NPL)", "Sigma SDMerill (NPL)", "ideal")
+"""Camera sensitivity sets: colour-science's measured ones (`_spectral_data`, the names of its
+`MSDS_CAMERA_SENSITIVITIES`; tests/test_spectral_data.py keeps the two lists equal) plus an
+ideal Gaussian RGB camera."""
 
 IDEAL_RGB_CENTRES_NM = (600.0, 540.0, 460.0)
 IDEAL_RGB_FWHM_NM = 60.0
@@ -25,14 +29,15 @@ IDEAL_RGB_FWHM_NM = 60.0
 
 
 def illuminant_spd(name: str, wavelength_nm: NDArray = VISIBLE_NM) -> NDArray:
-    """Relative spectral power of a CIE illuminant (any of colour.SDS_ILLUMINANTS) on a grid."""
+    """Relative spectral power of a CIE illuminant (any of colour-science's SDS_ILLUMINANTS,
+    compared as `_spectral_data.canonical` names) on a grid."""
     try:
-        sd = colour.SDS_ILLUMINANTS[name]
+        sd = _spectral_data.lookup(_spectral_data.tables().illuminants, name)
     except KeyError:
         raise ValueError(
             f"unknown illuminant {name!r}; try one of: D65, A, D50, E, FL2, LED-B1"
         ) from None
-    return _resample(sd.wavelengths, sd.values, wavelength_nm)
+    return _resample(sd.wavelength_nm, sd.values, wavelength_nm)
 
 
 def camera_sensitivities(name: str, wavelength_nm: NDArray = VISIBLE_NM) -> NDArray:
@@ -42,11 +47,11 @@ def camera_sensitivities(name: str, wavelength_nm: NDArray = VISIBLE_NM) -> NDAr
         centres = np.asarray(IDEAL_RGB_CENTRES_NM)[:, None]
         return np.exp(-0.5 * ((wavelength_nm[None, :] - centres) / sigma) ** 2)
     try:
-        msds = colour.MSDS_CAMERA_SENSITIVITIES[name]
+        msds = _spectral_data.lookup(_spectral_data.tables().cameras, name)
     except KeyError:
         raise ValueError(f"unknown camera {name!r}; known cameras: {', '.join(CAMERAS)}") from None
     return np.stack(
-        [_resample(msds.wavelengths, msds.values[:, c], wavelength_nm) for c in range(3)]
+        [_resample(msds.wavelength_nm, msds.values[:, c], wavelength_nm) for c in range(3)]
     )
 
 
@@ -81,9 +86,9 @@ def channel_weights(
 def xyz_weights(illuminant: str, wavelength_nm: NDArray = VISIBLE_NM) -> NDArray:
     """(3, n_lambda) weights such that `weights @ rho(lambda)` is CIE 1931 XYZ of the reflected
     light with a perfect white reflector at Y = 1 [conventions §8]."""
-    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
+    cmfs = _spectral_data.tables().cmfs[_spectral_data.CMFS_NAME]
     xyz_bar = np.stack(
-        [_resample(cmfs.wavelengths, cmfs.values[:, c], wavelength_nm) for c in range(3)]
+        [_resample(cmfs.wavelength_nm, cmfs.values[:, c], wavelength_nm) for c in range(3)]
     )
     raw = xyz_bar * illuminant_spd(illuminant, wavelength_nm)
     return raw / raw[1].sum()
@@ -93,10 +98,20 @@ def xyz_to_srgb(xyz: NDArray, exposure: float = 1.0) -> NDArray:
     """Display sRGB (gamma-encoded, clipped to [0, 1]) of XYZ scaled by `exposure`.
 
     Only for pictures (the edge of the program): not differentiable, no chromatic adaptation,
-    so light under illuminant A looks warm, as in the paper's Fig. 7.
+    so light under illuminant A looks warm, as in the paper's Fig. 7. The IEC 61966-2-1 matrix
+    and encoding; equal to colour-science's `XYZ_to_sRGB` (tests/test_spectral_data.py).
     """
-    rgb = colour.XYZ_to_sRGB(np.asarray(xyz) * exposure, apply_cctf_encoding=True)
-    return np.clip(rgb, 0.0, 1.0)
+    matrix = _spectral_data.tables().srgb_matrix_xyz_to_rgb
+    linear = np.clip((np.asarray(xyz, float) * exposure) @ matrix.T, 0.0, 1.0)
+    return srgb_encode(linear)
+
+
+def srgb_encode(linear: NDArray) -> NDArray:
+    """The sRGB transfer function (IEC 61966-2-1) of linear values in [0, 1]."""
+    lin = np.asarray(linear, float)
+    low = lin <= 0.0031308
+    safe = np.where(low, 1.0, lin)  # no power of a negative or zero on the untaken branch
+    return np.where(low, 12.92 * lin, 1.055 * safe ** (1 / 2.4) - 0.055)
 
 
 def _resample(x: NDArray, y: NDArray, at: NDArray) -> NDArray:

@@ -1,4 +1,5 @@
-"""Test configuration: float64 for every test [conventions §10], shared-data locations."""
+"""Test configuration: float64 and no implicit rank promotion for every test [conventions §10],
+shared-data locations."""
 
 from __future__ import annotations
 
@@ -9,6 +10,9 @@ import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+# As in optimistix's tests: an implicit rank promotion (broadcasting arrays of different ranks)
+# raises, so that no accidental broadcast of mismatched axes goes unnoticed.
+jax.config.update("jax_numpy_rank_promotion", "raise")
 # CLI tests call stairfit.cli.main() in-process; it would point the whole test session at the
 # user's persistent JAX cache (app/_jaxcache.py). Tests run without it unless asked to.
 os.environ.setdefault("STAIRFIT_JAX_CACHE", "off")

@@ -82,11 +82,14 @@ def rewrite_photos(folder: Path, *, exif: bool = True, overexpose: float = 1.0) 
     from stairfit import imaging
     from stairfit.imaging import synthetic
 
-    for path in sorted(folder.glob("*.dng")):
+    for k, path in enumerate(sorted(folder.glob("*.dng"))):
         frame = imaging.decode_raw(path)
         black = float(frame.black.flat[0])
         above = (frame.data.astype(np.float64) - black) * overexpose
         mosaic = np.clip(above + black, 0, frame.white_level).astype(np.uint16)
+        # fully overexposed photos are all white: a distinct top-left pixel (background, in no
+        # ROI) keeps their files distinct (two files with the same bytes add a warning line)
+        mosaic[0, 0] = black + k
         exposure = imaging.Exposure(frame.exif_exposure_time_s, frame.exif_f_number, frame.exif_iso)
         synthetic.write_dng(
             path,
@@ -114,9 +117,12 @@ def _wedge_out_of_range(scene: dict) -> None:
     scene["specimen"]["wedges"][0]["angle_deg"] = 95.0
 
 
-def _roi_out_of_image(scene: dict) -> None:
-    # the simulated photos are 816 x 612 px: x = 9000 is far outside
-    scene["photos"][0]["roi_px"]["w10"][0] = [9000.0, 300.0]
+def _roi_out_of_image(scene: dict, photo: int = 0) -> None:
+    # the simulated photos are 816 x 612 px: x = 9000 is far outside. The polygon is moved as a
+    # whole (moving one corner would make it cross itself, an error of its own).
+    roi = scene["photos"][photo]["roi_px"]["w10"]
+    x0, y0 = roi[0]
+    scene["photos"][photo]["roi_px"]["w10"] = [[x - x0 + 9000.0, y - y0 + 300.0] for x, y in roi]
 
 
 def _unknown_section(scene: dict) -> None:
@@ -345,7 +351,8 @@ def test_staged_output_folder_gets_the_users_umask(simulated: Path) -> None:
         (["--delta-n", "1"], ("--delta-n", "outside [-0.3, 0.5]")),
         (["--floor", "-1"], ("--floor", ">= 0")),
         (["--floor", "nan"], ("--floor", "finite")),
-        (["--megapixels", "0.01"], ("--megapixels", "outside [0.05, 60]")),
+        (["--megapixels", "0.01"], ("--megapixels", "outside [0.3, 60]")),
+        (["--megapixels", "0.1"], ("--megapixels", "outside [0.3, 60]", "erosion")),
         (["--views", "2"], ("--views", "outside [3, 200]")),
         (["--edge-radius-um", "-1"], ("--edge-radius-um", ">= 0")),
         (["--seed", "-1"], ("--seed", ">= 0")),

@@ -40,9 +40,12 @@ EXPECTED_OPTIONS = {
         "--views",
         "--seed",
         "--workers",
+        "--exposure-tags",
+        "--markers",
         "--force",
         "--quiet",
     ],
+    "measure": ["--output", "--workers", "--no-cache", "--force", "--quiet"],
     "fit": [
         "--output",
         "--preset",
@@ -67,8 +70,30 @@ EXPECTED_OPTIONS = {
         "--force",
         "--quiet",
     ],
+    "study": [
+        "--output",
+        "--scheduler",
+        "--scheduler-file",
+        "--local-workers",
+        "--jax-cache",
+        "--preset",
+        "--no-posterior",
+        "--model",
+        "--no-model-error",
+        "--seed",
+        "--no-cache",
+        "--force",
+        "--quiet",
+    ],
 }
-POSITIONAL = {"predict": None, "simulate": "out", "fit": "DIR", "demo": "out"}
+POSITIONAL = {
+    "predict": None,
+    "simulate": "out",
+    "fit": "DIR",
+    "measure": "DIR",
+    "demo": "out",
+    "study": "ROOT_OR_FOLDER",
+}
 
 
 @pytest.fixture(autouse=True)

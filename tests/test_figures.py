@@ -6,13 +6,19 @@ layout, PNG and label helpers with values worked out by hand.
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from types import SimpleNamespace
+
 import jax
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 from PIL import Image
 
-from stairfit import figures, model
+from stairfit import figures, fitting, model
 from stairfit.model import materials, spectral
 from stairfit.report import value_with_errors
 
@@ -144,3 +150,118 @@ def test_save_writes_an_opaque_rgb_png_and_closes_the_figure(tmp_path):
 )
 def test_value_with_errors_rounds_to_the_smaller_error(args, text):
     assert value_with_errors(*args) == text
+
+
+_FROM_SUPERSCRIPT = str.maketrans("⁰¹²³⁴⁵⁶⁷⁸⁹⁻", "0123456789-")
+
+
+def _label_value(text: str) -> float:
+    """Read a PlainLogFormatter label back: `10⁵` -> 1e5, `1.2×10⁵` -> 1.2e5."""
+    coeff, _, power = text.rpartition("×")
+    assert power.startswith("10"), text
+    return float(coeff or 1.0) * 10.0 ** int(power[2:].translate(_FROM_SUPERSCRIPT))
+
+
+def _visible_labels(ax) -> list[tuple[float, str]]:
+    """(location, label) of every labelled y tick inside the view, major and minor."""
+    lo, hi = ax.get_ylim()
+    ticks = ax.yaxis.get_major_ticks() + ax.yaxis.get_minor_ticks()
+    return [
+        (t.get_loc(), t.label1.get_text())
+        for t in ticks
+        if lo <= t.get_loc() <= hi and t.label1.get_visible() and t.label1.get_text()
+    ]
+
+
+def _check_labels(pairs) -> None:
+    texts = [text for _, text in pairs]
+    assert len(pairs) >= 2, pairs  # a panel shows at least two values
+    assert len(set(texts)) == len(texts), texts  # no two ticks share a label
+    for loc, text in pairs:  # and each label says where its tick is (4 significant digits)
+        assert _label_value(text) == pytest.approx(loc, rel=5e-4), (loc, text)
+
+
+@pytest.mark.parametrize(
+    "ylim", [(1.1e5, 1.9e5), (1.02e5, 1.08e5), (2.5e-3, 7.5e-3), (9e4, 2.2e5), (3e3, 8e3)]
+)
+def test_log_y_labels_under_a_decade_read_back_as_their_ticks(ylim):
+    fig = Figure()
+    ax = fig.subplots()
+    ax.plot([0, 1], ylim)
+    figures.log_y(ax)
+    ax.set_ylim(*ylim)
+    FigureCanvasAgg(fig).draw()
+    _check_labels(_visible_labels(ax))
+
+
+def test_fit_per_wedge_labels_a_narrow_45_deg_panel_by_its_values():
+    # a fake fit outcome, just what fit_per_wedge reads: the 45 deg wedge's radiance spans
+    # 1.2-1.8 x 10^5 (issue 12: every tick of that panel read "10⁵")
+    from stairfit.report import fit_per_wedge
+
+    theta = np.linspace(-60.0, 60.0, 13)
+    values = {0: 1e3 * np.exp(-((theta / 30) ** 2)) + 50.0, 1: 1.5e5 + 3e4 * np.sin(theta * DEG)}
+    rows = [(w, c, k) for w in (0, 1) for c in range(3) for k in range(theta.size)]
+    value = np.array([values[w][k] * (1 + 0.01 * c) for w, c, k in rows])
+    obs = SimpleNamespace(
+        wedge_index=np.array([w for w, _, _ in rows]),
+        channel_index=np.array([c for _, c, _ in rows]),
+        value=value,
+        use=np.ones(len(rows), bool),
+    )
+    fit = SimpleNamespace(model=value, uncertainty=0.01 * value)
+    wedges = (
+        SimpleNamespace(name="w10", angle_deg=10.0),
+        SimpleNamespace(name="w45", angle_deg=45.0),
+    )
+    outcome = SimpleNamespace(
+        selection=SimpleNamespace(fit=fit, chosen="sharp"),
+        observations=obs,
+        scene=SimpleNamespace(specimen=SimpleNamespace(wedges=wedges)),
+        row_info=[{"theta_o_deg": theta[k]} for _, _, k in rows],
+    )
+    fig = fit_per_wedge(outcome)
+    FigureCanvasAgg(fig).draw()
+    narrow = fig.axes[1]
+    assert narrow.get_title() == "w45 (45 deg)"
+    lo, hi = narrow.get_ylim()
+    assert hi / lo < 10  # the panel spans less than a decade
+    _check_labels(_visible_labels(narrow))
+
+
+def test_figures_leave_pyplot_and_the_backend_alone(tmp_path):
+    # a notebook's backend must survive importing and drawing stairfit's figures (issue 14)
+    code = f"""
+import matplotlib
+matplotlib.use("svg")
+import sys
+from pathlib import Path
+from stairfit import figures, report
+fig = figures.brdf_map([30], n=1.46, sigma_deg=5.0, step_deg=10.0)
+figures.save(fig, Path({str(tmp_path)!r}) / "map.png", dpi=20)
+print(matplotlib.get_backend(), "matplotlib.pyplot" in sys.modules)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["svg", "False"], out.stdout + out.stderr
+    assert (tmp_path / "map.png").stat().st_size > 0
+
+
+def test_corner_figure_is_not_registered_with_pyplot():
+    from stairfit.report import corner_figure, corner_size_in
+
+    rng = np.random.default_rng(0)
+    params = tuple(
+        fitting.Parameter(name, None, slot, "", fitting.PARAMETERS[0].transform, (0.0, 1.0))
+        for slot, name in enumerate(("sigma_rad", "scale"))
+    )
+    post = SimpleNamespace(
+        names=("sigma_rad", "scale"),
+        parameters=params,
+        samples=rng.normal(size=(400, 2)) * [0.01, 1.0],
+    )
+    before = plt.get_fignums()
+    fig = corner_figure(SimpleNamespace(posterior=post))
+    assert plt.get_fignums() == before
+    assert len(fig.axes) == 4
+    assert tuple(fig.get_size_inches()) == pytest.approx((corner_size_in(2),) * 2)
+    assert fig.axes[2].get_xlabel() == "sigma_deg"  # radians shown in degrees

@@ -18,13 +18,13 @@ import warnings
 
 import numpy as np
 import pytest
+import zoo
 
 from stairfit import fitting
 
 DEG = np.pi / 180
-LADDER = {v.name: v for v in fitting.DEFAULT_LADDER}
-SHARP, SHARP_DN = LADDER["sharp"], LADDER["sharp+delta_n"]
-SPEC = fitting.spectral_setup("pla", sampling="effective", channels=(1,))
+SHARP, SHARP_DN = zoo.LADDER["sharp"], zoo.LADDER["sharp+delta_n"]
+SPEC = zoo.grey()
 TRUTH = fitting.Params(sigma_rad=5 * DEG, delta_n=0.0, scale=1.0)
 VIEWS = np.linspace(-81.0, 81.0, 19)
 LIGHTS = np.where(np.arange(19) % 2 == 0, 20.0, 50.0)  # two lights, alternating photos
@@ -41,7 +41,7 @@ def design(wedges, theta_i_deg, theta_o_deg=VIEWS):
 
 
 def simulate(d, truth=TRUTH, noise=None, seed=3):
-    return fitting.simulate_observations(truth, d, SPEC, noise or fitting.Noise(0.02), seed=seed)
+    return zoo.scene(truth, d, SPEC, noise or fitting.Noise(0.02), seed=seed).obs
 
 
 def fit_or_error(obs, variant, **kwargs):
@@ -63,7 +63,7 @@ def assert_honest(fit, truth=TRUTH, names=None):
             continue
         assert np.isfinite(e.value), e
         assert e.stderr is not None and np.isfinite(e.stderr) and e.stderr > 0, e
-        z = (e.value - getattr(truth, e.name)) / e.stderr
+        z = (e.value - getattr(truth, e.param)) / e.stderr
         assert abs(z) < Z_MAX, (e, z, fit.report())
 
 

@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import zoo
 from scipy import integrate
 
 from stairfit import fitting, model
@@ -20,15 +21,10 @@ DEG = np.pi / 180
 
 
 def _scene(material: object = "pla-bodurov2016", sampling: str = "full") -> tuple:
-    spec = fitting.spectral_setup(material, sampling=sampling)
-    design = fitting.Design(
-        wedge_deg=(10.0, 30.0, 60.0),
-        theta_i_deg=(20.0, 20.0, -35.0, 50.0),
-        theta_o_deg=(-70.0, 5.0, 40.0, 89.0),
-    )
+    spec = zoo.full(material) if sampling == "full" else zoo.effective(material)
     truth = fitting.Params(sigma_rad=np.array([0.05, 0.1, 0.2]), delta_n=0.03, scale=1.7,
                            floor=0.004)  # fmt: skip
-    obs = fitting.simulate_observations(truth, design, spec, fitting.Noise(0.02), seed=0)
+    obs = zoo.scene(truth, zoo.mixed_design(), spec, seed=0).obs
     return spec, obs, truth
 
 
@@ -99,9 +95,7 @@ def test_fitting_forward_grid_shares_geometry_between_channels():
     d = _problem.prepare(obs, spec).data
     assert obs.n_rows == 36
     assert d.r_ti.shape[0] * d.r_to.shape[1] == 12
-    std = fitting.simulate_observations(
-        fitting.Params(), fitting.standard_design(), spec, fitting.Noise(0.02), seed=0
-    )
+    std = zoo.standard(fitting.Params(), seed=0, spec=spec).obs
     assert std.n_rows == 342
     d = _problem.prepare(std, spec).data
     assert d.r_ti.shape[0] * d.r_to.shape[1] == 114
@@ -158,16 +152,14 @@ def test_prior_includes_transform_jacobian():
     np.testing.assert_allclose(vals, -np.log(np.log(1.5 / 1e-3)), rtol=1e-12)
 
 
-@pytest.mark.skipif(not fitting.rounded_model_available(), reason="rounded model not merged yet")
 @pytest.mark.slow  # the rounded model's Jacobian takes about half a minute to compile (XLA)
 def test_fitting_rounded_forward_matches_model_and_finite_differences():
     # The fitting layer evaluates the rounded model on a (theta_i, wedge, channel) x view grid
     # with a three-direction custom JVP; compare with `predict` (row by row, straight from
     # stairfit.model.brdf_rounded) and with central differences.
-    spec = fitting.spectral_setup("pla", sampling="effective")
     design = fitting.Design((20.0, 45.0), (20.0,) * 5, tuple(np.linspace(-60, 60, 5)))
     truth = fitting.Params(sigma_rad=6 * DEG, delta_n=0.02, scale=1.3, edge_radius_um=20.0)
-    obs = fitting.simulate_observations(truth, design, spec, fitting.Noise(0.02), seed=0)
+    obs, spec, _ = zoo.scene(truth, design, zoo.effective(), seed=0)
     prob = _problem.prepare(obs, spec)
     fs = _problem.spec_for(fitting.variant("r", "delta_n", "edge_radius_um"), prob)
     static, data = prob.static_for(fs), prob.arrays_for(fs)
@@ -179,7 +171,9 @@ def test_fitting_rounded_forward_matches_model_and_finite_differences():
     z[lay.slot("scale")] = np.log(truth.scale)
     z[lay.slot("edge_radius_um")] = np.arcsin(2 * truth.edge_radius_um / prob.r_max_um - 1)
     f = jax.jit(lambda zz: _forward.model_values(zz, static, data)[0])
-    np.testing.assert_allclose(f(jnp.asarray(z)), fitting.predict(truth, obs, spec), rtol=1e-10)
+    np.testing.assert_allclose(
+        f(jnp.asarray(z)), fitting.model_radiance(truth, obs, spec), rtol=1e-10
+    )
     jac = np.asarray(jax.jit(jax.jacfwd(f))(jnp.asarray(z)))
     for k in (0, lay.slot("delta_n"), lay.slot("edge_radius_um")):
         h = 1e-5

@@ -7,29 +7,20 @@ import warnings
 
 import numpy as np
 import pytest
+import zoo
 
 from stairfit import fitting
 
 DEG = np.pi / 180
-NEEDS_ROUNDED = pytest.mark.skipif(
-    not fitting.rounded_model_available(), reason="rounded model not merged yet"
-)
 DN = fitting.variant("sharp+delta_n", "delta_n")
-
-
-def _one_grey_channel() -> fitting.Spectral:
-    return fitting.spectral_setup("pla", sampling="effective", channels=(1,))
 
 
 def test_delta_n_from_one_grey_channel_single_facet_is_unidentified():
     # One channel, a constant index, and a geometry in which every observation sees the same
     # facet at the same local angle (theta_i = -50 deg on a 30-deg wedge: regime A, only the
     # tread is lit [conventions §3]): delta_n and the scale are exactly degenerate.
-    spec = _one_grey_channel()
-    design = fitting.Design((30.0,), (-50.0,) * 15, tuple(np.linspace(-80, 80, 15)),
-                            channels=(0,))  # fmt: skip
     truth = fitting.Params(sigma_rad=6 * DEG, delta_n=0.05, scale=2.0)
-    obs = fitting.simulate_observations(truth, design, spec, fitting.Noise(0.02), seed=3)
+    obs, spec, _ = zoo.scene(truth, zoo.one_wedge_design(30.0, -50.0), zoo.grey(), seed=3)
     with pytest.warns(fitting.UnidentifiedParameterWarning, match="delta_n is not constrained"):
         fit = fitting.fit_least_squares(obs, spec, DN)
     assert fit.unidentified == ("delta_n",)
@@ -43,11 +34,8 @@ def test_delta_n_weakly_constrained_is_fixed_by_the_standard_error_rule():
     # A 45-deg wedge at normal incidence: all local angles are 45 deg; only the ratio of the
     # retro (two reflections) to the direct lobes depends on n, weakly. Without the rule, the
     # fit wanders to an absurd index with no usable covariance.
-    spec = _one_grey_channel()
-    design = fitting.Design((45.0,), (0.0,) * 15, tuple(np.linspace(-80, 80, 15)),
-                            channels=(0,))  # fmt: skip
     truth = fitting.Params(sigma_rad=6 * DEG, scale=2.0)
-    obs = fitting.simulate_observations(truth, design, spec, fitting.Noise(0.02), seed=3)
+    obs, spec, _ = zoo.scene(truth, zoo.one_wedge_design(45.0, 0.0), zoo.grey(), seed=3)
     raw = fitting.fit_least_squares(obs, spec, DN, identifiability=False)
     if raw.covariance is not None:
         assert raw.estimate("delta_n").stderr > 0.5 * 0.1  # larger than half the prior's sd
@@ -62,10 +50,8 @@ def test_delta_n_weakly_constrained_is_fixed_by_the_standard_error_rule():
 def test_no_identifiability_warning_on_the_standard_scene(material, channels):
     # The standard scene sees many local angles: delta_n is constrained even from one grey
     # channel with a constant index, and certainly from three channels.
-    spec = fitting.spectral_setup(material, sampling="effective", channels=channels)
-    design = fitting.standard_design(channels=tuple(range(spec.n_channels)))
     truth = fitting.Params(sigma_rad=6 * DEG, delta_n=0.03, scale=1.0, floor=0.002)
-    obs = fitting.simulate_observations(truth, design, spec, fitting.Noise(0.02), seed=5)
+    obs, spec, _ = zoo.standard(truth, seed=5, spec=zoo.effective(material, channels))
     variants = [DN, fitting.variant("dnf", "delta_n", "floor"),
                 fitting.variant("dnw", "delta_n", "floor", per_wedge_sigma=True)]  # fmt: skip
     for v in variants:
@@ -78,18 +64,15 @@ def test_no_identifiability_warning_on_the_standard_scene(material, channels):
 def test_per_wedge_width_without_information_is_fixed():
     # Wedge 0 is only seen in its far tails (|theta_o| >= 72 deg, > 5 sigma from its lobes):
     # its own width is unconstrained; every other wedge keeps its own free width.
-    spec = fitting.spectral_setup("pla", sampling="effective")
-    truth = fitting.Params(sigma_rad=6 * DEG, scale=2.0)
-    obs = fitting.simulate_observations(
-        truth, fitting.standard_design(), spec, fitting.Noise(0.02), seed=3
-    )
+    obs, spec, _ = zoo.standard(fitting.Params(sigma_rad=6 * DEG, scale=2.0), seed=3)
     far = (obs.wedge_index == 0) & (np.abs(np.rad2deg(obs.theta_o_rad)) < 70)
     obs = fitting.Observations.from_arrays(**{**obs._asdict(), "use": ~far})
     with pytest.warns(fitting.UnidentifiedParameterWarning, match=r"sigma_rad\[0: 10 deg\]"):
         fit = fitting.fit_least_squares(obs, spec, fitting.variant("w", per_wedge_sigma=True))
     assert len(fit.unidentified) == 1
-    assert [n.split(":")[0] for n in fit.names] == [f"sigma_rad[{w}" for w in range(1, 6)] + [
-        "scale"
+    assert [(e.param, e.wedge) for e in fit.estimates] == [
+        *(("sigma_rad", w) for w in range(1, 6)),
+        ("scale", None),
     ]
     others = fit.params.sigma_rad[1:]
     assert fit.params.sigma_rad[0] == pytest.approx(np.exp(np.mean(np.log(others))), rel=1e-9)
@@ -98,18 +81,11 @@ def test_per_wedge_width_without_information_is_fixed():
 def test_selection_does_not_warn_about_variants_it_rejects():
     # In the degenerate scene the delta_n variants lose delta_n; the chosen variant is 'sharp'
     # and no identifiability warning is emitted for the rejected ones.
-    spec = _one_grey_channel()
-    design = fitting.Design((30.0,), (-50.0,) * 15, tuple(np.linspace(-80, 80, 15)),
-                            channels=(0,))  # fmt: skip
-    obs = fitting.simulate_observations(fitting.Params(sigma_rad=6 * DEG, scale=2.0), design,
-                                        spec, fitting.Noise(0.02), seed=4)  # fmt: skip
+    truth = fitting.Params(sigma_rad=6 * DEG, scale=2.0)
+    obs, spec, _ = zoo.scene(truth, zoo.one_wedge_design(30.0, -50.0), zoo.grey(), seed=4)
     # shared-sigma sharp variants: the rounded rungs cost tens of seconds each to compile and
     # the point here (delta_n collapsing in the rejected variants) does not involve them
-    ladder = tuple(
-        v
-        for v in fitting.DEFAULT_LADDER
-        if not v.per_wedge_sigma and "edge_radius_um" not in v.free
-    )
+    ladder = tuple(v for v in zoo.SHARP_LADDER if not v.per_wedge_sigma)
     with warnings.catch_warnings():
         warnings.simplefilter("error", fitting.UnidentifiedParameterWarning)
         sel = fitting.select_model(obs, spec, ladder)
@@ -120,14 +96,12 @@ def test_selection_does_not_warn_about_variants_it_rejects():
 
 def _rounded_scene(wedge_deg: float) -> tuple[fitting.Observations, fitting.Spectral]:
     """One wedge, 7 views, one grey channel, 5% noise, a realistic 10 um edge radius."""
-    spec = _one_grey_channel()
-    views = tuple(np.linspace(-30, 30, 7))
-    design = fitting.Design((wedge_deg,), (20.0,) * 7, views, channels=(0,))
+    design = zoo.one_wedge_design(wedge_deg, 20.0, np.linspace(-30, 30, 7))
     truth = fitting.Params(sigma_rad=6 * DEG, scale=1.0, edge_radius_um=10.0)
-    return fitting.simulate_observations(truth, design, spec, fitting.Noise(0.05), seed=2), spec
+    obs, spec, _ = zoo.scene(truth, design, zoo.grey(), noise=0.05, seed=2)
+    return obs, spec
 
 
-@NEEDS_ROUNDED
 @pytest.mark.slow  # the rounded model's Jacobian takes about a minute to compile (XLA)
 def test_edge_radius_with_only_coarse_cells_is_not_reported():
     # A 5-deg wedge: cells of 1.7 mm for 150 um layers. A 10 um edge changes the reflectance
@@ -140,7 +114,6 @@ def test_edge_radius_with_only_coarse_cells_is_not_reported():
     assert fit.params.edge_radius_um == 0.0
 
 
-@NEEDS_ROUNDED
 @pytest.mark.slow  # the rounded model's Jacobian takes about a minute to compile (XLA)
 def test_edge_radius_on_fine_cells_is_identified():
     # The same scene with a 30-deg wedge (cells of 300 um): the radius is measured, no warning.

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import zoo
 
 from stairfit import fitting
 from stairfit.fitting import FitError, FitInputError
@@ -82,12 +83,7 @@ def test_all_rows_flagged_or_saturated():
 
 
 def test_saturated_rows_are_excluded_and_reported(tmp_path):
-    spec = fitting.spectral_setup("pla", sampling="effective", channels=(1,))
-    design = fitting.Design((20.0, 45.0), (20.0,) * 9, tuple(np.linspace(-80, 80, 9)),
-                            channels=(0,))  # fmt: skip
-    obs = fitting.simulate_observations(
-        fitting.Params(sigma_rad=8 * DEG), design, spec, fitting.Noise(0.02), seed=2
-    )
+    obs, spec, _ = zoo.small(fitting.Params(sigma_rad=8 * DEG), seed=2)
     sat = obs.value > 0.8 * obs.value.max()
     obs = fitting.Observations.from_arrays(**{**obs._asdict(), "saturated": sat})
     assert not np.any(obs.use[sat])
@@ -142,14 +138,14 @@ def test_inconsistent_wedge_geometry():
 
 def test_channel_missing_from_spectral_setup():
     obs = fitting.Observations.from_arrays(**{**_arrays(), "channel_index": np.full(6, 2)})
-    spec = fitting.spectral_setup("pla", sampling="effective", channels=(1,))
+    spec = zoo.grey()
     with pytest.raises(FitInputError, match="channel_index = 2 but the spectral setup has 1"):
         fitting.fit_least_squares(obs, spec)
 
 
 def test_unknown_solver_variant_and_options():
     obs = fitting.Observations.from_arrays(**_arrays())
-    spec = fitting.spectral_setup("pla", sampling="effective", channels=(1,))
+    spec = zoo.grey()
     with pytest.raises(FitInputError, match="solver"):
         fitting.fit_least_squares(obs, spec, solver="bfgs")
     with pytest.raises(FitInputError, match="unknown parameter"):
@@ -164,11 +160,8 @@ def test_unknown_solver_variant_and_options():
 
 @pytest.fixture(scope="module")
 def small_scene():
-    spec = fitting.spectral_setup("pla", sampling="effective", channels=(1,))
-    design = fitting.Design((20.0, 45.0), (20.0,) * 9, tuple(np.linspace(-80, 80, 9)),
-                            channels=(0,))  # fmt: skip
-    truth = fitting.Params(sigma_rad=8 * DEG, scale=1.0)
-    return fitting.simulate_observations(truth, design, spec, fitting.Noise(0.02), seed=5), spec
+    obs, spec, _ = zoo.small(fitting.Params(sigma_rad=8 * DEG, scale=1.0), seed=5)
+    return obs, spec
 
 
 def test_non_converging_fit_raises(small_scene):

@@ -9,6 +9,7 @@ import warnings
 
 import numpy as np
 import pytest
+import zoo
 
 from stairfit import fitting
 
@@ -18,10 +19,8 @@ VARIANT = fitting.variant("dn_floor", "delta_n", "floor")
 
 
 def _small(seed: int) -> tuple[fitting.Observations, fitting.Spectral]:
-    spec = fitting.spectral_setup("pla", sampling="effective", channels=(1,))
-    design = fitting.Design((20.0, 45.0), (20.0,) * 9, tuple(np.linspace(-80, 80, 9)),
-                            channels=(0,))  # fmt: skip
-    return fitting.simulate_observations(TRUTH, design, spec, fitting.Noise(0.02), seed), spec
+    s = zoo.small(TRUTH, seed)
+    return s.obs, s.spec
 
 
 @pytest.fixture(scope="module")

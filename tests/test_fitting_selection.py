@@ -8,26 +8,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import zoo
 
 from stairfit import fitting
 
 DEG = np.pi / 180
-NEEDS_ROUNDED = pytest.mark.skipif(
-    not fitting.rounded_model_available(), reason="rounded model not merged yet"
-)
-
-
-SHARP_LADDER = tuple(v for v in fitting.DEFAULT_LADDER if "edge_radius_um" not in v.free)
-"""The ladder without the rounded-edge variants: the default suite's tests use it, because
-every rounded fit costs tens of seconds (compilation) and the data here are sharp; the rounded
-rungs are checked by the slow tests at the end."""
+SHARP_LADDER = zoo.SHARP_LADDER
+"""The default suite's tests use the ladder without the rounded-edge variants, because every
+rounded fit costs tens of seconds (compilation) and the data here are sharp; the rounded rungs
+are checked by the slow tests at the end."""
 
 
 def _select(truth: fitting.Params, seed: int, noise: float, **kw) -> fitting.Selection:
-    spec = fitting.spectral_setup("pla", sampling="effective")
-    obs = fitting.simulate_observations(
-        truth, fitting.standard_design(), spec, fitting.Noise(noise), seed=seed
-    )
+    obs, spec, _ = zoo.standard(truth, seed, noise)
     kw.setdefault("ladder", SHARP_LADDER)
     return fitting.select_model(obs, spec, **kw)
 
@@ -73,8 +66,6 @@ def test_selection_table_reason_and_report(ladder):
     assert sel.chosen in sel.reason and "BIC" in sel.reason
     text = sel.report()
     assert sel.reason in text and "sharp+delta_n+floor" in text
-    if not fitting.rounded_model_available():
-        assert "skipped: rounded-edge model not available" in text
 
 
 def test_selection_can_be_forced():
@@ -87,18 +78,15 @@ def test_selection_can_be_forced():
         _select(fitting.Params(sigma_rad=6 * DEG, scale=1.0), 8, 0.02, force="nonsense")
 
 
-@NEEDS_ROUNDED
 @pytest.mark.slow  # the rounded model's Jacobian takes about a minute to compile (XLA)
 @pytest.mark.parametrize(("radius_frac", "expect_rounded"), [(0.0, False), (0.3, True)])
 def test_selection_with_and_without_edge_rounding(radius_frac, expect_rounded):
     # A two-rung ladder (sharp, rounded) keeps this to two rounded fits per dataset; the full
     # ladder adds the same comparison with delta_n / floor / per-wedge widths on top.
-    spec = fitting.spectral_setup("pla", sampling="effective")
-    design = fitting.standard_design()
-    skeleton = fitting.simulate_observations(fitting.Params(), design, spec, seed=0)
+    skeleton = zoo.standard(fitting.Params(), seed=0).obs
     r_max = fitting.max_edge_radius_um(skeleton)
     truth = fitting.Params(sigma_rad=6 * DEG, scale=1.0, edge_radius_um=radius_frac * r_max)
-    obs = fitting.simulate_observations(truth, design, spec, fitting.Noise(0.02), seed=9)
+    obs, spec, _ = zoo.standard(truth, seed=9)
     ladder = tuple(v for v in fitting.DEFAULT_LADDER if v.name in ("sharp", "rounded"))
     sel = fitting.select_model(obs, spec, ladder)
     assert (sel.chosen == "rounded") == expect_rounded, sel.report()

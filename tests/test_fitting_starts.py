@@ -11,16 +11,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import zoo
 
 from stairfit import fitting
 
-LADDER = {v.name: v for v in fitting.DEFAULT_LADDER}
+LADDER = zoo.LADDER
 TRUTH = fitting.Params(sigma_rad=np.deg2rad(6.0), scale=2.0e6, floor=4000.0)
 
 
 @pytest.fixture(scope="module")
 def floor_dominated():
-    spec = fitting.spectral_setup("pla", sampling="effective", channels=(1,))
+    spec = zoo.grey()
     # base-frame light at -10 deg, views -80 .. 20 deg: face angles as `stairfit simulate` makes
     wedges = fitting.STANDARD_WEDGES_DEG
     views = np.linspace(-80.0, 20.0, 7)
@@ -31,7 +32,7 @@ def floor_dominated():
         for v in views
     ]  # fmt: skip
     skeleton = fitting.Observations.from_rows(rows)
-    clean = fitting.predict(TRUTH, skeleton, spec)
+    clean = fitting.model_radiance(TRUTH, skeleton, spec)
     stderr = 1e-3 * clean
     rng = np.random.default_rng(3)
     value = clean + stderr * rng.standard_normal(clean.shape)
@@ -45,7 +46,7 @@ def floor_dominated():
 def test_floor_dominated_data_are_fitted_from_the_default_starts(floor_dominated):
     obs, spec = floor_dominated
     fit = fitting.fit_least_squares(obs, spec, LADDER["sharp+floor"], emit_warnings=False)
-    est = {e.name: e for e in fit.estimates}
+    est = {e.param: e for e in fit.estimates}
     for name, true in (("sigma_rad", TRUTH.sigma_rad), ("scale", 2.0e6), ("floor", 4000.0)):
         assert abs(est[name].value - true) < 4 * est[name].stderr, name
     assert fit.chi2 < 2 * obs.n_used

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import math
 import shutil
 from pathlib import Path
 
@@ -90,15 +91,17 @@ def test_linear_dng_takes_the_linear_path_and_reads_exif(shared_data: Path) -> N
 def test_linear_dng_black_level_inconsistency_is_flagged(shared_data: Path) -> None:
     """LibRaw reports black 51 for this 8-bit lossy linear DNG, but its decoded values run 0..87
     with mean ~16 (the README's decode check): most pixels are below "black". That must show
-    as a note on the frame and a `below_black` flag, never as a silently negative radiance."""
+    as a note on the frame and a `below_black` flag with NaN, never as a negative radiance."""
     frame = imaging.decode_raw(shared_data / "raw" / "DSC8695.dng")
     assert any("below the black level" in n for n in frame.notes)
     spec = imaging.PhotoSpec(frame.path, rois={"patch": [(100, 100), (300, 100), (300, 300)]})
     rows = imaging.measure_frame(frame, spec, imaging.ExtractionSettings()).rows
     assert len(rows) == 3
     for row in rows:
-        assert row.value < 0
+        assert math.isnan(row.value) and math.isnan(row.stderr)
         assert "below_black" in row.flag
+    with pytest.warns(imaging.ImagingWarning, match=r"every ROI is below the black level \(51"):
+        imaging.measure_photos([spec])
 
 
 def _munsell_y(v: float) -> float:

@@ -341,8 +341,9 @@ def test_bracket_member_without_exposure_names_the_file(tmp_path: Path) -> None:
 
 
 def test_bracket_markers_come_from_the_exposure_that_shows_them(tmp_path: Path) -> None:
-    """Dark markers beside bright faces: invisible in the short reference exposure (the faces
-    set the tone map), found in the long one; placement succeeds from those."""
+    """Dark markers beside bright faces: too faint in the short reference exposure to place the
+    faces (3 DN of contrast: not found, or found with corners too noisy for a consistent
+    camera), clear in the long one; placement succeeds from those, to well under a pixel."""
     layout = imaging.MarkerLayout(
         {0: [(0, 0), (20, 0), (20, 20), (0, 20)], 1: [(120, 0), (140, 0), (140, 20), (120, 20)],
          2: [(0, 60), (20, 60), (20, 80), (0, 80)], 3: [(120, 60), (140, 60), (140, 80), (120, 80)]}
@@ -368,11 +369,12 @@ def test_bracket_markers_come_from_the_exposure_that_shows_them(tmp_path: Path) 
         )  # fmt: skip
         paths.append(photo.write_dng(tmp_path / f"m{k}.dng"))
     single = imaging.PhotoSpec(paths[0], faces_mm=face_mm, markers=layout)
-    with pytest.raises(imaging.ImagingError, match="ArUco markers"):
+    with pytest.raises(imaging.ImagingError, match=r"ArUco markers|misfits the detected corners"):
         imaging.measure_photos([single], SETTINGS, max_workers=1)
     spec = imaging.PhotoSpec(paths[0], faces_mm=face_mm, markers=layout, bracket=(paths[1],))
     rows = list(imaging.measure_photos([spec], SETTINGS, max_workers=1))
     assert rows[0].roi_source == "markers" and rows[0].n_markers == 4
+    assert rows[0].reprojection_error_px < 0.5
     assert rows[0].value == pytest.approx(4000 * EXPOSURE.scale, rel=0.02)
 
 

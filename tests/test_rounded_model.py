@@ -257,7 +257,7 @@ def test_total_reflectance_bounded_by_fresnel(beta2_deg):
     b2 = beta2_deg * DEG
     ti = jnp.linspace(-HALF + 1e-3, HALF - 1e-3, 181)
     alpha = jnp.linspace(b2 - HALF, b2, 2001)
-    cos_local = jnp.cos(ti[:, None] + alpha)
+    cos_local = jnp.cos(ti[:, None] + alpha[None, :])
     bound = jnp.max(
         jnp.where(cos_local > 0, model.fresnel_unpolarised(jnp.clip(cos_local, 0, 1), 1.46), 0), -1
     )
@@ -362,14 +362,18 @@ def _moments_fast_and_brute(theta_i, beta2, sigma):
     to = jnp.linspace(-HALF, HALF, 181)
     geo = _rounded._geometry(*_rounded._geom_args(theta_i, beta2, L1, 40.0), 4)
     m, h, coef, _ = _rounded._lagrange(geo.panel_lo, geo.panel_hi, geo.nodes.theta_o)
-    tq = m[..., None] + h[..., None] * x
-    basis = _rounded._basis(coef[..., None, :, :], x[:, None])
-    kern = model.hemisphere_gaussian(to[:, None, None, None], tq, sigma)
-    brute = jnp.sum((h[..., None] * w * kern)[..., None] * basis, axis=-2)
-    ref = jnp.sum(brute * geo.nodes.density, axis=(-3, -2, -1))
-    mom = _rounded._kernel_moments(to, sigma, geo.panel_lo, geo.panel_hi, m, h)
-    wts = jnp.sum(coef * mom[..., None, :], axis=-1)
-    return jnp.sum(wts * geo.nodes.density, axis=(-3, -2, -1)), ref
+    # panel axes (7, P) lead; explicit unit axes for the quadrature nodes (axis q) and the
+    # viewing angles (axis t): the suite forbids implicit rank promotion
+    xq, wq = x[None, None, :], w[None, None, :]  # (1, 1, q)
+    tq = m[..., None] + h[..., None] * xq  # (7, P, q)
+    basis = _rounded._basis(coef[..., None, :, :], xq[..., None])  # (7, P, q, 3)
+    kern = model.hemisphere_gaussian(to[:, None, None, None], tq[None], sigma)  # (t, 7, P, q)
+    brute = jnp.sum(((h[..., None] * wq)[None] * kern)[..., None] * basis[None], axis=-2)
+    ref = jnp.sum(brute * geo.nodes.density[None], axis=(-3, -2, -1))
+    panels = (a[None] for a in (geo.panel_lo, geo.panel_hi, m, h))  # a unit axis t
+    mom = _rounded._kernel_moments(to, jnp.full_like(to, sigma), *panels)
+    wts = jnp.sum(coef[None] * mom[..., None, :], axis=-1)
+    return jnp.sum(wts * geo.nodes.density[None], axis=(-3, -2, -1)), ref
 
 
 def test_broadening_moments_against_brute_force():

@@ -129,7 +129,7 @@ def test_explicit_index_table(tmp_path):
     scene = load_scene(_write(tmp_path, d))
     assert float(scene.specimen.index.build()(500.0)) == pytest.approx(1.466)
     d["specimen"]["index"] = {"model": "constant", "n": 0.9}
-    with pytest.raises(UserError, match=r"specimen\.index: gives n\(550 nm\)"):
+    with pytest.raises(UserError, match=r"specimen\.index: gives n\(380 nm\) = 0\.9"):
         load_scene(_write(tmp_path, d))
 
 

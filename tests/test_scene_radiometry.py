@@ -54,7 +54,8 @@ def test_brackets_and_calibration_frames_are_read(tmp_path: Path) -> None:
     assert scene.calibration is not None
     assert scene.calibration.flat_field == ("flat1.dng", "flat2.dng")
     assert scene.calibration.dark_frames == ("dark.dng",)
-    names = ["a.dng", "b1.dng", "b2.dng", "b3.dng", "flat1.dng", "flat2.dng", "dark.dng"]
+    names = ["scene.toml", "a.dng", "b1.dng", "b2.dng", "b3.dng", "flat1.dng", "flat2.dng"]
+    names.append("dark.dng")
     assert scene.input_files() == tuple((tmp_path / n).resolve() for n in names)
     fields = [f for f, _, _ in scene.input_fields()]
     assert fields[:2] == ["photos[0].file", "photos[1].file[0]"]

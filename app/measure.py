@@ -1,0 +1,308 @@
+"""`stairfit measure DIR`: decode and measure only, for checking ROIs and for reference targets.
+
+Writes the measurement table, the previews and a short report of flags and markers per photo
+(`photos.csv`, `markers.csv`, `report.html`) into the output folder and prints the same on the
+terminal; no model is fitted. A measure-only scene may name `[[patches]]` (a colour chart, a
+grey card) beside or instead of `[specimen]` (docs/scene.md). Photos that cannot be measured
+are reported with the others (their previews show the markers found); the command then exits
+with status 2 and one line naming them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import html
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .errors import UserError
+from .scene import Scene, load_scene
+
+NEAR_LIMIT = 1.5
+"""Markers with cells under this many times the detection limit get a note."""
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register the `measure` command."""
+    p = sub.add_parser(
+        "measure",
+        help="decode and measure the photos only (no fit): measurements, previews, a report",
+        description=(
+            "Decode the RAW photos listed in DIR/scene.toml and measure every wedge face and "
+            "named patch: measurements.csv, previews, and a short report of flags and markers "
+            "per photo (photos.csv, markers.csv, report.html). For checking ROIs before a long "
+            "fit, and for reference targets such as a colour chart ([[patches]] in scene.toml)."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("folder", type=Path, metavar="DIR", help="photo folder with scene.toml")
+    p.add_argument(
+        "-o", "--output", type=Path, default=None, help="output folder (default: DIR-measure)"
+    )
+    p.add_argument("--workers", type=int, default=1, help="processes decoding photos")
+    p.add_argument("--no-cache", action="store_true", help="decode every photo again")
+    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def default_output(folder: Path) -> Path:
+    """`DIR-measure` next to the photo folder."""
+    folder = Path(folder).resolve()
+    return folder.with_name(f"{folder.name}-measure")
+
+
+def run(args: argparse.Namespace) -> int:
+    """`stairfit measure DIR`."""
+    from .fit import CACHE_DIR, check_photos
+    from .outputs import staged_folder
+
+    if args.workers < 1:
+        raise UserError("--workers: must be >= 1")
+    scene = load_scene(args.folder, measure_only=True)
+    out = args.output or default_output(args.folder)
+    check_photos(scene)
+    specs = measure_specs(scene)
+    inputs = (scene.folder, *scene.input_files())
+    with staged_folder(out, args.force, inputs=inputs, reserved=(scene.folder / CACHE_DIR,)) as tmp:
+        table = measure_table(scene, specs, tmp, args)
+        reports = photo_reports(scene, specs, table)
+        write_outputs(scene, table, reports, tmp)
+    print_summary(scene, reports, out)
+    if table.failed:
+        from stairfit.imaging._pipeline import _summarise_failures
+
+        raise UserError(
+            f"{scene.path}: {len(table.failed)} of {len(specs)} photos could not be measured "
+            f"(see {out / 'report.html'}): {_summarise_failures(list(table.failed))}"
+        )
+    return 0
+
+
+def measure_specs(scene: Scene) -> list[Any]:
+    """One `imaging.PhotoSpec` per photo: its wedges (as `stairfit fit` measures them) and the
+    scene's patches (pixel polygons, or outlines on the base placed by the markers)."""
+    from stairfit import imaging
+
+    from .fit import calibration_spec, photo_specs, radiometry_fields
+    from .placement import marker_layout
+
+    patches = scene.patches
+    calibration = calibration_spec(scene) if scene.specimen is None else None
+    specs = photo_specs(scene) if scene.specimen is not None else [None] * len(scene.photos)
+    layout = marker_layout(scene)
+    out = []
+    for photo, spec in zip(scene.photos, specs, strict=True):
+        per_photo = dict(photo.roi_px)
+        rois = [(p.name, per_photo.get(p.name, p.roi_px)) for p in patches]
+        rois = [(n, poly) for n, poly in rois if poly is not None]
+        faces = [(p.name, p.face_mm) for p in patches if p.name not in dict(rois)]
+        if spec is None:
+            spec = imaging.PhotoSpec(
+                path=scene.folder / photo.file, name=photo.file,
+                exposure_time_s=photo.exposure_time_s, f_number=photo.f_number, iso=photo.iso,
+                rois=tuple(rois), faces_mm=tuple(faces), markers=layout if faces else None,
+                **radiometry_fields(scene, photo, calibration),
+            )  # fmt: skip
+        elif patches:
+            spec = dataclasses.replace(
+                spec,
+                rois=spec.rois + tuple(rois),
+                faces_mm=spec.faces_mm + tuple(faces),
+                markers=spec.markers or (layout if faces else None),
+            )
+        out.append(spec)
+    return out
+
+
+def measure_table(scene: Scene, specs: Sequence[Any], out: Path, args: argparse.Namespace) -> Any:
+    """The measurement table of every photo that could be measured (failures in `.failed`)."""
+    from stairfit import imaging
+
+    from .fit import CACHE_DIR, MEASUREMENT_CACHE, extraction_settings
+
+    cache = None if args.no_cache else scene.folder / CACHE_DIR / MEASUREMENT_CACHE
+    try:
+        if cache is not None:
+            cache.parent.mkdir(exist_ok=True)
+    except OSError:
+        cache = None  # a read-only photo folder: measure without a cache
+    try:
+        return imaging.measure_photos(
+            specs,
+            extraction_settings(scene),
+            cache=cache,
+            preview_dir=out / "previews",
+            progress=not args.quiet,
+            max_workers=args.workers,
+            raise_on_failure=False,
+        )
+    except imaging.ImagingError as err:
+        raise UserError(f"{scene.path}: {err}") from None
+
+
+@dataclass(frozen=True)
+class PhotoReport:
+    """What `measure` (and the fit's marker table) says about one photo."""
+
+    photo: str
+    status: str  # "measured" or "failed: <reason>"
+    rois: int
+    flagged: tuple[str, ...]  # "<roi> <channel>: <flags>"
+    exposure_source: str
+    marker_ids: str  # the markers used ("" without marker placement)
+    missing_ids: str  # layout markers not found
+    rms_px: float | None
+    cell_px: float | None
+    placement: str
+    note: str
+
+
+def photo_reports(scene: Scene, specs: Sequence[Any], table: Any) -> list[PhotoReport]:
+    """One `PhotoReport` per photo, in scene order (failed photos included)."""
+    failed = dict(table.failed)
+    layout_ids = [m.id for m in scene.markers.markers] if scene.markers else []
+    reports = []
+    for spec in specs:
+        rows = table.for_photo(spec.name)
+        if spec.name in failed or not rows:
+            reason = failed.get(spec.name, "not measured")
+            reports.append(PhotoReport(spec.name, f"failed: {reason}", 0, (), "", "", "", None,
+                                       None, "", ""))  # fmt: skip
+            continue
+        reports.append(_report(spec.name, rows, layout_ids))
+    return reports
+
+
+def _report(photo: str, rows: Sequence[Any], layout_ids: list[int]) -> PhotoReport:
+    from stairfit import imaging
+
+    placed = next((r for r in rows if r.roi_source == "markers"), None)
+    flagged = tuple(f"{r.wedge} {r.channel}: {r.flag}" for r in rows if r.flag)
+    note = "" if placed is not None else "pixel ROIs only (markers not used)"
+    found = placed.marker_ids.split() if placed is not None else []
+    missing = [str(i) for i in layout_ids if placed is not None and str(i) not in found]
+    cell = placed.marker_cell_px if placed is not None else None
+    limit = imaging.MIN_DETECTABLE_CELL_PX
+    if cell is not None and cell < NEAR_LIMIT * limit:
+        note = (
+            f"markers at {cell:.1f} px per cell, near the detection limit (about {limit:g} px "
+            "per cell); larger markers or a closer camera would be safer"
+        )
+    return PhotoReport(
+        photo=photo,
+        status="measured",
+        rois=len({r.wedge for r in rows}),
+        flagged=flagged,
+        exposure_source=rows[0].exposure_source,
+        marker_ids=" ".join(found),
+        missing_ids=" ".join(missing),
+        rms_px=placed.reprojection_error_px if placed is not None else None,
+        cell_px=cell,
+        placement=placed.placement if placed is not None else "",
+        note=note,
+    )
+
+
+MARKER_COLUMNS = ("photo", "placement", "marker_ids", "missing_ids", "rms_px", "cell_px", "note")
+PHOTO_COLUMNS = ("photo", "status", "rois", "flagged", "exposure_source", *MARKER_COLUMNS[1:])
+
+
+def _cells(report: PhotoReport, columns: Sequence[str]) -> list[str]:
+    def text(v: Any) -> str:
+        if v is None:
+            return ""
+        if isinstance(v, float):
+            return f"{v:.3g}"
+        return "; ".join(v) if isinstance(v, tuple) else str(v)
+
+    return [text(getattr(report, c)) for c in columns]
+
+
+def write_table(path: Path, reports: Sequence[PhotoReport], columns: Sequence[str]) -> None:
+    """A CSV of the reports' `columns` (markers.csv, photos.csv)."""
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(columns)
+        writer.writerows(_cells(r, columns) for r in reports)
+
+
+def html_table(reports: Sequence[PhotoReport], columns: Sequence[str]) -> str:
+    """The reports as an HTML table (for report.html of `measure` and of `fit`)."""
+    e = html.escape
+    head = "".join(f"<th>{e(c)}</th>" for c in columns)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{e(c)}</td>" for c in _cells(r, columns)) + "</tr>" for r in reports
+    )
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def fit_marker_reports(scene: Scene, table: Any) -> list[PhotoReport]:
+    """The per-photo reports of a fit's measurement table (for its markers.csv and report)."""
+    from .fit import photo_specs
+
+    return photo_reports(scene, photo_specs(scene), table)
+
+
+def write_outputs(scene: Scene, table: Any, reports: Sequence[PhotoReport], out: Path) -> None:
+    """measurements.csv, photos.csv, markers.csv and report.html into `out`."""
+    table.write_csv(out / "measurements.csv")
+    write_table(out / "photos.csv", reports, PHOTO_COLUMNS)
+    write_table(out / "markers.csv", reports, MARKER_COLUMNS)
+    (out / "report.html").write_text(report_html(scene, reports, out), encoding="utf-8")
+
+
+def report_html(scene: Scene, reports: Sequence[PhotoReport], out: Path) -> str:
+    """A small page: the per-photo table and the previews."""
+    from . import __version__
+
+    e = html.escape
+    previews = sorted((out / "previews").glob("*.png")) if (out / "previews").exists() else []
+    figs = "".join(
+        f"<figure style='display:inline-block;width:30%'><img src='previews/{e(p.name)}' "
+        f"style='width:100%'><figcaption>{e(p.stem)}</figcaption></figure>"
+        for p in previews
+    )
+    n_failed = sum(r.status != "measured" for r in reports)
+    return f"""<!doctype html><html><head><meta charset="utf-8"><title>stairfit measure</title>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}td,th{{padding:2px 8px}}
+table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}</style></head><body>
+<h1>stairfit measure: {e(scene.folder.name)}</h1>
+<p>{len(reports) - n_failed} of {len(reports)} photos measured; values in measurements.csv
+(docs/imaging.md). Markers: the ids used, the layout's ids not found, the RMS reprojection
+error (px) and the smallest marker cell (px).</p>
+<h2>Photos</h2>{html_table(reports, PHOTO_COLUMNS)}
+<h2>Regions of interest</h2>{figs}
+<p style="color:#777">stairfit {e(__version__)}</p></body></html>
+"""
+
+
+def summary_line(r: PhotoReport) -> str:
+    """One terminal line about a photo."""
+    if r.status != "measured":
+        return f"  {r.photo}: FAILED ({r.status.removeprefix('failed: ')})"
+    flags = ", none flagged"
+    if r.flagged:
+        more = "; ..." if len(r.flagged) > 3 else ""
+        flags = f", {len(r.flagged)} flagged ({'; '.join(r.flagged[:3])}{more})"
+    text = f"  {r.photo}: {r.rois} ROIs{flags}; exposure from {r.exposure_source or '?'}"
+    if r.marker_ids:
+        text += (
+            f"; markers {r.marker_ids} ({r.placement}, {r.rms_px:.2f} px RMS, cells "
+            f"{r.cell_px:.1f} px)"
+        )
+        if r.missing_ids:
+            text += f", not found: {r.missing_ids}"
+    return text + (f"; note: {r.note}" if r.note and r.marker_ids else "")
+
+
+def print_summary(scene: Scene, reports: Sequence[PhotoReport], out: Path) -> None:
+    """The terminal summary of `measure`."""
+    print(f"stairfit measure: {scene.folder}")
+    for r in reports:
+        print(summary_line(r))
+    print(f"  measurements: {out / 'measurements.csv'}; report: {out / 'report.html'}")

@@ -1,0 +1,304 @@
+"""Cold start end to end (issue 14): every case a fresh process, side by side in one run.
+
+The cases, each timed from outside as a new process (wall time and peak memory, median of
+`--repeats`; the cases of one repeat run one after another, so a slow phase of the machine
+hits them alike):
+
+* `python -c "import jax"` and `python -c "import stairfit.model"`: the floor under everything;
+* `stairfit predict --lobes --wedge-deg 30 --theta-i-deg 0`, with an empty persistent JAX cache
+  (`STAIRFIT_JAX_CACHE` a fresh folder) and again with the cache that run filled (the aim:
+  at most `import jax` + 1.5 s);
+* `stairfit fit` of a small new simulated scene (default 2 MP x 9 views, `stairfit simulate`,
+  which is not timed) with one variant and no posterior (`--model VARIANT --no-posterior`),
+  cold (empty JAX cache, no measurement cache) and warm (the user's second run: both caches
+  filled by the cold run); the same for the default fit (ladder, selection, posterior);
+* the baseline: NumPy + `scipy.optimize.least_squares` fitting the same variant to the rows the
+  cold stairfit run measured (`scipy_sharp_fit.py`, a fresh process: imports included). It
+  does not decode the photos; compare it with the fits' `fit_s` (from results.json) as well
+  as with their wall time.
+
+The variant defaults to `sharp+floor`: the simulator's photos carry a diffuse floor (4000
+radiance units), so plain `sharp` would fit a wrong model (sigma went to 317 deg, reduced chi^2
+2e5), and `stairfit simulate --floor 0` stops with an exposure-tag overflow (see the results
+file); `--variant sharp` keeps the option.
+
+The machine's load average is recorded at the start and the end; when it is above 1 the
+results are labelled "measured under load" (the 2-core machine idles below 0.3). Run:
+
+    python benchmarks/bench_cold.py                 # 5 repeats, the 2 MP x 9-view scene
+    python benchmarks/bench_cold.py --quick         # 1 repeat, 0.5 MP x 5 views: does it run?
+
+Writes benchmarks/results/cold.md unless --no-write (or --out FILE).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
+PREDICT = ["predict", "--lobes", "--wedge-deg", "30", "--theta-i-deg", "0"]
+Run = Callable[[], tuple[float, float, float]]
+"""One case: returns (wall time s, peak memory MB, CPU time s)."""
+
+
+_WRAPPER = (
+    "import resource, subprocess, sys, time\n"
+    "t0 = time.perf_counter()\n"
+    "r = subprocess.run(sys.argv[1:], capture_output=True, text=True)\n"
+    "wall = time.perf_counter() - t0\n"
+    "sys.stderr.write(r.stderr[-3000:] if r.returncode else '')\n"
+    "sys.stdout.write(r.stdout)\n"
+    "u = resource.getrusage(resource.RUSAGE_CHILDREN)\n"
+    "print(wall, u.ru_maxrss / 1024.0, u.ru_utime + u.ru_stime)\n"
+    "sys.exit(r.returncode)\n"
+)
+"""Runs one command and reports its wall time, its own peak RSS (MB) and CPU time (user +
+system, all threads: less distorted by other jobs than the wall time), as bench_demo.py does,
+and passes its standard output on."""
+
+
+def timed(cmd: list[str], env: dict[str, str]) -> tuple[float, float, float, str]:
+    """Wall time, peak memory (MB), CPU time and standard output of `cmd`, a fresh process."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _WRAPPER, *cmd], env=env, capture_output=True, text=True
+    )
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr}")
+    *out, last = proc.stdout.rstrip("\n").split("\n")
+    wall, mb, cpu = (float(x) for x in last.split())
+    return wall, mb, cpu, "\n".join(out)
+
+
+def peak_of(cmd: list[str], env: dict[str, str]) -> tuple[float, float, float]:
+    """Wall time, peak memory (MB) and CPU time of `cmd` as a fresh process."""
+    return timed(cmd, env)[:3]
+
+
+def stairfit_exe() -> str:
+    """The `stairfit` script of this environment."""
+    exe = Path(sys.executable).parent / "stairfit"
+    return str(exe) if exe.exists() else shutil.which("stairfit") or "stairfit"
+
+
+def env_with_cache(folder: Path) -> dict[str, str]:
+    """The environment with the persistent JAX cache pointed at `folder`."""
+    return {**os.environ, "STAIRFIT_JAX_CACHE": str(folder)}
+
+
+def simulate_scene(exe: str, photos: Path, megapixels: float, views: int) -> float:
+    """Render the benchmark scene once (not part of any case); returns its wall time."""
+    cmd = [exe, "simulate", str(photos), "--megapixels", str(megapixels), "--views", str(views),
+           "--quiet"]  # fmt: skip
+    wall, _, _ = peak_of(cmd, {**os.environ, "STAIRFIT_JAX_CACHE": "off"})
+    return wall
+
+
+def fit_cases(exe: str, photos: Path, out: Path, label: str, extra: list[str]) -> dict[str, Run]:
+    """Cold and warm `stairfit fit` runs of one configuration, sharing one JAX cache folder."""
+    state: dict[str, Path] = {}
+
+    def cold() -> tuple[float, float, float]:
+        state["cache"] = Path(tempfile.mkdtemp(prefix="jax-", dir=out.parent))
+        shutil.rmtree(photos / ".stairfit-cache", ignore_errors=True)  # a new scene
+        return peak_of(fit_cmd(), env_with_cache(state["cache"]))
+
+    def warm() -> tuple[float, float, float]:  # the second run: JAX and measurement caches filled
+        return peak_of(fit_cmd(), env_with_cache(state["cache"]))
+
+    def fit_cmd() -> list[str]:
+        return [exe, "fit", str(photos), "-o", str(out), "--force", "--quiet", *extra]
+
+    return {f"{label}, cold": cold, f"{label}, warm (second run)": warm}
+
+
+def predict_cases(exe: str, tmp: Path) -> dict[str, Run]:
+    """`stairfit predict` of one case with an empty JAX cache, then with the filled one."""
+    state: dict[str, Path] = {}
+
+    def cold() -> tuple[float, float, float]:
+        state["cache"] = Path(tempfile.mkdtemp(prefix="jax-", dir=tmp))
+        return peak_of([exe, *PREDICT], env_with_cache(state["cache"]))
+
+    def warm() -> tuple[float, float, float]:
+        return peak_of([exe, *PREDICT], env_with_cache(state["cache"]))
+
+    return {"stairfit predict (one case), cold": cold, "stairfit predict, warm JAX cache": warm}
+
+
+def python_case(code: str) -> Run:
+    """A `python -c CODE` process."""
+    return lambda: peak_of([sys.executable, "-c", code], dict(os.environ))
+
+
+def timings_of(fit_dir: Path) -> dict[str, float]:
+    """The stage timings a fit wrote to its results.json."""
+    results = json.loads((fit_dir / "results.json").read_text())
+    return {k: float(v) for k, v in results["diagnostics"]["timings_s"].items()}
+
+
+def scipy_case(photos: Path, fit_dir: Path, variant: str, record: list[dict]) -> Run:
+    """The NumPy + SciPy baseline on the rows the variant's stairfit fit measured."""
+    script = HERE / "scipy_sharp_fit.py"
+
+    def run() -> tuple[float, float, float]:
+        cmd = [sys.executable, str(script), str(photos), str(fit_dir), "--variant", variant]
+        wall, mb, cpu, out = timed(cmd, dict(os.environ))
+        record.append(json.loads(out))
+        return wall, mb, cpu
+
+    return run
+
+
+def load_average() -> float:
+    """The 1-minute load average (nan where the platform has none)."""
+    try:
+        return os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return float("nan")
+
+
+def summarise(samples: list[tuple[float, float, float]]) -> str:
+    """Table cells: median wall time (range), median CPU time, peak memory."""
+    walls = [w for w, _, _ in samples]
+    peak = max(m for _, m, _ in samples)
+    cpu = statistics.median(c for _, _, c in samples)
+    span = f" ({min(walls):.2f}-{max(walls):.2f})" if len(walls) > 1 else ""
+    return f"| {statistics.median(walls):.2f} s{span} | {cpu:.2f} s | {peak:.0f} MB |"
+
+
+def stage_note(stages: list[dict[str, float]]) -> str:
+    """Medians of the stages a fit reports (measure / fits / posterior ...)."""
+    if not stages:
+        return ""
+    keys = list(stages[0])
+    return ", ".join(
+        f"{k.removesuffix('_s')} {statistics.median(s[k] for s in stages):.2f} s" for k in keys
+    )
+
+
+def markdown(rows: list[tuple[str, list, str]], meta: dict[str, str], checks: list[str]) -> str:
+    """The results file."""
+    lines = ["# Cold start end to end (`benchmarks/bench_cold.py`)", ""]
+    lines += [f"- {k}: {v}" for k, v in meta.items()]
+    lines += ["", "| case | wall time, median (range) | CPU time | peak memory | stages / notes |"]
+    lines += ["|---|---|---|---|---|"]
+    lines += [f"| {name} {summarise(samples)} {note} |" for name, samples, note in rows]
+    lines += ["", *checks, ""]
+    return "\n".join(lines)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--megapixels", type=float, default=2.0)
+    p.add_argument("--views", type=int, default=9)
+    p.add_argument("--variant", default="sharp+floor", choices=("sharp", "sharp+floor"))
+    p.add_argument("--no-default-fit", action="store_true", help="skip the default fit")
+    p.add_argument("--quick", action="store_true", help="1 repeat, 0.5 MP x 5 views")
+    p.add_argument("--out", type=Path, default=RESULTS / "cold.md")
+    p.add_argument("--no-write", action="store_true")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.repeats, args.megapixels, args.views = 1, 0.5, 5
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    exe = stairfit_exe()
+    load_start = load_average()
+    baseline: list[dict] = []
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        photos = tmp / "photos"
+        t_sim = simulate_scene(exe, photos, args.megapixels, args.views)
+        variant_dir, default_dir = tmp / "fit-variant", tmp / "fit-default"
+        cases: dict[str, Run] = {
+            'python -c "import jax"': python_case("import jax"),
+            'python -c "import stairfit.model"': python_case("import stairfit.model"),
+            **predict_cases(exe, tmp),
+            **fit_cases(exe, photos, variant_dir, f"stairfit fit --model {args.variant} "
+                        "--no-posterior", ["--model", args.variant, "--no-posterior"]),
+            "NumPy + SciPy least_squares, same variant and rows (imports included)":
+                scipy_case(photos, variant_dir, args.variant, baseline),
+        }  # fmt: skip
+        if not args.no_default_fit:
+            cases.update(fit_cases(exe, photos, default_dir, "stairfit fit (default)", []))
+        samples: dict[str, list[tuple[float, float, float]]] = {k: [] for k in cases}
+        stages: dict[str, list[dict[str, float]]] = {k: [] for k in cases}
+        for r in range(args.repeats):
+            for name, run in cases.items():
+                samples[name].append(run())
+                print(f"repeat {r + 1}/{args.repeats}: {name}: {samples[name][-1][0]:.2f} s",
+                      file=sys.stderr, flush=True)  # fmt: skip
+                fit_dir = variant_dir if args.variant in name else default_dir
+                if name.startswith("stairfit fit"):
+                    stages[name].append(timings_of(fit_dir))
+        variant_fit = json.loads((variant_dir / "results.json").read_text())
+    load_end = load_average()
+    rows = []
+    for name in cases:
+        note = stage_note(stages[name])
+        if name.startswith("NumPy") and baseline:
+            b = baseline[-1]
+            note = f"import {b['import_s']:.2f} s, fit {b['fit_s']:.2f} s ({b['nfev']} evaluations)"
+        rows.append((name, samples[name], note))
+    checks = _checks(samples, baseline, variant_fit)
+    under_load = not (max(load_start, load_end) <= 1.0)
+    meta = {
+        "date": datetime.datetime.now().isoformat(timespec="minutes"),
+        "machine": f"{platform.platform()}, {os.cpu_count()} cores, Python "
+        f"{platform.python_version()}",
+        "scene": f"`stairfit simulate --megapixels {args.megapixels:g} --views {args.views}` "
+        f"(rendered in {t_sim:.1f} s, not timed)",
+        "repeats": str(args.repeats),
+        "load average (1 min) at start / end": f"{load_start:.2f} / {load_end:.2f}",
+        "status": "**measured under load: figures are upper bounds; re-measure on an idle machine**"
+        if under_load
+        else "idle machine",
+    }
+    text = markdown(rows, meta, checks)
+    print(text)
+    if not args.no_write:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text)
+    return 0
+
+
+def _checks(samples: dict, baseline: list[dict], variant_fit: dict) -> list[str]:
+    """The aim for predict, and the baseline against stairfit's optimum."""
+    med = {k: statistics.median(w for w, _, _ in v) for k, v in samples.items()}
+    cpu = {k: statistics.median(c for _, _, c in v) for k, v in samples.items()}
+    jax_s, jax_cpu = med['python -c "import jax"'], cpu['python -c "import jax"']
+    cold, warm = "stairfit predict (one case), cold", "stairfit predict, warm JAX cache"
+    out = [
+        f"- `stairfit predict` of one case, cold: {med[cold]:.2f} s = `import jax` + "
+        f"{med[cold] - jax_s:.2f} s (aim: + 1.5 s at most); warm JAX cache: `import jax` + "
+        f"{med[warm] - jax_s:.2f} s. In CPU time: + {cpu[cold] - jax_cpu:.2f} s cold, "
+        f"+ {cpu[warm] - jax_cpu:.2f} s warm."
+    ]
+    if baseline:
+        ls = {p["name"]: p["least_squares"]["value"] for p in variant_fit["parameters"]}
+        chi2 = variant_fit["diagnostics"]["least_squares"]["chi2"]
+        b = baseline[-1]
+        out.append(
+            f"- Same optimum: SciPy sigma {b['sigma_deg']:.6g} deg, chi2 {b['chi2']:.6g}; "
+            f"stairfit sigma {ls.get('sigma_deg', float('nan')):.6g} deg, chi2 {chi2:.6g}."
+        )
+    return out
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,138 @@
+"""The NumPy + SciPy baseline of one sharp-model fit, run as its own process (issue 14).
+
+Reads what `stairfit fit` measured (the scene's `scene.toml` and the fit folder's
+`observations.csv`: face-frame angles, values and the uncertainties stairfit fitted with) and
+fits the same model with `scipy.optimize.least_squares` (trf, 2-point finite-difference
+Jacobian) on the plain NumPy staircase of `numpy_staircase.py`: the sharp lobes broadened by
+sigma, averaged over the same Gauss-Legendre aperture nodes as `stairfit.model.Aperture`,
+`scale * cos(theta_i) * rho / cos(theta_o) + floor * cos(theta_i)` [conventions §9], one
+effective wavelength per channel (the balanced preset's sampling). The starts are stairfit's
+sigma starts, with scale (and floor) from a linear least-squares solve at each. It imports
+neither jax nor stairfit, so timing this process from outside (`bench_cold.py`) is the
+baseline's whole cost, imports included.
+
+    python benchmarks/scipy_sharp_fit.py PHOTOS_DIR FIT_DIR [--variant sharp+floor]
+
+Prints one JSON line: the fitted values, chi^2, and the time spent importing and fitting.
+"""
+
+from __future__ import annotations
+
+import time
+
+T_START = time.perf_counter()
+
+import argparse  # noqa: E402  (after the clock starts: the imports are part of the baseline)
+import csv  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import tomllib  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+from scipy.optimize import least_squares  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import numpy_staircase as nps  # noqa: E402
+
+T_IMPORTED = time.perf_counter()
+
+DEG = np.pi / 180
+COS_FLOOR = np.cos(89.9 * DEG)
+CONSTANT_INDEX = {"pla": 1.46, "pla-constant": 1.46}
+"""The named materials the baseline knows: the paper's constant PLA (stairfit's default)."""
+
+
+def read_rows(photos: Path, fit: Path) -> dict[str, np.ndarray]:
+    """The fitted rows (used = 1) as arrays, with each row's wedge angle from scene.toml."""
+    scene = tomllib.loads((photos / "scene.toml").read_text())
+    beta2 = {w["name"]: w["angle_deg"] for w in scene["specimen"]["wedges"]}
+    with open(fit / "observations.csv", newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["used"] == "1"]
+    return {
+        "theta_i": np.array([float(r["theta_i_deg"]) for r in rows]) * DEG,
+        "theta_o": np.array([float(r["theta_o_deg"]) for r in rows]) * DEG,
+        "beta2": np.array([beta2[r["wedge"]] for r in rows]) * DEG,
+        "value": np.array([float(r["value"]) for r in rows]),
+        "sigma_y": np.array([float(r["uncertainty"]) for r in rows]),
+        "scene": scene,
+    }
+
+
+def aperture_nodes(half_i: float, half_o: float, n_nodes: int) -> tuple[np.ndarray, ...]:
+    """Offsets in theta_i and theta_o and weights (sum 1), as `stairfit.model.Aperture`."""
+    if n_nodes == 1:
+        return np.zeros(1), np.zeros(1), np.ones(1)
+    x, w = np.polynomial.legendre.leggauss(n_nodes)
+    xi, xo = np.meshgrid(x, x, indexing="ij")
+    return (xi * half_i).ravel(), (xo * half_o).ravel(), (np.outer(w, w) / 4.0).ravel()
+
+
+def density(d: dict[str, np.ndarray], n: float, sigma: float, nodes: tuple) -> np.ndarray:
+    """Aperture-averaged broadened density (1/rad) of every row."""
+    di, do, dw = nodes
+    ti = np.clip(d["theta_i"][:, None] + di, -np.pi / 2, np.pi / 2)
+    to = np.clip(d["theta_o"][:, None] + do, -np.pi / 2, np.pi / 2)
+    return nps.brdf(ti, to, d["beta2"][:, None], n, sigma) @ dw
+
+
+def fit(d: dict[str, np.ndarray], variant: str, starts_deg: list[float], n_nodes: int) -> dict:
+    """Best of the starts (chi^2) of trf + 2-point FD Jacobian."""
+    scene = d["scene"]
+    n = CONSTANT_INDEX[scene["specimen"].get("material", "pla")]
+    half_i = 0.5 * scene["light"].get("angular_diameter_deg", 0.0) * DEG
+    half_o = 0.5 * scene["camera"].get("angular_extent_deg", 0.0) * DEG
+    nodes = aperture_nodes(half_i, half_o, n_nodes if half_i > 0 or half_o > 0 else 1)
+    cos_i = np.cos(d["theta_i"])
+    geo = cos_i / np.maximum(np.cos(d["theta_o"]), COS_FLOOR)
+    with_floor = variant == "sharp+floor"
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        model = np.exp(p[1]) * geo * density(d, n, np.exp(p[0]), nodes)
+        if with_floor:
+            model = model + p[2] * cos_i
+        return (d["value"] - model) / d["sigma_y"]
+
+    best = None
+    for s_deg in starts_deg:
+        cols = [geo * density(d, n, s_deg * DEG, nodes), cos_i][: 2 if with_floor else 1]
+        a = np.stack(cols, axis=1) / d["sigma_y"][:, None]
+        lin = np.linalg.lstsq(a, d["value"] / d["sigma_y"], rcond=None)[0]
+        p0 = [np.log(s_deg * DEG), np.log(max(lin[0], 1e-12))]
+        lo, hi = [-np.inf, -np.inf], [np.inf, np.inf]
+        if with_floor:
+            p0, lo, hi = [*p0, max(lin[1], 0.0)], [*lo, 0.0], [*hi, np.inf]
+        sol = least_squares(resid, np.array(p0), method="trf", jac="2-point", bounds=(lo, hi))
+        if best is None or 2 * sol.cost < 2 * best.cost:
+            best = sol
+    out = {
+        "sigma_deg": float(np.exp(best.x[0]) / DEG),
+        "scale": float(np.exp(best.x[1])),
+        "chi2": float(2 * best.cost),
+        "n_rows": int(d["value"].size),
+        "nfev": int(best.nfev),
+    }
+    if with_floor:
+        out["floor"] = float(best.x[2])
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("photos", type=Path, help="the photo folder (scene.toml)")
+    p.add_argument("fit", type=Path, help="a stairfit fit folder (observations.csv)")
+    p.add_argument("--variant", choices=("sharp", "sharp+floor"), default="sharp+floor")
+    p.add_argument("--starts-deg", default="1,4,12", help="sigma starts (the balanced preset's)")
+    p.add_argument("--aperture-nodes", type=int, default=2, help="as the balanced preset")
+    args = p.parse_args()
+    t0 = time.perf_counter()
+    d = read_rows(args.photos, args.fit)
+    starts = [float(s) for s in args.starts_deg.split(",")]
+    result = fit(d, args.variant, starts, args.aperture_nodes)
+    t1 = time.perf_counter()
+    result.update(import_s=T_IMPORTED - T_START, fit_s=t1 - t0)
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,273 @@
+"""The least-squares engine: solvers, one compiled solve per start, the multi-start.
+
+Everything here works on a prepared `Problem` and a `FreeSpec`; the iteration around it (the
+active set and the identifiability rule) is in `_least_squares.py` and `_identify.py`
+[conventions §9, §10]; the design is documented in docs/fitting.md §3.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array
+
+from ._errors import FitError, FitInputError
+from ._forward import Data, Static, mean_and_log_variance, model_values, physical, residuals
+from ._forward import variance as row_variance
+from ._params import from_physical
+from ._problem import FreeSpec, Problem
+
+SOLVERS: tuple[str, ...] = ("lm", "dogleg", "gauss_newton")
+"""Least-squares solvers: optimistix LevenbergMarquardt (default), Dogleg, GaussNewton."""
+
+
+def make_solver(name: str, rtol: float, atol: float) -> optx.AbstractLeastSquaresSolver:
+    """An optimistix solver by name. Gauss-Newton and Dogleg get a least-squares linear solve
+    (fixed slots give zero Jacobian columns, which LM's damping handles by itself)."""
+    if name == "lm":
+        return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    linear = lx.AutoLinearSolver(well_posed=False)
+    if name == "dogleg":
+        return optx.Dogleg(rtol=rtol, atol=atol, linear_solver=linear)
+    if name == "gauss_newton":
+        return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=linear)
+    raise FitInputError(f"solver = {name!r}; choose one of {', '.join(SOLVERS)}")
+
+
+def fisher_information(jacobian: Array, sd: Array, use: Array | None = None) -> Array:
+    """Fisher information `J^T diag(use / sd^2) J` of independent Gaussian rows whose means have
+    the Jacobian `jacobian` `(n_rows, p)` and whose standard deviations are `sd`; rows with
+    `use` False (or 0) carry none. The one home of this matrix: the fit's covariance, the
+    model-error term's part of it, and `stairfit.inspect`'s design study use it."""
+    w = 1.0 / jnp.asarray(sd) ** 2
+    if use is not None:
+        w = jnp.where(jnp.asarray(use) > 0, w, 0.0)
+    jac = jnp.asarray(jacobian)
+    return jac.T @ (jac * w[:, None])
+
+
+class Evaluation(NamedTuple):
+    """The fit at one point `z`: per row `model`, whitened residual `resid` and standard
+    deviation `sd`; `x` the physical value of every slot; `chi2`, `loglik` (Gaussian, full
+    normalisation) and `fisher`, the Fisher information in `z` (every slot)."""
+
+    model: Array
+    x: Array
+    resid: Array
+    sd: Array
+    chi2: Array
+    loglik: Array
+    fisher: Array
+
+
+def evaluate(z: Array, static: Static, data: Data) -> Evaluation:
+    """Model, residuals, chi^2, log L and the Fisher information (in z) at one point.
+
+    Fisher information of independent Gaussian rows with mean `m(z)` and variance `v(z)`:
+    `I = sum_rows [grad m grad m^T / v + (1/2) grad ln v grad ln v^T]` (the second term only
+    with the model-error term). Forward-mode derivatives (`jax.jacfwd`).
+    """
+    m, p = model_values(z, static, data)
+    var = row_variance(m, p, static, data)
+    sd = jnp.sqrt(var)
+    r = data.use * (data.value - m) / sd
+    loglik = -0.5 * jnp.sum(data.use * (r * r + jnp.log(2.0 * jnp.pi * var)))
+    jm, jlv = jax.jacfwd(lambda zz: mean_and_log_variance(zz, static, data))(z)
+    fisher = fisher_information(jm, sd, data.use)
+    fisher = fisher + fisher_information(jlv, jnp.full_like(sd, math.sqrt(2.0)), data.use)
+    x = physical(z, static, data)
+    return Evaluation(m, x, r, sd, jnp.sum(r * r), loglik, fisher)
+
+
+def _linear_scale(z0: Array, static: Static, data: Data) -> Array:
+    """`z0` with the log-scale slot set to the best scale for the other start values.
+
+    The model is linear in `scale`: `model = scale * A + floor * cos(theta_i)`, so the weighted
+    least-squares scale is `sum(w A (v - floor cos)) / sum(w A^2)`, `w = use / stderr^2`. Only
+    applied when the scale is free.
+    """
+    k = static.layout.slot("scale")
+    d1 = data._replace(free=data.free.at[k].set(False), x_fixed=data.x_fixed.at[k].set(1.0))
+    m1, p = model_values(z0, static, d1)
+    base = p.floor * jnp.cos(data.theta_i)
+    a = m1 - base
+    w = data.use / data.stderr**2
+    num = jnp.sum(w * a * (data.value - base))
+    den = jnp.sum(w * a * a)
+    ok = (den > 0) & (num > 0)
+    scale = jnp.where(ok, num / jnp.where(ok, den, 1.0), 1.0)
+    return jnp.where(data.free[k], z0.at[k].set(jnp.log(scale)), z0)
+
+
+@eqx.filter_jit
+def _solve_one(
+    z0: Array, static: Static, data: Data, solver: optx.AbstractLeastSquaresSolver, max_steps: int
+) -> tuple[Array, Array, Array, Evaluation]:
+    """One start: linear scale, the optimistix solve, and the evaluation at its optimum.
+
+    One compiled function per scene shape, forward variant, solver and `max_steps`; the starts
+    run one after another (measured: as fast as vmapping them, and half the compile time).
+    """
+    z0 = _linear_scale(z0, static, data)
+    sol = optx.least_squares(
+        residuals, solver, z0, args=(static, data), max_steps=max_steps, throw=False
+    )
+    codes = _result_codes(sol.result)
+    return sol.value, codes, sol.stats["num_steps"], evaluate(sol.value, static, data)
+
+
+_RESULT_NAMES = (
+    "successful",
+    "nonlinear_max_steps_reached",
+    "nonlinear_divergence",
+    "nonfinite",
+    "singular",
+    "breakdown",
+    "stagnation",
+    "max_steps_reached",
+    "conlim",
+    "nonfinite_input",
+)
+_RESULT_ITEMS = tuple(
+    (name, getattr(optx.RESULTS, name)) for name in _RESULT_NAMES if hasattr(optx.RESULTS, name)
+)
+_RESULT_MESSAGES = {
+    name: " ".join(optx.RESULTS[item].split()) or name for name, item in _RESULT_ITEMS
+}
+"""optimistix result names and their one-line messages (looked up once)."""
+
+
+def _result_codes(result: optx.RESULTS) -> Array:
+    """Inside jit: one boolean per name of `_RESULT_ITEMS` (which result this is)."""
+    return jnp.stack([result == item for _, item in _RESULT_ITEMS])
+
+
+def _result_string(codes: np.ndarray) -> tuple[str, str]:
+    """(name, one-line message) from `_result_codes`."""
+    hits = np.flatnonzero(np.asarray(codes))
+    if hits.size == 0:
+        return "unknown", "unknown optimistix result"
+    name = _RESULT_ITEMS[int(hits[0])][0]
+    return name, _RESULT_MESSAGES[name]
+
+
+def start_vectors(problem: Problem, spec: FreeSpec, sigmas: tuple[float, ...]) -> np.ndarray:
+    """One start per width: widths as given, others from the fixed values or a heuristic
+    (radius `r_max / 4`; floor half the 10th percentile of the data; model error 2%)."""
+    lay, fixed = problem.layout, problem.fixed
+    obs = problem.observations
+    z = np.zeros(lay.size)
+    for p in lay.parameters()[1 + lay.n_wedges :]:  # every parameter but the widths
+        x = float(getattr(fixed, p.param))
+        if p.param == "edge_radius_um" and x <= 0:
+            x = 0.25 * problem.r_max_um
+        if p.param == "floor" and x <= 0:
+            v = obs.value[obs.use]
+            x = max(0.5 * float(np.percentile(v, 10)), 1e-4 * float(np.max(np.abs(v))), 1e-12)
+        if p.param == "model_error_frac" and x <= 0:
+            x = 0.02
+        z[p.slot] = from_physical(x, p.transform, problem.r_max_um)
+    out = np.repeat(z[None, :], len(sigmas), axis=0)
+    widths = [lay.slot("sigma_rad")] + [lay.slot("sigma_rad", w) for w in range(lay.n_wedges)]
+    for i, s in enumerate(sigmas):
+        out[i, widths] = math.log(s)
+    return out if "sigma_rad" in spec.free else out[:1]
+
+
+class StartRun(NamedTuple):
+    """One start of the multi-start: its optimum `z`, optimistix result `name` and `msg`,
+    solver `steps`, the evaluation there (numpy) and whether everything was finite."""
+
+    z: np.ndarray
+    name: str
+    msg: str
+    steps: int
+    ev: Evaluation
+    finite: bool
+
+    @property
+    def converged(self) -> bool:
+        """optimistix reported success and the values are finite."""
+        return self.name == "successful" and self.finite
+
+
+class CoreFit(NamedTuple):
+    """The best start of one multi-start solve of a variant (`spec`) and its configuration.
+
+    `success`: the chosen start converged; `message`: its optimistix result (with the message
+    when it did not); `z`, `steps`, `ev`: its optimum, solver steps, evaluation; `starts_*`:
+    every start's width, chi^2 (inf if not finite) and convergence; `static`, `data`: what the
+    solve ran on.
+    """
+
+    success: bool
+    message: str
+    z: np.ndarray
+    steps: int
+    starts_sigma: tuple[float, ...]
+    starts_chi2: tuple[float, ...]
+    starts_converged: tuple[bool, ...]
+    ev: Evaluation
+    spec: FreeSpec
+    data: Data
+    static: Static
+
+    @property
+    def free_slots(self) -> np.ndarray:
+        """Indices of the free slots of `z`, in slot order (the covariance order)."""
+        return np.flatnonzero(np.asarray(self.data.free))
+
+
+def _run(z0: np.ndarray, static: Static, data: Data, solver: optx.AbstractLeastSquaresSolver,
+         max_steps: int) -> StartRun:  # fmt: skip
+    z, codes, steps, ev = _solve_one(jnp.asarray(z0), static, data, solver, max_steps)
+    ev = Evaluation(*(np.asarray(a) for a in ev))
+    z = np.asarray(z)
+    name, msg = _result_string(codes)
+    finite = bool(np.isfinite(ev.chi2) and np.all(np.isfinite(z)) and np.all(np.isfinite(ev.x)))
+    return StartRun(z, name, msg, int(steps), ev, finite)
+
+
+def fit_core(
+    problem: Problem,
+    spec: FreeSpec,
+    solver: optx.AbstractLeastSquaresSolver,
+    max_steps: int,
+    sigmas: tuple[float, ...],
+) -> CoreFit:
+    """Multi-start solve and evaluation at the best converged start (numpy outputs); raises
+    `FitError` when no start gives finite values."""
+    static, data = problem.static_for(spec), problem.arrays_for(spec)
+    z0s = start_vectors(problem, spec, sigmas)
+    runs = [_run(z0, static, data, solver, max_steps) for z0 in z0s]
+    if not any(r.finite for r in runs):
+        raise FitError(
+            "least squares produced non-finite values from every start "
+            f"({'; '.join(sorted({r.msg for r in runs}))}); check the observations (values, "
+            "stderr) and the fixed parameters"
+        )
+    chi2 = np.array([float(r.ev.chi2) if r.finite else np.inf for r in runs])
+    pool = [i for i, r in enumerate(runs) if r.converged] or [
+        i for i, r in enumerate(runs) if r.finite
+    ]
+    best = runs[min(pool, key=lambda i: chi2[i])]
+    return CoreFit(
+        success=best.converged,
+        message=best.name if best.converged else f"{best.name}: {best.msg}",
+        z=best.z,
+        steps=best.steps,
+        starts_sigma=tuple(float(np.exp(z[0])) for z in z0s),
+        starts_chi2=tuple(float(c) for c in chi2),
+        starts_converged=tuple(r.converged for r in runs),
+        ev=best.ev,
+        spec=spec,
+        data=data,
+        static=static,
+    )
