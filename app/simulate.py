@@ -48,6 +48,10 @@ MARKER_INK = 0.04
 BASE_PLATE = 0.10
 """Radiance of the dark base plate the wedges and markers sit on, as a fraction of the paper."""
 
+MAX_EXPOSURE_S = 30.0
+"""The longest exposure the synthetic camera takes (s): the longest timed exposure of most
+cameras. Views darker than that allows stay dark (`view_exposures`)."""
+
 
 @dataclass(frozen=True)
 class Truth:
@@ -407,7 +411,9 @@ def view_exposures(settings: SimulationSettings, radiance: np.ndarray) -> list[t
 
     The (first, shortest) exposure puts the brightest face of the view (with `fixed_exposure`:
     of the whole session) at about half of the raw range, at f/5.6 and ISO 100, rounded down to
-    a third of a stop; a bracket adds exposures 4, 16, ... times longer.
+    a third of a stop; a bracket adds exposures 4, 16, ... times longer. No exposure is longer
+    than `MAX_EXPOSURE_S` (a view whose faces are all but black, e.g. off-specular with no
+    diffuse floor, gets the longest exposure and stays dark, as with a real camera).
     """
     from stairfit.imaging import Exposure
 
@@ -415,10 +421,12 @@ def view_exposures(settings: SimulationSettings, radiance: np.ndarray) -> list[t
     sensor = _sensor(e)
     f_number, iso = 5.6, 100.0
     full = sensor.white - sensor.black_level
+    longest = MAX_EXPOSURE_S / 4.0 ** (e.bracket - 1)  # the reference of a bracket at the limit
     out = []
     for p in range(radiance.shape[0]):
         peak = float(radiance.max() if e.fixed_exposure else radiance[p].max())
-        t = _third_stop(0.5 * full * f_number**2 / (iso / 100.0) / peak)
+        wanted = 0.5 * full * f_number**2 / (iso / 100.0) / peak if peak > 0 else math.inf
+        t = _third_stop(min(wanted, longest))
         out.append(tuple(Exposure(t * 4.0**k, f_number, iso) for k in range(e.bracket)))
     return out
 

@@ -387,8 +387,18 @@ def render_photo(
     )
 
 
+_UINT32_MAX = 2**32 - 1
+
+
 def _rational(x: float, max_den: int) -> tuple[int, int]:
-    fr = Fraction(x).limit_denominator(max_den)
+    """`x` as a TIFF RATIONAL (two unsigned 32-bit integers), the denominator at most `max_den`
+    and small enough that the numerator fits; an ImagingError when `x` cannot be written."""
+    if not (math.isfinite(x) and 0 < x <= _UINT32_MAX):
+        raise ImagingError(f"write_dng: {x!r} does not fit an EXIF RATIONAL tag (0, 2^32 - 1]")
+    den = max(1, min(max_den, (_UINT32_MAX - 1) // math.ceil(x)))
+    fr = Fraction(x).limit_denominator(den)
+    if fr.numerator == 0:
+        raise ImagingError(f"write_dng: {x!r} is below the smallest RATIONAL 1/{den} written")
     return fr.numerator, fr.denominator
 
 

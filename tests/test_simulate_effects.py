@@ -139,3 +139,60 @@ def test_bad_effect_options_are_one_line_errors(
         err = capsys.readouterr().err.strip()
         assert message in err and "\n" not in err, err
         assert not (tmp_path / command).exists()
+
+
+def test_dark_views_get_the_longest_exposure_not_an_absurd_one() -> None:
+    """`stairfit simulate --floor 0` crashed (struct.error writing ExposureTime): a view whose
+    faces are all but black (1e-24, or 0) asked for a 1e29 s exposure. Every exposure is now at
+    most MAX_EXPOSURE_S, a bracket keeps its 4x steps, and a normal view still puts its
+    brightest face between a third of a stop below half of the raw range and half of it."""
+    from stairfit.simulate import (
+        MAX_EXPOSURE_S,
+        SessionEffects,
+        SimulationSettings,
+        _sensor,
+        view_exposures,
+    )
+
+    radiance = np.zeros((3, 2, 3))
+    radiance[1] = 1e-24
+    radiance[2, 0] = 5.0e5
+    settings = SimulationSettings(effects=SessionEffects(bracket=3))
+    exposures = view_exposures(settings, radiance)
+    times = np.array([[e.exposure_time_s for e in view] for view in exposures])
+    assert np.all(np.isfinite(times)) and times.max() <= MAX_EXPOSURE_S
+    np.testing.assert_allclose(times[:, 1:] / times[:, :-1], 4.0)
+    sensor = _sensor(settings.effects)
+    half = 0.5 * (sensor.white - sensor.black_level)
+    peak_dn = 5.0e5 * exposures[2][0].exposure_time_s / exposures[2][0].f_number ** 2
+    assert half * 2 ** (-1 / 3) <= peak_dn <= half
+
+
+def test_exposure_tags_that_do_not_fit_a_rational_are_one_line_errors(tmp_path: Path) -> None:
+    """A long exposure with a fraction (5000.3 s) is written within 1 ppm (its denominator is
+    kept small enough that the numerator fits 32 bits); one that cannot be written at all is an
+    ImagingError, not a struct.error."""
+    from stairfit.imaging import synthetic
+
+    mosaic = np.full((48, 64), 2000, np.uint16)
+    ok = imaging.Exposure(5000.3, 5.6, 100)
+    frame = imaging.decode_raw(synthetic.write_dng(tmp_path / "a.dng", mosaic, exposure=ok))
+    assert frame.exif_exposure_time_s == pytest.approx(5000.3, rel=1e-6)
+    huge = imaging.Exposure(1e29, 5.6, 100)
+    with pytest.raises(imaging.ImagingError, match="does not fit an EXIF RATIONAL"):
+        synthetic.write_dng(tmp_path / "b.dng", mosaic, exposure=huge)
+    assert not (tmp_path / "b.dng").exists()
+
+
+@pytest.mark.slow
+def test_simulate_with_no_floor_writes_a_folder(tmp_path: Path) -> None:
+    """The reported command, `stairfit simulate --floor 0`, at a small size: exit 0, and the
+    darkest views at the longest exposure."""
+    from stairfit.simulate import MAX_EXPOSURE_S
+
+    folder = tmp_path / "photos"
+    argv = ["simulate", str(folder), "--floor", "0", "--megapixels", "0.3", "--views", "3"]
+    assert main([*argv, "--quiet"]) == 0
+    scene = load_scene(folder)
+    times = [imaging.decode_raw(folder / p.file).exif_exposure_time_s for p in scene.photos]
+    assert max(times) == pytest.approx(MAX_EXPOSURE_S, rel=0.26)  # rounded down a third stop
