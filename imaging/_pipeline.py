@@ -49,6 +49,7 @@ TABLE_VERSION = 5
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
 4: rows flagged below_black carry NaN (were negative values).
+5: the radiometry column (dark frames, flat fields, HDR brackets).
 """
 
 
