@@ -404,3 +404,33 @@ def test_the_cache_follows_bracket_members_and_calibration_frames(tmp_path: Path
     third = measure()
     assert third[0].settings_key != second[0].settings_key
     assert third[0].value != second[0].value
+
+
+def test_a_brackets_markers_come_from_its_best_consistent_exposure() -> None:
+    """`_best_exposure_pose`: of the exposures whose markers give a camera, most markers used
+    wins, then the smaller RMS error; when none gives one, the error of the exposure that found
+    the most markers is raised (the earlier on a tie)."""
+    from stairfit.imaging._pipeline import _best_exposure_pose
+
+    def det(n: int, tag: float) -> imaging.MarkerDetection:
+        return imaging.MarkerDetection(tuple(range(n)), np.full((n, 4, 2), tag), "DICT_4X4_50")
+
+    def pose(d: imaging.MarkerDetection, used: int, rms: float) -> imaging.CameraPose:
+        return imaging.CameraPose("homography", np.eye(3), rms, d.ids[:used], (rms,) * used)
+
+    rules = {0.0: None, 1.0: (3, 0.1), 2.0: (4, 0.4), 3.0: (4, 0.2)}  # by tag: (used, rms)
+
+    def fit(d: imaging.MarkerDetection) -> imaging.CameraPose:
+        rule = rules[float(d.corners_px[0, 0, 0])]
+        if rule is None:
+            raise imaging.ImagingError(f"misfit of {len(d.ids)} markers")
+        return pose(d, *rule)
+
+    dets = [det(6, 0.0), det(3, 1.0), det(4, 2.0), det(4, 3.0)]
+    chosen, camera = _best_exposure_pose(dets, fit)
+    assert chosen is dets[3] and camera.rms_error_px == 0.2
+    rules.update({1.0: None, 2.0: None, 3.0: None})
+    with pytest.raises(imaging.ImagingError, match="misfit of 6 markers"):
+        _best_exposure_pose(dets, fit)
+    with pytest.raises(imaging.ImagingError, match="misfit of 4 markers"):
+        _best_exposure_pose(dets[1:], fit)
