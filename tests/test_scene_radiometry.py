@@ -89,6 +89,16 @@ BAD_FIELDS = [
         r"calibration\.flat_feild: unknown field; did you mean 'flat_field'",
     ),
     (["calibration"], {}, r"calibration: give flat_field"),
+    (
+        ["calibration", "flat_field"],
+        "../flat.dng",
+        r"calibration\.flat_field\[0\]: '\.\./flat\.dng' is outside the photo folder",
+    ),
+    (
+        ["photos", 1, "file"],
+        ["b1.dng", "b2.dng", "./a.dng"],
+        r"photos\[1\]\.file\[2\]: '\./a\.dng' is the same file as photos\[0\]\.file 'a\.dng'",
+    ),
     (["calibration", "flat_degree"], 30, r"calibration\.flat_degree: 30 is outside"),
 ]
 
@@ -139,6 +149,18 @@ def test_missing_calibration_file_is_named(folder: Path, capsys: pytest.CaptureF
     err = _fit(folder, capsys)
     assert "scene.toml: calibration.flat_field[1]: 'flat9.dng' is not in" in err
     assert "remove it from the list" in err
+
+
+def test_a_dark_frame_that_is_a_device_is_refused_before_reading(
+    folder: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """The hostile-input checks of photo files (tests/test_cli_hostile.py) cover every input
+    file: a dark frame that links to /dev/zero would otherwise be read forever."""
+    (folder / "dark.dng").unlink()
+    (folder / "dark.dng").symlink_to("/dev/zero")
+    _write(folder, GOOD)
+    err = _fit(folder, capsys)
+    assert "calibration.dark_frames[0]: 'dark.dng' is a character device" in err
 
 
 def test_missing_bracket_member_is_named(folder: Path, capsys: pytest.CaptureFixture) -> None:
