@@ -832,32 +832,12 @@ def measure_photos(
     workers = max(1, min(workers, len(todo)))
     try:
         cals = _build_calibrations(todo, settings)
-        if workers == 1:
-            serial_done, serial_errors = _measure_in_process(
-                todo, settings, pdir, pcache, bar, cals
-            )
-            done |= serial_done
-            errors |= serial_errors
-        else:
-            # "spawn": never fork a parent that may be running JAX threads.
-            ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-                futures: dict[Future, PhotoSpec] = {
-                    pool.submit(
-                        measure_photo,
-                        spec,
-                        settings,
-                        preview_path(pdir, spec) if pdir else None,
-                        preview_cache=pcache,
-                        calibration=cals.get(spec.calibration) if spec.calibration else None,
-                    ): spec
-                    for spec in todo
-                }
-                try:
-                    _collect(futures, done, errors, bar)
-                except BaseException:  # an interruption: do not start the photos still queued
-                    pool.shutdown(wait=False, cancel_futures=True)
-                    raise
+        run = (todo, settings, pdir, pcache, bar, cals)
+        new_done, new_errors = (
+            _measure_in_process(*run) if workers == 1 else _measure_in_pool(*run, workers)
+        )
+        done |= new_done
+        errors |= new_errors
     finally:
         bar.close()
     table = MeasurementTable(tuple(r for s in specs if s.name in done for r in done[s.name]))
@@ -867,6 +847,40 @@ def measure_photos(
     same_bytes_warnings(table)
     low_signal_warnings(table)
     return _with_failures(table, [(n, errors[n]) for n in names if n in errors], raise_on_failure)
+
+
+def _measure_in_pool(
+    todo: Sequence[PhotoSpec],
+    settings: ExtractionSettings,
+    pdir: Path | None,
+    pcache: Path | None,
+    bar: tqdm,
+    calibrations: Mapping[CalibrationSpec, Calibration],
+    workers: int,
+) -> tuple[dict[str, tuple[MeasurementRow, ...]], dict[str, str]]:
+    """Measure photos in `workers` spawned processes: (rows by photo, errors by photo)."""
+    done: dict[str, tuple[MeasurementRow, ...]] = {}
+    errors: dict[str, str] = {}
+    # "spawn": never fork a parent that may be running JAX threads.
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        futures: dict[Future, PhotoSpec] = {
+            pool.submit(
+                measure_photo,
+                spec,
+                settings,
+                preview_path(pdir, spec) if pdir else None,
+                preview_cache=pcache,
+                calibration=calibrations.get(spec.calibration) if spec.calibration else None,
+            ): spec
+            for spec in todo
+        }
+        try:
+            _collect(futures, done, errors, bar)
+        except BaseException:  # an interruption: do not start the photos still queued
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+    return done, errors
 
 
 def _with_failures(
