@@ -72,18 +72,18 @@ def test_a_small_independent_folder_fits(tmp_path: Path) -> None:
     _check_recovery(results, truth["parameters"], sigma_interval=False)
 
 
-def _markers_found(folder: Path, photo: str) -> int:
+def markers_found(folder: Path, photo: str) -> int:
     frame = imaging.decode_raw(folder / photo)
     return len(set(imaging.detect_markers(frame, "DICT_4X4_50").ids))
 
 
-def _rois_from_markers(folder: Path, min_markers: int = 3) -> list[str]:
+def rois_from_markers(folder: Path, min_markers: int = 3) -> list[str]:
     """Drop the per-photo roi_px of every photo where enough markers are found (face_mm and
     the markers place them); return the photos that keep their hand-drawn ROIs."""
     scene = tomllib.loads((folder / "scene.toml").read_text())
     kept = []
     for photo in scene["photos"]:
-        if _markers_found(folder, photo["file"]) >= min_markers:
+        if markers_found(folder, photo["file"]) >= min_markers:
             del photo["roi_px"]
         else:
             kept.append(photo["file"])
@@ -95,10 +95,12 @@ def _rois_from_markers(folder: Path, min_markers: int = 3) -> list[str]:
 def test_the_paper_setup_fits_unaided(tmp_path: Path) -> None:
     """The issue's photo set: 16 views of 1600 x 1200, exposure tags in IFD0 only, 15%
     vignetting with a flat-field photo, one fixed exposure; the default fit (model selection,
-    posterior) with ROIs from roi_px."""
+    posterior) with ROIs from roi_px. The paper's faces are set flush into the plate, each
+    tilted by its own angle: `face_mm` cannot describe that (its base-frame convention is a
+    wedge standing on the base, rising along +x; docs/imaging.md §3-D placement), so ROIs placed
+    from the markers are checked on the standing layout below."""
     setup = setup_for_this_stairfit(tmp_path)
-    if setup.exposure_tags != "ifd0":
-        pytest.skip("decode_raw does not read exposure tags from IFD0 yet (issue 12 part 1)")
+    assert setup.exposure_tags == "ifd0"  # no exposure overrides: the decoder reads IFD0
     folder = tmp_path / "photos"
     truth = ip.render_folder(folder, seed=7, setup=setup)
     results, seconds = _fit(folder, tmp_path / "fit")
@@ -107,41 +109,27 @@ def test_the_paper_setup_fits_unaided(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_the_paper_setup_fits_with_rois_from_the_markers(tmp_path: Path) -> None:
-    """The same, with the ROIs placed from the markers wherever they are found. The faces lie
-    in the marker plate (they are set into it, flush; independent_photos' docstring), so a
-    plane-to-image mapping places them exactly, and face_mm is their true outline."""
-    setup = setup_for_this_stairfit(tmp_path)
-    folder = tmp_path / "photos"
-    truth = ip.render_folder(folder, seed=8, setup=setup)
-    kept = _rois_from_markers(folder)
-    assert len(kept) <= 4, kept  # the markers are only too small in the most oblique views
-    results, _ = _fit(folder, tmp_path / "fit")
-    _check_recovery(results, truth["parameters"])
-    table = imaging.MeasurementTable.read_csv(tmp_path / "fit" / "measurements.csv")
-    sources = {r.photo: r.roi_source for r in table}
-    assert sum(s == "markers" for s in sources.values()) == 16 - len(kept), sources
-
-
-@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="stairfit takes every face's theta_o from the photo's view_deg; through a camera "
+    "900 mm away, the standing faces (centres up to 17 mm above the plate) are seen up to "
+    "~0.4 deg off it, so the model at the truth misses the steep wedges' lobe flanks by up to "
+    "11% (w60; 0.7% once theta_o is taken from the camera centre to each face's centre): "
+    "sigma 5.958 +- 0.007, model-error term 1.8% (measured 2026-12-02). The measurements "
+    "themselves agree with the truth (ROIs from the markers as from roi_px, within 0.43%). "
+    "Fix: theta_o per face from the fitted pinhole pose",
+)
 def test_standing_wedges_fit_with_rois_from_the_markers(tmp_path: Path) -> None:
     """Wedges standing on the plate (`standing_setup`: each face rises along +x by its wedge
     angle, as `face_mm` is defined for scenes relative to the base), every ROI placed from the
     markers: the faces are not in the markers' plane, so this needs placement in 3-D with the
-    camera's focal length."""
-    from test_independent_photos import scene_reads_intrinsics
-
-    if not scene_reads_intrinsics():
-        pytest.skip(
-            "placement from markers is base-plane only (a homography) until [camera] "
-            "focal_length_px and 3-D face placement (issue 12 part 1) are merged; standing "
-            "faces rise above the base and a base-plane placement misses them"
-        )
+    camera's focal length; the slow counterpart of tests/test_independent_photos.py's fast
+    placement check."""
     setup = ip.standing_setup(**{
         k: getattr(setup_for_this_stairfit(tmp_path), k) for k in ("exposure_tags",)
     }, write_intrinsics=True)  # fmt: skip
     folder = tmp_path / "photos"
     truth = ip.render_folder(folder, seed=10, setup=setup)
-    assert _rois_from_markers(folder, min_markers=4) == []
+    assert rois_from_markers(folder, min_markers=4) == []
     results, _ = _fit(folder, tmp_path / "fit")
     _check_recovery(results, truth["parameters"])
