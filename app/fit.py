@@ -411,6 +411,8 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
         k, wedge = wedges[r.wedge]
         p, photo = photos[r.photo]
         ti, to = scene.face_angles_deg(photo, wedge)
+        if r.face_view_deg is not None and np.isfinite(r.face_view_deg):
+            to = r.face_view_deg + wedge.angle_deg  # the face's own view angle (pinhole)
         flagged = bool(r.flag)
         saturated = r.saturated_fraction > 0
         n_flagged += flagged

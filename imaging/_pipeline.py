@@ -39,17 +39,19 @@ from ._placement import (
     face_polygon,
     fit_camera_pose,
     hidden_fraction,
+    view_parallax_deg,
 )
 from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import Polygon, RoiMask, as_polygon, roi_mask
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 5
+TABLE_VERSION = 6
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
 4: rows flagged below_black carry NaN (were negative values).
 5: the radiometry column (dark frames, flat fields, HDR brackets).
+6: the face_view_deg column (a pinhole-placed face's own view angle).
 """
 
 
@@ -346,7 +348,7 @@ def measure_frame(
                     reprojection_error_px=placement.rms_error_px if by_marker else None,  # type: ignore[union-attr]
                     n_markers=len(placement.ids) if by_marker else None,  # type: ignore[union-attr]
                     camera=frame.camera,
-                    **_marker_columns(placement if by_marker else None, detection),
+                    **_marker_columns(placement if by_marker else None, detection, spec, n),
                     radiometry=radiometry.description if radiometry is not None else "",
                 )
             )
@@ -413,15 +415,23 @@ def _check_hidden(spec: PhotoSpec, pose: CameraPose, rois: dict[str, RoiMask]) -
             )
 
 
-def _marker_columns(pose: CameraPose | None, detection: MarkerDetection | None) -> dict:
-    """The marker columns of a row: ids used, their smallest cell (px) and the camera model."""
+def _marker_columns(
+    pose: CameraPose | None, detection: MarkerDetection | None, spec: PhotoSpec, name: str
+) -> dict:
+    """The marker columns of ROI `name`'s rows: ids used, their smallest cell (px), the camera
+    model and, through a pinhole, the face's own view angle (`face_view_deg`)."""
     if pose is None or detection is None:
         return {"marker_ids": "", "marker_cell_px": None, "placement": ""}
     cells = dict(zip(detection.ids, detection.cell_px, strict=True))
+    angle = dict(spec.face_angles_deg).get(name, 0.0)
+    assert spec.markers is not None  # a pose comes from markers
+    parallax = view_parallax_deg(pose, spec.markers, dict(spec.faces_mm)[name], angle)
+    own = None if parallax is None or spec.view_deg is None else spec.view_deg + parallax
     return {
         "marker_ids": " ".join(str(i) for i in pose.ids),
         "marker_cell_px": min(cells[i] for i in pose.ids),
         "placement": pose.model,
+        "face_view_deg": own,
     }
 
 
