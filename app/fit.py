@@ -21,7 +21,7 @@ from . import _exclusions, _ranges
 from ._failed_previews import FAILED_PREVIEWS, forget_previews, keep_previews
 from .errors import StairfitWarning, UserError
 from .presets import PRESETS, Preset, get_preset
-from .scene import Scene, load_scene, visible
+from .scene import Photo, Scene, load_scene, visible
 
 DEG = np.pi / 180
 CACHE_DIR = ".stairfit-cache"
@@ -150,19 +150,22 @@ def run(args: argparse.Namespace) -> int:
 
 
 def check_photos(scene: Scene) -> None:
-    """Every listed photo is a regular file (a one-line error names the one that is not)."""
-    for k, photo in enumerate(scene.photos):
-        names = photo.file if isinstance(photo.file, list | tuple) else (photo.file,)
-        for name in names:
-            problem = photo_file_problem(scene.folder / name, scene.folder)
-            if problem is not None:
-                raise UserError(f"{scene.path}: photos[{k}].file: {name!r} {problem}")
+    """Every listed file (photos, bracket members, calibration frames) is a regular file (a
+    one-line error names the one that is not)."""
+    for where, name, _ in scene.input_fields():
+        remove = "the [[photos]] entry" if where.endswith(".file") else "it from the list"
+        problem = photo_file_problem(scene.folder / name, scene.folder, remove)
+        if problem is not None:
+            raise UserError(f"{scene.path}: {where}: {name!r} {problem}")
 
 
-def photo_file_problem(path: Path, folder: Path) -> str | None:
+def photo_file_problem(
+    path: Path, folder: Path, remove: str = "the [[photos]] entry"
+) -> str | None:
     """Why `path` cannot be read as a photo (missing, a folder, a device, a broken link), or None.
 
-    Checked before decoding: reading a link to /dev/zero would never end.
+    Checked before decoding: reading a link to /dev/zero would never end. `remove` names what
+    to remove in the advice for a missing file.
     """
     import os
     import stat
@@ -171,7 +174,7 @@ def photo_file_problem(path: Path, folder: Path) -> str | None:
         if path.is_symlink():
             return f"is a link to {os.readlink(path)}, which does not exist; fix the link"
         spaces = " (mind the spaces around the name)" if path.name != path.name.strip() else ""
-        return f"is not in {folder}{spaces}; fix the name or remove the [[photos]] entry"
+        return f"is not in {folder}{spaces}; fix the name or remove {remove}"
     link = f" (a link to {path.resolve()})" if path.is_symlink() else ""
     mode = path.stat().st_mode
     if stat.S_ISDIR(mode):
@@ -258,6 +261,7 @@ def photo_specs(scene: Scene) -> list[Any]:
     from .placement import marker_layout, placement_fields
 
     layout = marker_layout(scene)
+    calibration = calibration_spec(scene)
     specs = []
     for photo in scene.photos:
         per_photo = dict(photo.roi_px)
@@ -291,9 +295,50 @@ def photo_specs(scene: Scene) -> list[Any]:
                 markers=layout if faces else None,
                 reference=reference,
                 **placement_fields(scene, photo, faces),
+                **radiometry_fields(scene, photo, calibration),
             )
         )
     return specs
+
+
+def radiometry_fields(scene: Scene, photo: Photo, calibration: Any) -> dict[str, Any]:
+    """A photo's `imaging.PhotoSpec` fields for its HDR bracket members and the calibration
+    frames (`calibration_spec(scene)`, shared by every photo)."""
+    from stairfit import imaging
+
+    bracket = tuple(
+        imaging.BracketMember(scene.folder / b.file, b.exposure_time_s, b.f_number, b.iso)
+        for b in photo.bracket
+    )
+    return {"bracket": bracket, "calibration": calibration}
+
+
+def calibration_spec(scene: Scene) -> Any:
+    """The scene's `[calibration]` frames as an `imaging.CalibrationSpec` (None without any).
+
+    Reads each file's SHA-256 (the cache key depends on the frames' contents).
+
+    Raises:
+        UserError: a frame cannot be read (one line naming the scene field).
+    """
+    from stairfit import imaging
+
+    c = scene.calibration
+    if c is None:
+        return None
+    folder = scene.folder
+    try:
+        return imaging.calibration_spec(
+            flat_field=[
+                (f"calibration.flat_field[{j}]", folder / f) for j, f in enumerate(c.flat_field)
+            ],
+            dark_frames=[
+                (f"calibration.dark_frames[{j}]", folder / f) for j, f in enumerate(c.dark_frames)
+            ],
+            flat_degree=c.flat_degree,
+        )
+    except imaging.ImagingError as err:  # an unreadable frame: one line, no traceback
+        raise UserError(f"{scene.path}: {err}") from None
 
 
 def extraction_settings(scene: Scene) -> Any:
@@ -366,6 +411,8 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
         k, wedge = wedges[r.wedge]
         p, photo = photos[r.photo]
         ti, to = scene.face_angles_deg(photo, wedge)
+        if r.face_view_deg is not None and np.isfinite(r.face_view_deg):
+            to = r.face_view_deg + wedge.angle_deg  # the face's own view angle (pinhole)
         flagged = bool(r.flag)
         saturated = r.saturated_fraction > 0
         n_flagged += flagged
@@ -462,6 +509,7 @@ def fit_setup(scene: Scene, preset: Preset) -> tuple[Any, Any]:
         preset.aperture_nodes
         if (scene.light.angular_diameter_deg > 0 or scene.camera.angular_extent_deg > 0)
         else 1,
+        foreshortened=True,  # angular_extent_deg is the spread seen face-on (docs/scene.md)
     )
     return spectral, aperture
 

@@ -88,10 +88,11 @@ def measure_specs(scene: Scene) -> list[Any]:
     scene's patches (pixel polygons, or outlines on the base placed by the markers)."""
     from stairfit import imaging
 
-    from .fit import photo_specs
+    from .fit import calibration_spec, photo_specs, radiometry_fields
     from .placement import marker_layout
 
     patches = scene.patches
+    calibration = calibration_spec(scene) if scene.specimen is None else None
     specs = photo_specs(scene) if scene.specimen is not None else [None] * len(scene.photos)
     layout = marker_layout(scene)
     out = []
@@ -105,6 +106,7 @@ def measure_specs(scene: Scene) -> list[Any]:
                 path=scene.folder / photo.file, name=photo.file,
                 exposure_time_s=photo.exposure_time_s, f_number=photo.f_number, iso=photo.iso,
                 rois=tuple(rois), faces_mm=tuple(faces), markers=layout if faces else None,
+                **radiometry_fields(scene, photo, calibration),
             )  # fmt: skip
         elif patches:
             spec = dataclasses.replace(

@@ -217,6 +217,11 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
             "photos": [
                 {"file": name, "sha256": outcome.table.for_photo(name)[0].photo_sha256}
                 for name in outcome.table.photos()
+            ],  # a bracket's: SHA-256 of its files' digests joined by "," (docs/imaging.md)
+            "calibration": [
+                {"field": where, "file": name, "sha256": sha256_of(path)}
+                for where, name, path in scene.input_fields()
+                if where.startswith("calibration.")
             ],
         },
         "model_selection": {

@@ -131,11 +131,23 @@ class Reference:
 
 
 @dataclass(frozen=True)
+class BracketFile:
+    """A further exposure of a photo's view (an HDR bracket), with its own exposure overrides."""
+
+    file: str
+    exposure_time_s: float | None = None
+    f_number: float | None = None
+    iso: float | None = None
+
+
+@dataclass(frozen=True)
 class Photo:
     """One photograph: its file, geometry and optional overrides.
 
-    `light_deg` and `view_deg` are always set in a scene for `fit`; a measure-only scene of
-    patches alone (no [specimen]) may leave them out (None).
+    `file` is the photo's (first) file and its name in the results; an HDR bracket (`file` a
+    list in the scene file) has its further exposures in `bracket`. The overrides here are the
+    first file's. `light_deg` and `view_deg` are always set in a scene for `fit`; a
+    measure-only scene of patches alone (no [specimen]) may leave them out (None).
     """
 
     file: str
@@ -145,6 +157,21 @@ class Photo:
     f_number: float | None = None
     iso: float | None = None
     roi_px: tuple[tuple[str, Polygon], ...] = ()
+    bracket: tuple[BracketFile, ...] = ()
+
+    @property
+    def files(self) -> tuple[str, ...]:
+        """Every file of this view: the photo's file, then the bracket's further exposures."""
+        return (self.file, *(b.file for b in self.bracket))
+
+
+@dataclass(frozen=True)
+class CalibrationFrames:
+    """Flat-field photos and dark frames (file names in the scene's folder); docs/scene.md."""
+
+    flat_field: tuple[str, ...] = ()
+    dark_frames: tuple[str, ...] = ()
+    flat_degree: int = 8
 
 
 @dataclass(frozen=True)
@@ -181,24 +208,40 @@ class Scene:
     reference: Reference | None = None
     extraction: Extraction = field(default_factory=Extraction)
     patches: tuple[Patch, ...] = ()
+    calibration: CalibrationFrames | None = None
 
     @property
     def folder(self) -> Path:
         """The photo folder (the scene file's folder)."""
         return self.path.parent
 
+    def input_fields(self) -> tuple[tuple[str, str, Path], ...]:
+        """Every file the scene lists: (scene field, name as written, absolute resolved path).
+
+        Photos and their bracket members (`photos[k].file`, `photos[k].file[j]`), then the
+        calibration frames (`calibration.flat_field[j]`, `calibration.dark_frames[j]`).
+        """
+        out = []
+        for k, photo in enumerate(self.photos):
+            if not photo.bracket:
+                out.append((f"photos[{k}].file", photo.file))
+            else:
+                out += [(f"photos[{k}].file[{j}]", f) for j, f in enumerate(photo.files)]
+        if self.calibration is not None:
+            c = self.calibration
+            out += [(f"calibration.flat_field[{j}]", f) for j, f in enumerate(c.flat_field)]
+            out += [(f"calibration.dark_frames[{j}]", f) for j, f in enumerate(c.dark_frames)]
+        return tuple((where, name, (self.folder / name).resolve()) for where, name in out)
+
     def input_files(self) -> tuple[Path, ...]:
         """Every file this scene makes a run read, as absolute resolved paths, without repeats.
 
-        The scene file, then each photo's file (every member of a bracket, when `file` lists
-        several). Whoever adds a new kind of input file (flat fields, dark frames, ...) adds it
-        here: outputs are refused when they would replace any of these (app/outputs.py).
+        The scene file, then each photo's file (every member of a bracket), then the flat-field
+        photos and dark frames (`input_fields`). Whoever adds a new kind of input file adds it
+        there: outputs are refused when they would replace any of these (app/outputs.py).
         """
-        files = [self.path]
-        for photo in self.photos:
-            names = photo.file if isinstance(photo.file, list | tuple) else (photo.file,)
-            files.extend(self.folder / name for name in names)
-        return tuple(dict.fromkeys(Path(p).resolve() for p in files))
+        files = [Path(self.path).resolve(), *(path for _, _, path in self.input_fields())]
+        return tuple(dict.fromkeys(files))
 
     def face_angles_deg(self, photo: Photo, wedge: Wedge) -> tuple[float, float]:
         """(theta_i, theta_o) of this photo in this wedge's face frame, degrees.
@@ -266,6 +309,7 @@ def parse_scene(raw: dict[str, Any], path: Path, measure_only: bool = False) -> 
             "reference",
             "extraction",
             "patches",
+            "calibration",
         ],
     )
     version = r.get(top, "version", int, "", default=SCENE_VERSION)
@@ -285,9 +329,12 @@ def parse_scene(raw: dict[str, Any], path: Path, measure_only: bool = False) -> 
     extraction = _extraction(r, r.opt_table(top, "extraction", ""))
     patches = _patches(r, top, specimen, reference, markers) if "patches" in top else ()
     photos = _photos(r, top, specimen, tuple(x.name for x in patches))
+    calibration = _calibration(r, top["calibration"]) if "calibration" in top else None
     scene = Scene(
-        path, relative, specimen, light, camera, photos, markers, reference, extraction, patches
-    )
+        path, relative, specimen, light, camera, photos, markers, reference, extraction, patches,
+        calibration,
+    )  # fmt: skip
+    _check_input_paths(r, scene)
     if specimen is not None:
         _check_geometry(r, scene)
         _check_rois(r, scene)
@@ -644,29 +691,77 @@ def _photos(
                 )
                 r.fail(f"{w}.roi_px.{name}", f"no such wedge; {hint}")
             roi_items.append((name, r.polygon(rois, name, f"{w}.roi_px")))
+        files = _file_list(r, p, "file", w)
+        overrides = _exposure_overrides(r, p, w, len(files))
         photos.append(
             Photo(
-                file=r.get(p, "file", str, w),
+                file=files[0],
                 light_deg=r.get(p, "light_deg", float, w, default=angle, lo=-90, hi=90),
                 view_deg=r.get(p, "view_deg", float, w, default=angle, lo=-90, hi=90),
-                exposure_time_s=r.get(
-                    p, "exposure_time_s", float, w, default=None, lo=1e-6, hi=3600
-                ),
-                f_number=r.get(p, "f_number", float, w, default=None, lo=0.5, hi=256),
-                iso=r.get(p, "iso", float, w, default=None, lo=1, hi=1e7),
+                exposure_time_s=overrides[0][0],
+                f_number=overrides[0][1],
+                iso=overrides[0][2],
                 roi_px=tuple(roi_items),
+                bracket=tuple(
+                    BracketFile(f, *o) for f, o in zip(files[1:], overrides[1:], strict=True)
+                ),
             )
         )
-    files = [p.file for p in photos]
-    dup = {f for f in files if files.count(f) > 1}
-    if dup:
-        r.fail("photos", f"file(s) listed twice: {sorted(dup)}")
-    _check_photo_paths(r, photos)
     return tuple(photos)
 
 
-def _check_photo_paths(r: _Reader, photos: list[Photo]) -> None:
-    """Every photo file lies in the scene's folder (by its name) and is listed once (by path).
+_OVERRIDES = (("exposure_time_s", 1e-6, 3600.0), ("f_number", 0.5, 256.0), ("iso", 1.0, 1e7))
+
+
+def _file_list(r: _Reader, d: dict[str, Any], key: str, where: str) -> tuple[str, ...]:
+    """A file name, or a non-empty list of them (an HDR bracket of one view)."""
+    name = _join(where, key)
+    if key not in d:
+        r.fail(name, f'missing; add {key} = "IMG_0001.dng" (or a list of files for a bracket)')
+    v = d[key]
+    items = v if isinstance(v, list) else [v]
+    if not items or not all(isinstance(x, str) for x in items):
+        r.fail(
+            name, f'must be a file name or a list of file names, e.g. ["a.dng", "b.dng"], not {v!r}'
+        )
+    return tuple(items)
+
+
+def _exposure_overrides(
+    r: _Reader, d: dict[str, Any], where: str, n_files: int
+) -> list[tuple[float | None, float | None, float | None]]:
+    """Per file (exposure_time_s, f_number, iso) overrides: a number applies to every file of
+    a bracket, a list gives one value per file."""
+    per_key = []
+    for key, lo, hi in _OVERRIDES:
+        v = d.get(key)
+        if isinstance(v, list):
+            if len(v) != n_files:
+                r.fail(
+                    _join(where, key),
+                    f"lists {len(v)} values for {n_files} files; give one per file in 'file'",
+                )
+            vals = [r.get({key: x}, key, float, where, lo=lo, hi=hi) for x in v]
+        else:
+            vals = [r.get(d, key, float, where, default=None, lo=lo, hi=hi)] * n_files
+        per_key.append(vals)
+    return list(zip(*per_key, strict=True))
+
+
+def _calibration(r: _Reader, d: Any) -> CalibrationFrames:
+    w = "calibration"
+    r.table(d, w, ["flat_field", "dark_frames", "flat_degree"])
+    flat = _file_list(r, d, "flat_field", w) if "flat_field" in d else ()
+    dark = _file_list(r, d, "dark_frames", w) if "dark_frames" in d else ()
+    if not flat and not dark:
+        r.fail(w, "give flat_field (flat-field photos) and/or dark_frames (see docs/scene.md)")
+    degree = r.get(d, "flat_degree", int, w, default=8, lo=2, hi=16)
+    return CalibrationFrames(flat, dark, degree)
+
+
+def _check_input_paths(r: _Reader, scene: Scene) -> None:
+    """Every listed file (photos, bracket members, calibration frames) lies in the scene's
+    folder (by its name) and is listed once (by path).
 
     `../x.dng` or an absolute path elsewhere is refused: results must not depend on files
     outside the folder, and a preview is never written outside the output. A link inside the
@@ -674,28 +769,27 @@ def _check_photo_paths(r: _Reader, photos: list[Photo]) -> None:
     (`./a.dng` and `a.dng`, or two links to it) are refused by comparing resolved paths.
     """
     folder = Path(os.path.abspath(r.path.parent))
-    seen: dict[Path, tuple[int, str]] = {}
-    for k, photo in enumerate(photos):
-        names = photo.file if isinstance(photo.file, list | tuple) else (photo.file,)
-        for name in names:
-            lexical = Path(os.path.normpath(folder / name))
-            if lexical == folder:
-                r.fail(f"photos[{k}].file", f"{name!r} names the photo folder, not a photo file")
-            if folder not in lexical.parents:
-                r.fail(
-                    f"photos[{k}].file",
-                    f"{name!r} is outside the photo folder {folder}; copy the file (or a link to "
-                    "it) into the folder and give its name relative to the folder",
-                )
-            resolved = lexical.resolve()
-            if resolved in seen:
-                j, other = seen[resolved]
-                r.fail(
-                    f"photos[{k}].file",
-                    f"{name!r} is the same file as photos[{j}].file {other!r}; list each photo "
-                    "once",
-                )
-            seen[resolved] = (k, name)
+    seen: dict[Path, tuple[str, str]] = {}
+    for where, name, _ in scene.input_fields():
+        lexical = Path(os.path.normpath(folder / name))
+        if lexical == folder:
+            r.fail(where, f"{name!r} names the photo folder, not a photo file")
+        if folder not in lexical.parents:
+            r.fail(
+                where,
+                f"{name!r} is outside the photo folder {folder}; copy the file (or a link to "
+                "it) into the folder and give its name relative to the folder",
+            )
+        resolved = lexical.resolve()
+        if resolved in seen:
+            other_where, other = seen[resolved]
+            what = (
+                f"is listed twice (also as {other_where})"
+                if other == name
+                else f"is the same file as {other_where} {other!r}"
+            )
+            r.fail(where, f"{name!r} {what}; list every file once")
+        seen[resolved] = (where, name)
 
 
 VISIBILITY_LIMIT_DEG = 89.0

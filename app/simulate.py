@@ -48,6 +48,10 @@ MARKER_INK = 0.04
 BASE_PLATE = 0.10
 """Radiance of the dark base plate the wedges and markers sit on, as a fraction of the paper."""
 
+MAX_EXPOSURE_S = 30.0
+"""The longest exposure the synthetic camera takes (s): the longest timed exposure of most
+cameras. Views darker than that allows stay dark (`view_exposures`)."""
+
 
 @dataclass(frozen=True)
 class Truth:
@@ -58,6 +62,32 @@ class Truth:
     edge_radius_um: float = 0.0
     scale: float = 2.0e6  # relative radiance per unit density: exposures of about a second
     floor: float = 4000.0  # a Lambertian body reflection of about 1/1000 of scale
+
+
+@dataclass(frozen=True)
+class SessionEffects:
+    """The real-world effects a synthetic session can have (`stairfit simulate` options).
+
+    Attributes:
+        vignetting: the lens's fall-off in the image corners (0.15: 15% darker), cos^4 law.
+        flat_frames: flat-field photos to write (a uniform target, same lens) and declare in
+            `[calibration] flat_field`; 0 for none (then vignetting stays uncorrected).
+        dark_frames: dark frames to write and declare in `[calibration] dark_frames`.
+        black_error_dn: the sensor's true dark level above the black level its files declare
+            (DN); only dark frames measure it.
+        bracket: exposures per view (an HDR bracket, each 4 times the previous; the shortest is
+            the reference, listed first).
+        fixed_exposure: one exposure (or bracket) for every view, set by the brightest face of
+            the whole session, as a real session would use; otherwise each view is exposed for
+            its own brightest face.
+    """
+
+    vignetting: float = 0.0
+    flat_frames: int = 0
+    dark_frames: int = 0
+    black_error_dn: float = 0.0
+    bracket: int = 1
+    fixed_exposure: bool = False
 
 
 @dataclass(frozen=True)
@@ -79,6 +109,7 @@ class SimulationSettings:
     truth: Truth = field(default_factory=Truth)
     exposure_tags: str = "exif"  # where the DNGs carry the exposure (imaging.synthetic)
     markers: str = "quiet-zone"  # MARKER_STYLES
+    effects: SessionEffects = field(default_factory=SessionEffects)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -132,6 +163,58 @@ def add_truth_options(p: argparse.ArgumentParser, seed_and_workers: bool = True)
     if seed_and_workers:
         p.add_argument("--seed", type=int, default=s.seed, help="seed of texture and noise")
         p.add_argument("--workers", type=int, default=s.workers, help="processes for rendering")
+    add_effect_options(p)
+
+
+def add_effect_options(p: argparse.ArgumentParser) -> None:
+    """Real-world effects of a session (`SessionEffects`), shared by `simulate` and `demo`."""
+    e = SessionEffects()
+    g = p.add_argument_group("real-world effects (docs/imaging.md)")
+    g.add_argument(
+        "--vignetting", type=float, default=e.vignetting,
+        help="lens fall-off in the image corners (0.15 = 15%% darker)",
+    )  # fmt: skip
+    g.add_argument(
+        "--flat-field", type=int, default=e.flat_frames, metavar="N",
+        help="write N flat-field photos and declare them in [calibration]",
+    )  # fmt: skip
+    g.add_argument(
+        "--dark-frames", type=int, default=e.dark_frames, metavar="N",
+        help="write N dark frames and declare them in [calibration]",
+    )  # fmt: skip
+    g.add_argument(
+        "--black-error-dn", type=float, default=e.black_error_dn,
+        help="true dark level above the black level the files declare (DN)",
+    )  # fmt: skip
+    g.add_argument(
+        "--bracket", type=int, default=e.bracket, metavar="N",
+        help="exposures per view (an HDR bracket, 2 stops apart)",
+    )  # fmt: skip
+    g.add_argument(
+        "--fixed-exposure", action="store_true",
+        help="one exposure for every view (set by the brightest face of the session)",
+    )  # fmt: skip
+
+
+def effects_from_args(args: argparse.Namespace) -> SessionEffects:
+    """Validated `SessionEffects` from the command line (user mistakes raise UserError)."""
+    if not (math.isfinite(args.vignetting) and 0.0 <= args.vignetting <= 0.6):
+        raise UserError(f"--vignetting: {args.vignetting} is outside [0, 0.6]")
+    for option in ("flat_field", "dark_frames"):
+        if not 0 <= getattr(args, option) <= 64:
+            raise UserError(f"--{option.replace('_', '-')}: give 0 to 64 frames")
+    if not (math.isfinite(args.black_error_dn) and abs(args.black_error_dn) <= 100):
+        raise UserError(f"--black-error-dn: {args.black_error_dn} is outside [-100, 100] DN")
+    if not 1 <= args.bracket <= 5:
+        raise UserError(f"--bracket: {args.bracket} is outside [1, 5] exposures per view")
+    return SessionEffects(
+        vignetting=args.vignetting,
+        flat_frames=args.flat_field,
+        dark_frames=args.dark_frames,
+        black_error_dn=args.black_error_dn,
+        bracket=args.bracket,
+        fixed_exposure=args.fixed_exposure,
+    )
 
 
 def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
@@ -167,6 +250,7 @@ def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
         truth=truth,
         exposure_tags=getattr(args, "exposure_tags", base.exposure_tags),
         markers=getattr(args, "markers", base.markers),
+        effects=effects_from_args(args),
     )
     _check_edge_radius(settings)
     return settings
@@ -244,6 +328,7 @@ def face_radiance(settings: SimulationSettings) -> np.ndarray:
         0.5 * settings.light_angular_diameter_deg * DEG,
         0.5 * settings.camera_angular_extent_deg * DEG,
         5,
+        foreshortened=True,  # as the fit reads the scene's angular_extent_deg (docs/scene.md)
     )
     if t.edge_radius_um > 0:
         values = fitting.model_radiance(params, obs, spectral, aperture=aperture)
@@ -267,22 +352,24 @@ def _sharp_values(obs: Any, spectral: Any, params: Any, aperture: Any) -> Any:
 
 
 def simulate(folder: Path, settings: SimulationSettings, progress: bool = False) -> dict[str, Any]:
-    """Render every photo into `folder` and write the scene file and the truth."""
+    """Render every photo (and any calibration frames) into `folder`; write scene and truth."""
     import tomli_w
 
     layout = SpecimenLayout(settings.wedges_deg)
     radiance = face_radiance(settings)
     size = image_size(settings.megapixels)
+    exposures = view_exposures(settings, radiance)
     jobs = [
         _PhotoJob(
-            folder, p, view, size, layout, radiance[p], settings.seed * 1000 + p,
-            settings.exposure_tags, settings.markers,
+            folder, p, view, size, layout, radiance[p], settings.seed * 1000 + p, exposures[p],
+            settings.effects, settings.exposure_tags, settings.markers,
             MARKER_WHITE_PER_SCALE * settings.truth.scale,
         )
         for p, view in enumerate(settings.views_deg)
     ]  # fmt: skip
     photos = _render_all(jobs, settings.workers, progress)
-    scene = _scene_dict(settings, layout, photos)
+    calibration = write_calibration_frames(folder, settings, size, exposures[0][0])
+    scene = _scene_dict(settings, layout, photos, calibration)
     text = _compact_arrays(tomli_w.dumps(scene))
     (folder / SCENE_FILE).write_text(_SCENE_HEADER + text, encoding="utf-8")
     truth = {
@@ -302,6 +389,78 @@ def simulate(folder: Path, settings: SimulationSettings, progress: bool = False)
     }
     (folder / TRUTH_FILE).write_text(json.dumps(truth, indent=2), encoding="utf-8")
     return truth
+
+
+SENSOR_BLACK_DN = 1024
+"""The black level the synthetic camera's files declare."""
+
+
+def _sensor(effects: SessionEffects) -> Any:
+    from stairfit.imaging import synthetic
+
+    return synthetic.SensorModel(
+        bits=14, black_level=SENSOR_BLACK_DN, gain_e_per_dn=1.0, read_noise_dn=2.0,
+        bias_dn=effects.black_error_dn,
+    )  # fmt: skip
+
+
+def view_exposures(settings: SimulationSettings, radiance: np.ndarray) -> list[tuple[Any, ...]]:
+    """Per view, its exposures (one, or a bracket): a photographer's choice.
+
+    The (first, shortest) exposure puts the brightest face of the view (with `fixed_exposure`:
+    of the whole session) at about half of the raw range, at f/5.6 and ISO 100, rounded down to
+    a third of a stop; a bracket adds exposures 4, 16, ... times longer. No exposure is longer
+    than `MAX_EXPOSURE_S` (a view whose faces are all but black, e.g. off-specular with no
+    diffuse floor, gets the longest exposure and stays dark, as with a real camera).
+    """
+    from stairfit.imaging import Exposure
+
+    e = settings.effects
+    sensor = _sensor(e)
+    f_number, iso = 5.6, 100.0
+    full = sensor.white - sensor.black_level
+    longest = MAX_EXPOSURE_S / 4.0 ** (e.bracket - 1)  # the reference of a bracket at the limit
+    out = []
+    for p in range(radiance.shape[0]):
+        peak = float(radiance.max() if e.fixed_exposure else radiance[p].max())
+        wanted = 0.5 * full * f_number**2 / (iso / 100.0) / peak if peak > 0 else math.inf
+        t = _third_stop(min(wanted, longest))
+        out.append(tuple(Exposure(t * 4.0**k, f_number, iso) for k in range(e.bracket)))
+    return out
+
+
+def write_calibration_frames(
+    folder: Path, settings: SimulationSettings, size: tuple[int, int], exposure: Any
+) -> dict[str, list[str]]:
+    """Write the session's flat-field photos and dark frames; the scene's [calibration] table.
+
+    Flat fields: a uniform target at about half of the raw range seen through the same lens
+    (its vignetting), 0.2% texture. Dark frames: the lens capped, at the first view's exposure.
+    """
+    from stairfit.imaging import synthetic
+
+    e = settings.effects
+    sensor = _sensor(e)
+    table: dict[str, list[str]] = {}
+    half = 0.5 * (sensor.white - sensor.black_level) * exposure.scale
+    for kind, n, level in (
+        ("flat_field", e.flat_frames, half),
+        ("dark_frames", e.dark_frames, 0.0),
+    ):
+        names = []
+        for k in range(n):
+            photo = synthetic.render_photo(
+                size, {}, {}, exposure, background=np.full(3, level), sensor=sensor,
+                texture_amplitude=0.002 if level > 0 else 0.0,
+                vignetting=e.vignetting if level > 0 else 0.0,
+                seed=settings.seed * 1000 + (900 if level > 0 else 950) + k,
+            )  # fmt: skip
+            name = f"{'FLAT' if level > 0 else 'DARK'}_{k + 1:02d}.dng"
+            photo.write_dng(folder / name, exposure_tags=settings.exposure_tags)
+            names.append(name)
+        if names:
+            table[kind] = names
+    return table
 
 
 def _render_all(jobs: Sequence[_PhotoJob], workers: int, progress: bool) -> list[dict[str, Any]]:
@@ -340,62 +499,67 @@ class _PhotoJob:
     layout: SpecimenLayout
     radiance: np.ndarray  # (n_wedges, 3)
     seed: int
+    exposures: tuple[Any, ...]  # imaging.Exposure, the reference (shortest) first
+    effects: SessionEffects
     exposure_tags: str = "exif"
     markers: str = "quiet-zone"
     paper: float = 6000.0  # relative radiance of the markers' white paper
 
 
 def _render(job: _PhotoJob) -> dict[str, Any]:
-    """Render and write one photo; returns its [[photos]] entry for the scene file."""
-    from stairfit.imaging import Exposure, MarkerLayout, synthetic
+    """Render and write one view (every exposure of a bracket); its [[photos]] entry."""
+    from stairfit.imaging import MarkerLayout, synthetic
 
     names = [_wedge_name(b) for b in job.layout.wedges_deg]
     cam = camera_for(job.layout, job.view_deg, *job.size)
     faces = {n: cam.project(job.layout.face_corners_mm(k)).tolist() for k, n in enumerate(names)}
-    sensor = synthetic.SensorModel(bits=14, black_level=1024, gain_e_per_dn=1.0, read_noise_dn=2.0)
-    peak = float(job.radiance.max())
-    # A photographer's exposure: the brightest face at about half of the raw range.
-    f_number, iso = 5.6, 100.0
-    full = sensor.white - sensor.black_level
-    t = 0.5 * full * f_number**2 / (iso / 100.0) / peak
-    t = _third_stop(t)
-    exposure = Exposure(t, f_number, iso)
+    sensor = _sensor(job.effects)
     markers_mm = dict(job.layout.markers_mm())
     src = np.array([c for m in markers_mm.values() for c in m], float)
     dst = cam.project_base(src)
     import cv2
 
     h, _ = cv2.findHomography(src, dst)
-    photo = synthetic.render_photo(
-        job.size,
-        faces,
-        {n: job.radiance[k] for k, n in enumerate(names)},
-        exposure,
-        background=np.full(3, BASE_PLATE * job.paper),
-        sensor=sensor,
-        markers=MarkerLayout({i: c.tolist() for i, c in markers_mm.items()}),
-        plane_to_image=h,
-        marker_white=np.full(3, job.paper),
-        marker_black=np.full(3, MARKER_INK * job.paper),
-        marker_quiet_zone_cells=1.0 if job.markers == "quiet-zone" else 0.0,
-        vignetting=0.0,  # as if flat-field corrected: the pipeline does not correct vignetting
-        seed=job.seed,
-    )
-    name = f"IMG_{job.index + 1:04d}.dng"
-    photo.write_dng(job.folder / name, exposure_tags=job.exposure_tags)
-    entry = {
-        "file": name,
+    files = []
+    for k, exposure in enumerate(job.exposures):
+        photo = synthetic.render_photo(
+            job.size,
+            faces,
+            {n: job.radiance[k_w] for k_w, n in enumerate(names)},
+            exposure,
+            background=np.full(3, BASE_PLATE * job.paper),
+            sensor=sensor,
+            markers=MarkerLayout({i: c.tolist() for i, c in markers_mm.items()}),
+            plane_to_image=h,
+            marker_white=np.full(3, job.paper),
+            marker_black=np.full(3, MARKER_INK * job.paper),
+            marker_quiet_zone_cells=1.0 if job.markers == "quiet-zone" else 0.0,
+            # the pipeline corrects vignetting only with a flat field (SessionEffects)
+            vignetting=job.effects.vignetting,
+            seed=job.seed if k == 0 else job.seed + 100_000 * k,
+            texture_seed=None if len(job.exposures) == 1 else job.seed,
+        )
+        name = f"IMG_{job.index + 1:04d}.dng" if k == 0 else f"IMG_{job.index + 1:04d}_{k}.dng"
+        photo.write_dng(job.folder / name, exposure_tags=job.exposure_tags)
+        files.append(name)
+    entry: dict[str, Any] = {
+        "file": files[0] if len(files) == 1 else files,
         "light_deg": None,  # filled in by _scene_dict (same light for every photo)
         "view_deg": round(job.view_deg, 6),
     }
-    if job.exposure_tags == "none":  # the scene file gives what the files lack
-        entry |= {"exposure_time_s": t, "f_number": f_number, "iso": iso}
+    if job.exposure_tags == "none":  # the scene file gives what the files lack (one per file)
+        e = job.exposures
+        one = len(e) == 1
+        entry |= {
+            key: getattr(e[0], key) if one else [getattr(x, key) for x in e]
+            for key in ("exposure_time_s", "f_number", "iso")
+        }
     entry["roi_px"] = {n: [[round(x, 2), round(y, 2)] for x, y in faces[n]] for n in names}
     return entry
 
 
 def _compact_arrays(toml_text: str) -> str:
-    """Put numeric arrays (and arrays of them, e.g. polygons) on one line each.
+    """Put numeric and string arrays (and arrays of them, e.g. polygons) on one line each.
 
     tomli_w writes every element of a nested array on its own line; the document's meaning is
     unchanged (checked by `load_scene` reading it back in the tests).
@@ -403,7 +567,7 @@ def _compact_arrays(toml_text: str) -> str:
     import re
 
     number = r"-?[0-9][0-9_.eE+-]*"
-    flat = re.compile(rf"\[\s*((?:{number},\s*)+)\]")
+    flat = re.compile(rf"\[\s*((?:(?:{number}|\"[^\"\n]*\"),\s*)+)\]")
     nested = re.compile(r"\[\s*((?:\[[^\[\]\n]*\],\s*)+)\]")
 
     def join(m: re.Match[str]) -> str:
@@ -427,7 +591,10 @@ def _wedge_name(beta2_deg: float) -> str:
 
 
 def _scene_dict(
-    s: SimulationSettings, layout: SpecimenLayout, photos: Sequence[dict[str, Any]]
+    s: SimulationSettings,
+    layout: SpecimenLayout,
+    photos: Sequence[dict[str, Any]],
+    calibration: dict[str, list[str]] | None = None,
 ) -> dict[str, Any]:
     wedges = [
         {
@@ -448,6 +615,7 @@ def _scene_dict(
             "marker": [{"id": i, "corners_mm": c.tolist()} for i, c in layout.markers_mm()],
         },
         "photos": [{**p, "light_deg": s.light_deg} for p in photos],
+        **({"calibration": calibration} if calibration else {}),
     }
 
 

@@ -114,7 +114,7 @@ def _rounded_impl(
     aperture, resolution = cfg
     di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
     ti = model.node_angles(g.r_ti, di)  # (R, M)
-    to = jnp.swapaxes(model.node_angles(g.r_to, do), -1, -2)  # (R|1, M, T)
+    to = jnp.swapaxes(model.node_angles(g.r_to, do, aperture.foreshortened), -1, -2)  # (R|1,M,T)
     n = clamp_index(g.r_n + dn).reshape(-1)  # (C K): every channel's samples on one axis
     res = model.ROUNDED_RESOLUTION if resolution is None else resolution
     # geometry once per distinct (theta_i, beta2, layer) (G of them), then gathered to the keys
@@ -186,7 +186,7 @@ def _sharp_grid_impl(
     """
     di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
     ti = model.node_angles(g.r_ti, di)  # (R, M)
-    to = model.node_angles(g.r_to, do)  # (R|1, T, M)
+    to = model.node_angles(g.r_to, do, aperture.foreshortened)  # (R|1, T, M)
     b2 = g.r_b2[:, None]
     weight = model.lobe_weights(ti, b2)  # (R, M, 3)
     kernel = model.hemisphere_gaussian(

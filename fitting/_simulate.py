@@ -111,9 +111,10 @@ def _rounded_rows(
     resolution: int | None,
 ) -> np.ndarray:
     """Rounded-model band density per row, straight from `stairfit.model.brdf_rounded`."""
-    di, do, dw = (aperture or model.Aperture()).nodes()
+    ap = aperture or model.Aperture()
+    di, do, dw = ap.nodes()
     ti = model.node_angles(obs.theta_i_rad, di)[..., None]  # (N, M, 1)
-    to = model.node_angles(obs.theta_o_rad, do)[..., None]
+    to = model.node_angles(obs.theta_o_rad, do, ap.foreshortened)[..., None]
     kwargs = {} if resolution is None else {"resolution": resolution}
     rho = model.brdf_rounded(
         ti,

@@ -14,6 +14,13 @@ The usual entry point::
 """
 
 from . import synthetic as synthetic
+from ._calibration import Calibration as Calibration
+from ._calibration import CalibrationFile as CalibrationFile
+from ._calibration import CalibrationSpec as CalibrationSpec
+from ._calibration import DarkFrame as DarkFrame
+from ._calibration import FlatField as FlatField
+from ._calibration import build_calibration as build_calibration
+from ._calibration import calibration_spec as calibration_spec
 from ._decode import CHANNELS as CHANNELS
 from ._decode import RawFrame as RawFrame
 from ._decode import decode_raw as decode_raw
@@ -26,6 +33,9 @@ from ._exposure import resolve_exposure as resolve_exposure
 from ._extract import ChannelStats as ChannelStats
 from ._extract import ExtractionSettings as ExtractionSettings
 from ._extract import roi_channel_stats as roi_channel_stats
+from ._hdr import BracketMember as BracketMember
+from ._hdr import Radiometry as Radiometry
+from ._hdr import prepare_radiometry as prepare_radiometry
 from ._markers import ARUCO_DICTIONARIES as ARUCO_DICTIONARIES
 from ._markers import LEGACY_DETECTOR as LEGACY_DETECTOR
 from ._markers import TONE_MAPS as TONE_MAPS
@@ -39,6 +49,7 @@ from ._pipeline import TABLE_VERSION as TABLE_VERSION
 from ._pipeline import FrameMeasurement as FrameMeasurement
 from ._pipeline import PhotoSpec as PhotoSpec
 from ._pipeline import cache_key as cache_key
+from ._pipeline import decode_view as decode_view
 from ._pipeline import measure_frame as measure_frame
 from ._pipeline import measure_photo as measure_photo
 from ._pipeline import measure_photos as measure_photos
@@ -51,7 +62,9 @@ from ._placement import CameraPose as CameraPose
 from ._placement import PinholeCamera as PinholeCamera
 from ._placement import face_outline_3d as face_outline_3d
 from ._placement import face_polygon as face_polygon
+from ._placement import face_view_deg as face_view_deg
 from ._placement import fit_camera_pose as fit_camera_pose
+from ._placement import view_parallax_deg as view_parallax_deg
 from ._preview import render_preview as render_preview
 from ._preview import write_preview as write_preview
 from ._roi import MAX_ERODE_PX as MAX_ERODE_PX

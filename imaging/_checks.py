@@ -3,7 +3,9 @@
 * the same bytes under two photo names (a copied file listed as a second view);
 * very low signal: a photo whose brightest usable ROI averages less than `LOW_SIGNAL_FRACTION`
   of the raw range above black (quantisation and read noise dominate, and any black-level error
-  is a large fraction of the value), or whose every ROI is below its black level.
+  is a large fraction of the value), or whose every ROI is below its black level. An HDR
+  bracket is not checked for low signal: its values are expressed at its shortest exposure, and
+  the merge has taken the longer ones where the shortest is near black.
 
 Each gives one `ImagingWarning` naming the photos. They work on the table alone, so they run
 for cached rows as well as for photos decoded now.
@@ -59,8 +61,8 @@ def low_signal_warnings(table: MeasurementTable) -> list[str]:
             )
             continue
         usable = [r for r in rows if not r.flag and math.isfinite(r.value)]
-        if not usable:
-            continue
+        if not usable or "bracket(" in usable[0].radiometry:
+            continue  # a bracket's values are at its shortest exposure, the longer ones merged
         best = max(usable, key=_dn_above_black)
         span = best.white_level - best.black_level
         dn = _dn_above_black(best)

@@ -23,11 +23,13 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ._cache import prune_previews, read_cache, write_cache
+from ._calibration import Calibration, CalibrationSpec, build_calibration, combined_sha256
 from ._checks import low_signal_warnings, same_bytes_warnings
 from ._decode import CHANNELS, RawFrame, decode_raw, file_sha256
 from ._errors import ImagingError, PhotosFailedError
 from ._exposure import Exposure, resolve_exposure
 from ._extract import ChannelStats, ExtractionSettings, roi_channel_stats
+from ._hdr import BracketMember, Radiometry, prepare_radiometry
 from ._io import atomic_write_bytes
 from ._markers import MarkerDetection, MarkerLayout, detect_markers
 from ._placement import (
@@ -37,18 +39,22 @@ from ._placement import (
     face_polygon,
     fit_camera_pose,
     hidden_fraction,
+    view_parallax_deg,
 )
 from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import Polygon, RoiMask, as_polygon, roi_mask
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 5
+TABLE_VERSION = 7
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
 4: rows flagged below_black carry NaN (were negative values).
 5: standard errors from the 1-dependent block covariance at a block size chosen from the data;
    the stderr_noise, stderr_dof, block_px, corr_rg, corr_rb and corr_gb columns (issue 13).
+5 (radiometry branch): the radiometry column (dark frames, flat fields, HDR brackets).
+6 (radiometry branch): the face_view_deg column (a pinhole-placed face's own view angle).
+7: both of the above together (the two branches' tables 5 and 6 are stale).
 """
 
 
@@ -89,6 +95,10 @@ class PhotoSpec:
         camera: pinhole intrinsics (`PinholeCamera`), or None for an affine camera.
         occluders_mm: (name, outline on the base, beta2) of every wedge that may hide a placed
             face from the camera (default: the placed faces themselves).
+        bracket: further exposures of the same view (an HDR bracket; `path` is the first and
+            the reference: values are expressed at its exposure). docs/imaging.md §HDR brackets.
+        calibration: flat-field photos and dark frames to correct with (docs/imaging.md §Flat
+            fields and dark frames), or None.
     """
 
     path: Path
@@ -104,9 +114,15 @@ class PhotoSpec:
     view_deg: float | None = None
     camera: PinholeCamera | None = None
     occluders_mm: tuple[tuple[str, Polygon, float], ...] = ()
+    bracket: tuple[BracketMember, ...] = ()
+    calibration: CalibrationSpec | None = None
 
     def __post_init__(self) -> None:
         path = Path(self.path)
+        object.__setattr__(
+            self, "bracket", tuple(m if isinstance(m, BracketMember) else BracketMember(m)
+                                   for m in self.bracket)
+        )  # fmt: skip
         name = self.name or path.name
         object.__setattr__(self, "path", path)
         object.__setattr__(self, "name", name)
@@ -201,6 +217,12 @@ def cache_key(spec: PhotoSpec, settings: ExtractionSettings) -> str:
         "exposure": [spec.exposure_time_s, spec.f_number, spec.iso],
         "settings": asdict(settings),
     }
+    if spec.bracket:  # added only when used, so that other photos keep their cache keys
+        payload["bracket"] = [
+            [m.path.name, m.exposure_time_s, m.f_number, m.iso] for m in spec.bracket
+        ]
+    if spec.calibration is not None:
+        payload["calibration"] = spec.calibration.key()
     text = json.dumps(payload, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -240,35 +262,48 @@ def _flags(s: ChannelStats, settings: ExtractionSettings) -> list[str]:
 
 
 def _scaled(
-    s: ChannelStats, r: ChannelStats | None, scale: float, below_black: bool
+    s: ChannelStats,
+    r: ChannelStats | None,
+    scale: float,
+    below_black: bool,
+    common: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[float, float, float, float]:
     """A row's value, stderr, stderr_noise and dof: exposure-scaled, or the ratio to `r`.
 
-    The ROIs do not overlap, so the ratio's error adds the two relative errors in quadrature;
-    its dof is the smaller of the two (docs/imaging.md §Reference patch). NaN below black
-    (never a negative value) and for a reference mean <= 0.
+    `common` is the calibration frames' part of the standard error (DN) of the ROI and of the
+    reference (`_common_stderr`): added in quadrature to the total error, not to the noise
+    part, since the same dark and flat frames enter every photo that uses them. The ROIs do not
+    overlap, so the ratio's error adds the two relative errors in quadrature; its dof is the
+    smaller of the two (docs/imaging.md §Reference patch). NaN below black (never a negative
+    value) and for a reference mean <= 0.
     """
     if below_black or (r is not None and not r.mean_dn > 0):
         return math.nan, math.nan, math.nan, s.dof
+    se = math.hypot(s.stderr_dn, common[0])
     if r is None:
-        return s.mean_dn * scale, s.stderr_dn * scale, s.stderr_noise_dn * scale, s.dof
+        return s.mean_dn * scale, se * scale, s.stderr_noise_dn * scale, s.dof
     ratio = s.mean_dn / r.mean_dn
 
     def err(se: float, se_ref: float) -> float:
         return math.hypot(se / r.mean_dn, ratio * se_ref / r.mean_dn)
 
     noise = err(s.stderr_noise_dn, r.stderr_noise_dn)
-    return ratio, err(s.stderr_dn, r.stderr_dn), noise, min(s.dof, r.dof)
+    total = err(se, math.hypot(r.stderr_dn, common[1]))
+    return ratio, total, noise, min(s.dof, r.dof)
 
 
 def measure_frame(
-    frame: RawFrame, spec: PhotoSpec, settings: ExtractionSettings
+    frame: RawFrame,
+    spec: PhotoSpec,
+    settings: ExtractionSettings,
+    radiometry: Radiometry | None = None,
 ) -> FrameMeasurement:
     """Measure every ROI of `spec` in a decoded photo.
 
     Places marker-based ROIs (when there are any), rasterises and erodes every ROI, resolves the
     exposure, computes the per-channel statistics, flags, and the optional reference
-    normalisation.
+    normalisation. With `radiometry` (dark, flat, bracket: `view_radiometry`), the statistics
+    come from its corrected image, plus the calibration frames' noise (docs/imaging.md).
 
     Raises:
         ImagingError: exposure unknown, ROI outside the image or empty after erosion, ROIs
@@ -277,7 +312,7 @@ def measure_frame(
     photo = spec.name
     exposure = resolve_exposure(frame, spec.exposure_time_s, spec.f_number, spec.iso)
     polygons: dict[str, tuple[Polygon, str]] = {n: (p, "polygon") for n, p in spec.rois}
-    detection, placement, placed_polygons = place_faces(frame, spec)
+    detection, placement, placed_polygons = place_faces(frame, spec, radiometry)
     polygons |= {n: (p, "markers") for n, p in placed_polygons.items()}
     rois = {
         n: roi_mask(
@@ -294,8 +329,9 @@ def measure_frame(
         _check_hidden(spec, placement, rois)
     _check_overlaps(rois, photo)
     key = cache_key(spec, settings)
-    black = frame.black_level_per_channel()
-    stats = {n: roi_channel_stats(frame, roi, settings) for n, roi in rois.items()}
+    stats_frame, black = _stats_source(frame, radiometry)
+    stats = {n: roi_channel_stats(stats_frame, roi, settings) for n, roi in rois.items()}
+    common = {n: _common_stderr(radiometry, roi, stats[n]) for n, roi in rois.items()}
     ref = stats[spec.reference] if spec.reference else None
     ref_flags = [_flags(s, settings) for s in ref] if ref else None
     rows = []
@@ -303,18 +339,21 @@ def measure_frame(
         by_marker = roi.source == "markers" and placement is not None
         for c, s in enumerate(stats[n]):
             flags = _flags(s, settings)
-            normalised_by, r = "", None
+            normalised_by, r, r_common = "", None, 0.0
             if ref is not None and ref_flags is not None and n != spec.reference:
                 r = ref[c]
                 normalised_by = spec.reference or ""
+                r_common = common[normalised_by][c]
                 flags += [f"reference-{f}" for f in ref_flags[c]]
                 if "below_black" not in flags and not r.mean_dn > 0:
                     flags.append("reference-nonpositive")
-            value, stderr, noise, dof = _scaled(s, r, exposure.scale, "below_black" in flags)
+            value, stderr, noise, dof = _scaled(
+                s, r, exposure.scale, "below_black" in flags, (common[n][c], r_common)
+            )
             rows.append(
                 MeasurementRow(
                     photo=photo,
-                    photo_sha256=frame.sha256,
+                    photo_sha256=stats_frame.sha256,
                     settings_key=key,
                     wedge=n,
                     channel=CHANNELS[c],
@@ -342,19 +381,22 @@ def measure_frame(
                     reprojection_error_px=placement.rms_error_px if by_marker else None,  # type: ignore[union-attr]
                     n_markers=len(placement.ids) if by_marker else None,  # type: ignore[union-attr]
                     camera=frame.camera,
-                    **_marker_columns(placement if by_marker else None, detection),
+                    **_marker_columns(placement if by_marker else None, detection, spec, n),
+                    radiometry=radiometry.description if radiometry is not None else "",
                 )
             )
     return FrameMeasurement(tuple(rows), rois, exposure, detection, placement)
 
 
 def place_faces(
-    frame: RawFrame, spec: PhotoSpec
+    frame: RawFrame, spec: PhotoSpec, radiometry: Radiometry | None = None
 ) -> tuple[MarkerDetection | None, CameraPose | None, dict[str, Polygon]]:
     """Detect the markers and place the faces of `spec.placed_names()`: (detection, camera,
     image polygons by name); (None, None, {}) when nothing is placed from markers.
 
-    Faces with a wedge angle are placed in 3-D (docs/imaging.md §3-D placement).
+    Faces with a wedge angle are placed in 3-D (docs/imaging.md §3-D placement). With
+    `radiometry` of an HDR bracket, the markers are those of the exposure that places the
+    camera best (`_best_exposure_pose`).
 
     Raises:
         ImagingError: too few markers, an inconsistent camera, or a face outside the image.
@@ -364,20 +406,23 @@ def place_faces(
         return None, None, {}
     layout = spec.markers
     assert layout is not None  # checked by PhotoSpec
-    ids = [m for m, _ in layout.markers]
-    detection = detect_markers(frame, layout.dictionary, layout.detector, expected_ids=ids)
     angles = dict(spec.face_angles_deg)
     size = (frame.width, frame.height)
-    pose = fit_camera_pose(
-        detection,
-        layout,
-        photo=spec.name,
-        image_size=size,
-        rising=any(angles.get(n, 0.0) > 0 for n in placed),
-        view_deg=spec.view_deg,
-        camera=spec.camera,
-        wedges=placed,
-    )
+
+    def fit(detection: MarkerDetection) -> CameraPose:
+        return fit_camera_pose(
+            detection,
+            layout,
+            photo=spec.name,
+            image_size=size,
+            rising=any(angles.get(n, 0.0) > 0 for n in placed),
+            view_deg=spec.view_deg,
+            camera=spec.camera,
+            wedges=placed,
+        )
+
+    members = radiometry.members if radiometry is not None else (frame,)
+    detection, pose = _best_exposure_pose([_detect_layout(m, layout) for m in members], fit)
     faces = dict(spec.faces_mm)
     polygons = {}
     for n in placed:
@@ -403,16 +448,114 @@ def _check_hidden(spec: PhotoSpec, pose: CameraPose, rois: dict[str, RoiMask]) -
             )
 
 
-def _marker_columns(pose: CameraPose | None, detection: MarkerDetection | None) -> dict:
-    """The marker columns of a row: ids used, their smallest cell (px) and the camera model."""
+def _marker_columns(
+    pose: CameraPose | None, detection: MarkerDetection | None, spec: PhotoSpec, name: str
+) -> dict:
+    """The marker columns of ROI `name`'s rows: ids used, their smallest cell (px), the camera
+    model and, through a pinhole, the face's own view angle (`face_view_deg`)."""
     if pose is None or detection is None:
         return {"marker_ids": "", "marker_cell_px": None, "placement": ""}
     cells = dict(zip(detection.ids, detection.cell_px, strict=True))
+    angle = dict(spec.face_angles_deg).get(name, 0.0)
+    assert spec.markers is not None  # a pose comes from markers
+    parallax = view_parallax_deg(pose, spec.markers, dict(spec.faces_mm)[name], angle)
+    own = None if parallax is None or spec.view_deg is None else spec.view_deg + parallax
     return {
         "marker_ids": " ".join(str(i) for i in pose.ids),
         "marker_cell_px": min(cells[i] for i in pose.ids),
         "placement": pose.model,
+        "face_view_deg": own,
     }
+
+
+def _detect_layout(frame: RawFrame, layout: MarkerLayout) -> MarkerDetection:
+    """The markers of `layout` in one exposure (its dictionary, detector settings and ids)."""
+    ids = [m for m, _ in layout.markers]
+    return detect_markers(frame, layout.dictionary, layout.detector, expected_ids=ids)
+
+
+def _best_exposure_pose(
+    detections: Sequence[MarkerDetection], fit: Callable[[MarkerDetection], CameraPose]
+) -> tuple[MarkerDetection, CameraPose]:
+    """The (detection, camera) of the exposure that shows the markers best: of the exposures
+    whose markers give a consistent camera, the one using most markers, then the smallest RMS
+    reprojection error (docs/imaging.md §HDR brackets). One photo: its own.
+
+    Raises:
+        ImagingError: no exposure gives a consistent camera: the error of the exposure with
+            most markers found (ties: the earlier file).
+    """
+    best: tuple[tuple[int, float], MarkerDetection, CameraPose] | None = None
+    errors: list[tuple[int, ImagingError]] = []
+    for det in detections:
+        try:
+            pose = fit(det)
+        except ImagingError as e:
+            errors.append((len(det.ids), e))
+            continue
+        key = (-len(pose.ids), pose.rms_error_px)
+        if best is None or key < best[0]:
+            best = (key, det, pose)
+    if best is None:
+        raise max(errors, key=lambda x: x[0])[1]
+    return best[1], best[2]
+
+
+def _stats_source(
+    frame: RawFrame, radiometry: Radiometry | None
+) -> tuple[RawFrame, tuple[float, float, float]]:
+    """The frame the statistics are computed on and the black level reported per channel."""
+    if radiometry is None:
+        return frame, frame.black_level_per_channel()
+    return radiometry.frame, radiometry.black_per_channel
+
+
+def _common_stderr(
+    radiometry: Radiometry | None, roi: RoiMask, stats: Sequence[ChannelStats]
+) -> tuple[float, float, float]:
+    """The calibration frames' part of an ROI's standard errors (DN), zero without them."""
+    if radiometry is None:
+        return (0.0, 0.0, 0.0)
+    return radiometry.common_stderr_dn(roi, stats)
+
+
+def decode_view(spec: PhotoSpec) -> tuple[RawFrame, ...]:
+    """Decode a photo's file and its bracket members (the reference first)."""
+    first = decode_raw(spec.path, spec.name)
+    return (first, *(decode_raw(m.path, m.path.name) for m in spec.bracket))
+
+
+def view_radiometry(
+    frames: Sequence[RawFrame],
+    spec: PhotoSpec,
+    settings: ExtractionSettings,
+    calibration: Calibration | None,
+) -> Radiometry | None:
+    """`prepare_radiometry` of a decoded view, or None when it is one uncalibrated file."""
+    if len(frames) == 1 and calibration is None:
+        return None
+    exposures = [resolve_exposure(frames[0], spec.exposure_time_s, spec.f_number, spec.iso)]
+    for frame, m in zip(frames[1:], spec.bracket, strict=True):
+        try:
+            exposures.append(resolve_exposure(frame, m.exposure_time_s, m.f_number, m.iso))
+        except ImagingError as e:
+            text = (
+                str(e)
+                .replace(f"photo {frame.name!r}: ", "", 1)
+                .replace(
+                    "this photo's [[photos]] entry",
+                    "this photo's [[photos]] entry (one value per file)",
+                )
+            )
+            raise ImagingError(
+                f"photo {spec.name!r}, bracket file {frame.name!r}: {text}"
+            ) from None
+    return prepare_radiometry(frames, exposures, calibration, settings, spec.name)
+
+
+def photo_digest(spec: PhotoSpec) -> str:
+    """SHA-256 of a photo's file, or the combined digest of a bracket's files (as in the rows)."""
+    return combined_sha256([file_sha256(p) for p in (spec.path, *(m.path for m in spec.bracket))])
 
 
 def measure_photo(
@@ -421,8 +564,9 @@ def measure_photo(
     preview: str | Path | None = None,
     *,
     preview_cache: str | Path | None = None,
+    calibration: Calibration | None = None,
 ) -> tuple[MeasurementRow, ...]:
-    """Decode one photo, measure it, and optionally write its preview PNG.
+    """Decode one photo (all files of a bracket), measure it, and optionally write its preview.
 
     When the measurement fails after decoding, the preview is still written (with the markers
     found, if a layout was given) so that the failure can be looked at; then the error is raised.
@@ -433,9 +577,13 @@ def measure_photo(
         preview_cache: a folder (`preview_cache_dir` of a measurement cache) where a copy of
             the preview of a successful measurement is kept under `cached_preview_name`, so
             that `measure_photos` can reuse it with the cached rows. Only used with `preview`.
+        calibration: the built calibration frames of `spec.calibration` (`build_calibration`);
+            built here when `spec.calibration` is set and this is None.
     """
-    frame = decode_raw(spec.path, spec.name)
-    outcome, write = _measure_decoded(frame, spec, settings, preview, preview_cache)
+    if spec.calibration is not None and calibration is None:
+        calibration = build_calibration(spec.calibration, settings.saturation_level)
+    frames = decode_view(spec)
+    outcome, write = _measure_decoded(frames, spec, settings, preview, preview_cache, calibration)
     if write is not None:
         write()
     if isinstance(outcome, ImagingError):
@@ -447,32 +595,26 @@ _PreviewJob = Callable[[], None]
 
 
 def _measure_decoded(
-    frame: RawFrame,
+    frames: Sequence[RawFrame],
     spec: PhotoSpec,
     settings: ExtractionSettings,
     preview: str | Path | None,
     preview_cache: str | Path | None,
+    calibration: Calibration | None = None,
 ) -> tuple[tuple[MeasurementRow, ...] | ImagingError, _PreviewJob | None]:
     """`measure_photo` of a decoded photo, the preview left to the caller: (rows or error, job).
 
-    The job (None without `preview`) renders the preview and writes it (and its cached copy
-    after a success); it holds the frame until it has run.
+    The job (None without `preview`) renders the preview (of the reference exposure) and writes
+    it (and its cached copy after a success); it holds the frame until it has run.
     """
+    frame = frames[0]
     try:
-        result = measure_frame(frame, spec, settings)
+        radiometry = view_radiometry(frames, spec, settings, calibration)
+        result = measure_frame(frame, spec, settings, radiometry)
     except ImagingError as e:
         if preview is None:
             raise
-        det = (
-            detect_markers(
-                frame,
-                spec.markers.dictionary,
-                spec.markers.detector,
-                expected_ids=[m for m, _ in spec.markers.markers],
-            )
-            if spec.markers
-            else None
-        )
+        det = _detect_layout(frame, spec.markers) if spec.markers else None
         # for drawing roi_px by hand: the markers found, the given polygons, a pixel grid
         job = partial(_write_previews, frame, {}, det, settings, [Path(preview)], dict(spec.rois))
         return e, job
@@ -480,7 +622,7 @@ def _measure_decoded(
         return result.rows, None
     paths = [Path(preview)]
     if preview_cache is not None:
-        name = cached_preview_name(frame.sha256, cache_key(spec, settings))
+        name = cached_preview_name(result.rows[0].photo_sha256, cache_key(spec, settings))
         paths.append(Path(preview_cache) / name)
     job = partial(_write_previews, frame, result.rois, result.detection, settings, paths)
     return result.rows, job
@@ -524,6 +666,7 @@ def _measure_in_process(
     pdir: Path | None,
     pcache: Path | None,
     bar: tqdm,
+    calibrations: Mapping[CalibrationSpec, Calibration],
 ) -> tuple[dict[str, tuple[MeasurementRow, ...]], dict[str, str]]:
     """Measure photos one after the other in this process: (rows by photo, errors by photo).
 
@@ -548,17 +691,18 @@ def _measure_in_process(
         ThreadPoolExecutor(max_workers=1, thread_name_prefix="stairfit-decode") as reader,
         ThreadPoolExecutor(max_workers=1, thread_name_prefix="stairfit-preview") as writer,
     ):
-        upcoming = [reader.submit(decode_raw, todo[0].path, todo[0].name)] if todo else []
+        upcoming = [reader.submit(decode_view, todo[0])] if todo else []
         for k, spec in enumerate(todo):
             if k + 1 < len(todo):
-                upcoming.append(reader.submit(decode_raw, todo[k + 1].path, todo[k + 1].name))
+                upcoming.append(reader.submit(decode_view, todo[k + 1]))
             pv = preview_path(pdir, spec) if pdir else None
+            calib = calibrations.get(spec.calibration) if spec.calibration else None
             try:
-                frame = upcoming.pop(0).result()
-                outcome, job = _measure_decoded(frame, spec, settings, pv, pcache)
+                frames = upcoming.pop(0).result()
+                outcome, job = _measure_decoded(frames, spec, settings, pv, pcache, calib)
             except ImagingError as e:
                 outcome, job = e, None
-            frame = None  # the preview job holds it if it needs it
+            frames = None  # the preview job holds the reference frame if it needs it
             if isinstance(outcome, ImagingError):
                 errors[spec.name] = str(outcome)
             else:
@@ -639,7 +783,7 @@ def _cached_rows(
     key = cache_key(spec, settings)
     if any(r.settings_key != key for r in rows):
         return None
-    sha = file_sha256(spec.path)
+    sha = photo_digest(spec)
     if any(r.photo_sha256 != sha for r in rows):
         return None
     return rows
@@ -716,29 +860,13 @@ def measure_photos(
     workers = max_workers or min(2, os.cpu_count() or 1)
     workers = max(1, min(workers, len(todo)))
     try:
-        if workers == 1:
-            serial_done, serial_errors = _measure_in_process(todo, settings, pdir, pcache, bar)
-            done |= serial_done
-            errors |= serial_errors
-        else:
-            # "spawn": never fork a parent that may be running JAX threads.
-            ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-                futures: dict[Future, PhotoSpec] = {
-                    pool.submit(
-                        measure_photo,
-                        spec,
-                        settings,
-                        preview_path(pdir, spec) if pdir else None,
-                        preview_cache=pcache,
-                    ): spec
-                    for spec in todo
-                }
-                try:
-                    _collect(futures, done, errors, bar)
-                except BaseException:  # an interruption: do not start the photos still queued
-                    pool.shutdown(wait=False, cancel_futures=True)
-                    raise
+        cals = _build_calibrations(todo, settings)
+        run = (todo, settings, pdir, pcache, bar, cals)
+        new_done, new_errors = (
+            _measure_in_process(*run) if workers == 1 else _measure_in_pool(*run, workers)
+        )
+        done |= new_done
+        errors |= new_errors
     finally:
         bar.close()
     table = MeasurementTable(tuple(r for s in specs if s.name in done for r in done[s.name]))
@@ -748,6 +876,40 @@ def measure_photos(
     same_bytes_warnings(table)
     low_signal_warnings(table)
     return _with_failures(table, [(n, errors[n]) for n in names if n in errors], raise_on_failure)
+
+
+def _measure_in_pool(
+    todo: Sequence[PhotoSpec],
+    settings: ExtractionSettings,
+    pdir: Path | None,
+    pcache: Path | None,
+    bar: tqdm,
+    calibrations: Mapping[CalibrationSpec, Calibration],
+    workers: int,
+) -> tuple[dict[str, tuple[MeasurementRow, ...]], dict[str, str]]:
+    """Measure photos in `workers` spawned processes: (rows by photo, errors by photo)."""
+    done: dict[str, tuple[MeasurementRow, ...]] = {}
+    errors: dict[str, str] = {}
+    # "spawn": never fork a parent that may be running JAX threads.
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        futures: dict[Future, PhotoSpec] = {
+            pool.submit(
+                measure_photo,
+                spec,
+                settings,
+                preview_path(pdir, spec) if pdir else None,
+                preview_cache=pcache,
+                calibration=calibrations.get(spec.calibration) if spec.calibration else None,
+            ): spec
+            for spec in todo
+        }
+        try:
+            _collect(futures, done, errors, bar)
+        except BaseException:  # an interruption: do not start the photos still queued
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+    return done, errors
 
 
 def _with_failures(
@@ -787,6 +949,18 @@ def _collect(
                 "Retry with max_workers=1"
             ) from e
         bar.update(1)
+
+
+def _build_calibrations(
+    todo: Sequence[PhotoSpec], settings: ExtractionSettings
+) -> dict[CalibrationSpec, Calibration]:
+    """The calibration frames the photos to decode need, each set built once.
+
+    Raises:
+        ImagingError: a calibration frame is unusable (one line naming it; no photo measured).
+    """
+    specs = dict.fromkeys(s.calibration for s in todo if s.calibration is not None)
+    return {c: build_calibration(c, settings.saturation_level) for c in specs}
 
 
 def summarise_failures(failures: Sequence[tuple[str, str]]) -> str:

@@ -448,6 +448,34 @@ def face_polygon(pose: CameraPose, outline_mm: Polygon, beta2_deg: float = 0.0) 
     return tuple((float(x), float(y)) for x, y in img)
 
 
+def face_view_deg(pose: CameraPose, outline_mm: Polygon, beta2_deg: float = 0.0) -> float | None:
+    """The view angle (deg, about y, base frame) from a face's centre to a pinhole's centre:
+    the face's own `view_deg` through a camera at finite distance (a raised or off-centre face
+    is seen at another angle than the photo's nominal one); None for the other camera models
+    (at infinity, every face is seen along one direction). docs/imaging.md §3-D placement."""
+    centre = pose.camera_centre_mm()
+    if centre is None:
+        return None
+    return _view_of(centre, face_outline_3d(outline_mm, beta2_deg).mean(axis=0))
+
+
+def view_parallax_deg(
+    pose: CameraPose, layout: MarkerLayout, outline_mm: Polygon, beta2_deg: float = 0.0
+) -> float | None:
+    """How much farther (deg, about y) a pinhole camera is turned as seen from a face's centre
+    than as seen from the centre of the layout's markers: `face_view_deg` of the face minus
+    that of the markers' centre. A photo's `view_deg` is the camera seen from the markers'
+    centre; each face is seen at `view_deg + view_parallax_deg`. The difference is what the
+    pose determines well: a pose from coplanar markers through a long lens may be tilted by a
+    few tenths of a degree, the same for every point. None for the other camera models."""
+    face = face_view_deg(pose, outline_mm, beta2_deg)
+    if face is None:
+        return None
+    corners = np.array([c for _, c in layout.markers], float).reshape(-1, 2)
+    mid = np.append(corners.mean(axis=0), 0.0)
+    return face - _view_of(pose.camera_centre_mm(), mid)  # type: ignore[arg-type]
+
+
 def check_in_image(
     polygon: Polygon, image_size: tuple[int, int], *, photo: str, wedge: str
 ) -> None:

@@ -65,6 +65,12 @@ class MeasurementRow:
             foreshortened side; docs/imaging.md §Markers).
         placement: the camera model that placed the ROI: "homography" (a face on the base),
             "affine" or "pinhole" (docs/imaging.md §3-D placement); "" for pixel polygons.
+        radiometry: the corrections applied, e.g. "dark(8)+flat(2)+bracket(3)" ("" for none:
+            the black level subtracted, no flat field, one file); docs/imaging.md.
+        face_view_deg: for a face placed through a pinhole camera, its own view angle (deg,
+            about y, base frame): the photo's view_deg (seen from the markers' centre) plus the
+            parallax from the pose (`view_parallax_deg`); `stairfit fit` takes theta_o from it.
+            None otherwise (docs/imaging.md §3-D placement).
     """
 
     photo: str
@@ -99,6 +105,8 @@ class MeasurementRow:
     marker_ids: str
     marker_cell_px: float | None
     placement: str
+    radiometry: str = ""
+    face_view_deg: float | None = None
 
 
 COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(MeasurementRow))

@@ -53,6 +53,11 @@ class SensorModel:
         gain_e_per_dn: electrons per DN at ISO 100; at ISO s it is gain * 100 / s.
         read_noise_dn: Gaussian read noise (DN, standard deviation).
         cfa: the 2 x 2 CFA tile, row by row ("RGGB", "BGGR", "GRBG" or "GBRG").
+        bias_dn: an offset (DN) of every pixel above the black level the file declares (a
+            black-level tag that is off; dark frames measure it, the tag does not).
+        fixed_pattern_dn: standard deviation (DN) of a per-pixel offset that is the same in
+            every photo of this sensor (dark-signal non-uniformity), drawn from `pattern_seed`.
+        pattern_seed: seeds the fixed pattern (the same sensor gives the same pattern).
     """
 
     bits: int = 14
@@ -61,6 +66,9 @@ class SensorModel:
     gain_e_per_dn: float = 1.0
     read_noise_dn: float = 2.0
     cfa: str = "RGGB"
+    bias_dn: float = 0.0
+    fixed_pattern_dn: float = 0.0
+    pattern_seed: int = 12345
 
     def __post_init__(self) -> None:
         if self.bits not in (12, 14, 16):
@@ -80,6 +88,14 @@ class SensorModel:
     def pattern(self) -> np.ndarray:
         """The CFA tile as colour indices (0 = R, 1 = G, 2 = B), shape (2, 2)."""
         return np.array([CHANNELS.index(ch) for ch in self.cfa], dtype=np.uint8).reshape(2, 2)
+
+    def offset_dn(self, height: int, width: int) -> np.ndarray | float:
+        """The true dark level above the declared black level: bias plus fixed pattern (DN)."""
+        if self.fixed_pattern_dn <= 0:
+            return float(self.bias_dn)
+        rng = np.random.default_rng(self.pattern_seed)
+        pattern = rng.standard_normal((height, width), dtype=np.float32)
+        return pattern * np.float32(self.fixed_pattern_dn) + np.float32(self.bias_dn)
 
 
 @dataclass(frozen=True, eq=False)
@@ -265,6 +281,7 @@ def render_photo(
     erode_px: int = 8,
     seed: int = 0,
     keep_field: bool = False,
+    texture_seed: int | None = None,
 ) -> SyntheticPhoto:
     """Render a RAW photo of wedge faces on a base.
 
@@ -288,6 +305,8 @@ def render_photo(
         vignetting: relative falloff in the image corners (cos^4 law).
         erode_px: erosion of the ROIs for which `expected` is computed (as in extraction).
         seed: seeds the texture and the noise (deterministic).
+        texture_seed: if given, seeds the texture alone (`seed` then seeds only the noise), so
+            that several exposures of one view (a bracket) share their texture.
         keep_field: keep the noise-free radiance image in the result (memory: 4 bytes/pixel).
 
     Returns:
@@ -326,9 +345,10 @@ def render_photo(
         field *= vig
         del vig
     rng = np.random.default_rng(seed)
+    tex_rng = rng if texture_seed is None else np.random.default_rng(texture_seed)
     untextured = field
     if texture_amplitude > 0:
-        noise = rng.standard_normal((h_img, w_img), dtype=np.float32)
+        noise = tex_rng.standard_normal((h_img, w_img), dtype=np.float32)
         if texture_sigma_px > 0:
             noise = cv2.GaussianBlur(noise, (0, 0), texture_sigma_px)
         noise -= noise.mean()
@@ -350,6 +370,7 @@ def render_photo(
     dn /= np.float32(gain)
     dn += rng.standard_normal((h_img, w_img), dtype=np.float32) * np.float32(sensor.read_noise_dn)
     dn += np.float32(sensor.black_level)
+    dn += sensor.offset_dn(h_img, w_img)
     np.rint(dn, out=dn)
     np.clip(dn, 0, sensor.white, out=dn)
     mosaic = dn.astype(np.uint16)
@@ -366,8 +387,18 @@ def render_photo(
     )
 
 
+_UINT32_MAX = 2**32 - 1
+
+
 def _rational(x: float, max_den: int) -> tuple[int, int]:
-    fr = Fraction(x).limit_denominator(max_den)
+    """`x` as a TIFF RATIONAL (two unsigned 32-bit integers), the denominator at most `max_den`
+    and small enough that the numerator fits; an ImagingError when `x` cannot be written."""
+    if not (math.isfinite(x) and 0 < x <= _UINT32_MAX):
+        raise ImagingError(f"write_dng: {x!r} does not fit an EXIF RATIONAL tag (0, 2^32 - 1]")
+    den = max(1, min(max_den, (_UINT32_MAX - 1) // math.ceil(x)))
+    fr = Fraction(x).limit_denominator(den)
+    if fr.numerator == 0:
+        raise ImagingError(f"write_dng: {x!r} is below the smallest RATIONAL 1/{den} written")
     return fr.numerator, fr.denominator
 
 

@@ -27,12 +27,15 @@ class Aperture(NamedTuple):
     `theta_o +- half_width_o_rad` with `n_nodes` Gauss-Legendre nodes along each (so
     `n_nodes**2` evaluations; `n_nodes = 1` is a point evaluation). A light of diameter `D` at
     distance `d` has `half_width_i = atan(D / 2d)`; a wedge face seen across a length `L` at
-    distance `d` spans about `half_width_o = atan(L cos(theta_o) / 2d)`.
+    distance `d` spans about `half_width_o = atan(L cos(theta_o) / 2d)`. With `foreshortened`,
+    `half_width_o_rad` is that spread seen face-on (`atan(L / 2d)`) and every observation uses
+    it times `cos(theta_o)` (`node_angles`); without, the same spread at every `theta_o`.
     """
 
     half_width_i_rad: float = 0.0
     half_width_o_rad: float = 0.0
     n_nodes: int = 1
+    foreshortened: bool = False
 
     def nodes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Offsets in theta_i, offsets in theta_o, and weights (sum 1), each (n_nodes**2,)."""
@@ -48,15 +51,23 @@ class Aperture(NamedTuple):
         )
 
 
-def node_angles(theta: ArrayLike, offsets: ArrayLike) -> Float[Array, "... n_nodes"]:
+def node_angles(
+    theta: ArrayLike, offsets: ArrayLike, foreshortened: bool = False
+) -> Float[Array, "... n_nodes"]:
     """Angles at the aperture nodes, `theta + offset` on a new last axis, clipped to the
     hemisphere `[-pi/2, pi/2]` (a node beyond grazing sees the horizon) [conventions §1, §9].
+
+    With `foreshortened` (viewing angles of a `foreshortened` aperture), the offsets are the
+    spread seen face-on and are scaled by `cos(theta)`: a face of fixed size seen obliquely
+    spans a smaller range of angles.
 
     The one home of that clip: the sharp and the rounded model, the fit's evaluation grid and
     the synthetic data all place their aperture nodes with it.
     """
     theta = jnp.asarray(theta)
     node = with_rank(jnp.asarray(offsets, theta.dtype), theta.ndim + 1)
+    if foreshortened:
+        node = node * jnp.cos(theta)[..., None]
     half = jnp.pi / 2
     return jnp.clip(theta[..., None] + node, -half, half)
 
@@ -66,9 +77,10 @@ def _aperture_angles(
 ) -> tuple[Array, Array, Array]:
     """Angles of incidence and viewing at the aperture nodes (clipped to the hemisphere)."""
     dtype = jnp.result_type(jnp.asarray(theta_i), jnp.asarray(theta_o))
-    di, do, dw = (jnp.asarray(a, dtype) for a in (aperture or Aperture()).nodes())
+    aperture = aperture or Aperture()
+    di, do, dw = (jnp.asarray(a, dtype) for a in aperture.nodes())
     ti = node_angles(jnp.asarray(theta_i, dtype), di)  # (n_obs, n_nodes)
-    to = node_angles(jnp.asarray(theta_o, dtype), do)
+    to = node_angles(jnp.asarray(theta_o, dtype), do, aperture.foreshortened)
     return ti, to, dw
 
 
