@@ -189,7 +189,7 @@ class Extraction:
     """Settings for turning pixels into measurements (see docs/imaging.md)."""
 
     erode_px: int = 8
-    block_px: int = 8
+    block_px: int = 2
     saturation_level: float = 0.98
     max_saturated_fraction: float = 0.5
 
@@ -626,7 +626,7 @@ def _extraction(r: _Reader, d: dict[str, Any]) -> Extraction:
 
     return Extraction(
         erode_px=r.get(d, "erode_px", int, w, default=8, lo=0, hi=MAX_ERODE_PX),
-        block_px=r.get(d, "block_px", int, w, default=8, lo=2, hi=512),
+        block_px=r.get(d, "block_px", int, w, default=2, lo=2, hi=512),
         saturation_level=r.get(d, "saturation_level", float, w, default=0.98, lo=0.5, hi=1.0),
         max_saturated_fraction=r.get(
             d, "max_saturated_fraction", float, w, default=0.5, lo=0.0, hi=1.0

@@ -1,26 +1,23 @@
-"""Per-ROI, per-channel statistics straight from the raw mosaic: mean, block standard error.
+"""Per-ROI, per-channel statistics straight from the raw mosaic: mean and standard errors.
 
 Each colour's pixels inside the eroded ROI are averaged after subtracting their black level;
 saturated pixels are left out: `mean = sum_b S_b / N`, with S_b and n_b the sum and count of the
-channel's unsaturated pixels in block b (square blocks of `block_px` raw pixels aligned to the
-image origin) and N = sum_b n_b.
+channel's unsaturated pixels in block b (square blocks aligned to the image origin, whole CFA
+tiles) and N = sum_b n_b.
 
-The standard error comes from the scatter of the K block means m_b = S_b / n_b, not of single
-pixels, so that texture and noise correlated within a block count fully:
+The standard error comes from the scatter of block sums, not of single pixels, so that texture
+and noise correlated over several pixels count fully (`_blockvar`): a plane is fitted to the
+block means (smooth, deterministic variation across the ROI adds no error to the mean); the
+covariances of the residual block sums with themselves and their 8 neighbours are estimated
+without bias, at a block size chosen from the data so that blocks further apart are
+uncorrelated; their sum is the variance of the mean, with Satterthwaite degrees of freedom.
+The same moments of two channels give the R, G, B covariance of the ROI.
 
-1. a plane a + b x + c y is fitted to the block means (weights n_b, centroids of each block's
-   pixels); its intercept is the mean itself. Smooth, deterministic variation across the ROI
-   (vignetting, the change of the BRDF across a face) adds no error to the mean, so it is
-   removed rather than counted as scatter;
-2. with block residuals e_b = n_b (m_b - plane_b), the variance of the mean is the spatial
-   Bartlett-kernel (HAC) estimate over the block grid,
-   `var = K / (K - 3) * sum_b sum_b' w(b - b') e_b e_b' / N^2`, with w = 1 for the block
-   itself, 1/2 for its 4 edge neighbours and 1/4 for its 4 corner neighbours. The neighbour
-   terms take in correlation that reaches across block borders; the weights make the estimate
-   never negative.
+The white-noise part of the error (shot, read and quantisation noise, which differ between
+photos) comes from the differences of neighbouring same-colour pixels
+(`_Accumulator.noise_variance`).
 
-It covers pixel noise and texture correlated over less than about a block; see
-docs/imaging.md §Standard errors for the checks and for what it does not cover.
+See docs/imaging.md §Standard errors for the checks and for what it does not cover.
 """
 
 from __future__ import annotations
@@ -31,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._blockvar import LEVELS, MAX_BLOCKS, Blocks, adaptive_covariance
 from ._decode import RawFrame
 from ._errors import ImagingError
 from ._roi import MAX_ERODE_PX, RoiMask
@@ -42,19 +40,22 @@ class ExtractionSettings:
 
     Attributes:
         erode_px: ROI erosion radius in pixels (>= 0).
-        block_px: side of the square blocks (raw pixels) whose means give the standard error;
-            rounded up to a multiple of the CFA tile (2 for Bayer) so that every block holds
-            whole tiles. Choose it at least 4 times the correlation length of the texture.
+        block_px: the smallest side of the square blocks (raw pixels) whose sums give the
+            standard error, rounded up to a multiple of the CFA tile (2 for Bayer) so that
+            every block holds whole tiles. Larger blocks are chosen from the data where the
+            texture needs them (docs/imaging.md §Standard errors); the default, one tile,
+            lets small ROIs of fine texture keep the most blocks.
         saturation_level: a raw value at or above black + saturation_level * (white - black)
             counts as saturated and is left out (per pixel, with that pixel's black level).
         max_saturated_fraction: an ROI channel with a larger saturated fraction is flagged
             "saturated".
-        min_blocks: an ROI channel with fewer non-empty blocks is flagged "few_blocks" (its
-            standard error rests on too few independent values to be trusted).
+        min_blocks: an ROI channel whose standard error has fewer degrees of freedom
+            (`ChannelStats.dof`: effectively independent blocks) is flagged "few_blocks": the
+            ROI is too small for its texture to estimate its error.
     """
 
     erode_px: int = 8
-    block_px: int = 8
+    block_px: int = 2
     saturation_level: float = 0.98
     max_saturated_fraction: float = 0.5
     min_blocks: int = 10
@@ -84,13 +85,23 @@ class ChannelStats:
 
     Attributes:
         mean_dn: mean of (raw - black) over the unsaturated pixels (NaN if there are none).
-        stderr_dn: its standard error from the block scatter (NaN with fewer than 2 blocks).
+        stderr_dn: its standard error, noise and texture (`_blockvar`), including the
+            uncertainty of its own estimate: `sqrt(V nu / (nu - 2))` for an unbiased variance
+            estimate V with nu degrees of freedom (NaN when undefined).
         n_pixels: unsaturated pixels used.
-        n_blocks: non-empty blocks.
+        n_blocks: non-empty blocks at the block size chosen for the standard error.
         n_in_roi: the channel's pixels inside the ROI, saturated or not.
         saturated_fraction: saturated / n_in_roi (NaN if n_in_roi is 0).
-        channel_corr: mean correlation of the R, G, B errors of the mean in this ROI
-            (`channel_correlation`; the same for the three channels; NaN if undefined).
+        channel_corr: mean correlation of the R, G, B errors of the mean in this ROI (the mean
+            of `channel_corrs`, clipped to [0, 1]; the same for the three channels; NaN if
+            undefined).
+        stderr_noise_dn: the part of the standard error due to pixel noise that is white
+            (independent from pixel to pixel): shot, read and quantisation noise, which differ
+            between photos (docs/imaging.md §Standard errors); NaN if undefined.
+        dof: Satterthwaite degrees of freedom of the variance estimate (0 when the error
+            cannot be estimated from this ROI).
+        block_px: the block side chosen for the standard error (raw pixels).
+        channel_corrs: correlations of the errors of the (R, G), (R, B) and (G, B) means.
     """
 
     mean_dn: float
@@ -100,14 +111,49 @@ class ChannelStats:
     n_in_roi: int
     saturated_fraction: float
     channel_corr: float = math.nan
+    stderr_noise_dn: float = math.nan
+    dof: float = 0.0
+    block_px: int = 0
+    channel_corrs: tuple[float, float, float] = (math.nan, math.nan, math.nan)
 
 
 def block_size(frame: RawFrame, block_px: int) -> int:
-    """The block side actually used: `block_px` rounded up to a multiple of the CFA tile."""
+    """The smallest block side used: `block_px` rounded up to a multiple of the CFA tile."""
     if frame.cfa is None:
         return block_px
     tile = math.lcm(*frame.cfa.shape)
     return -(-block_px // tile) * tile
+
+
+def _start_block(roi: RoiMask, base: int) -> int:
+    """The first block side (base x LEVELS) at which the ROI touches at most MAX_BLOCKS blocks."""
+    for f in LEVELS:
+        b = base * f
+        if roi.n_pixels > MAX_BLOCKS * b * b * 4:
+            continue  # certainly more blocks than that
+        box, _ = _aligned_box(roi, b)
+        mask = _aligned_mask(roi, b, box)
+        hb, wb = mask.shape
+        touched = mask.reshape(hb // b, b, wb // b, b).any(axis=(1, 3))
+        if int(touched.sum()) <= MAX_BLOCKS:
+            return b
+    return base * LEVELS[-1]
+
+
+def _aligned_box(roi: RoiMask, b: int) -> tuple[tuple[int, int, int, int], tuple[int, int]]:
+    """(y0, x0, height, width) of the box of whole b x b blocks holding the ROI, and its grid."""
+    h, w = roi.mask.shape
+    by0, bx0 = roi.y0 // b, roi.x0 // b
+    grid = (-(-(roi.y0 + h) // b) - by0, -(-(roi.x0 + w) // b) - bx0)
+    return (by0 * b, bx0 * b, grid[0] * b, grid[1] * b), grid
+
+
+def _aligned_mask(roi: RoiMask, b: int, box: tuple[int, int, int, int]) -> np.ndarray:
+    y0, x0, hb, wb = box
+    h, w = roi.mask.shape
+    mask = np.zeros((hb, wb), dtype=bool)
+    mask[roi.y0 - y0 : roi.y0 - y0 + h, roi.x0 - x0 : roi.x0 - x0 + w] = roi.mask
+    return mask
 
 
 def roi_channel_stats(
@@ -115,17 +161,14 @@ def roi_channel_stats(
 ) -> tuple[ChannelStats, ChannelStats, ChannelStats]:
     """R, G, B statistics of the frame's pixels inside `roi` (both greens together).
 
-    Blocks are `block_size(frame, settings.block_px)` raw pixels square, aligned to the image
-    origin, so that every block holds whole CFA tiles.
+    Blocks are aligned to the image origin and hold whole CFA tiles; their side is chosen from
+    the data, at least `block_size(frame, settings.block_px)` (docs/imaging.md §Standard
+    errors).
     """
-    b = block_size(frame, settings.block_px)
-    h, w = roi.mask.shape
-    by0, bx0 = roi.y0 // b, roi.x0 // b
-    grid = (-(-(roi.y0 + h) // b) - by0, -(-(roi.x0 + w) // b) - bx0)
-    y0, x0 = by0 * b, bx0 * b  # the block-aligned box, which may reach past the image
-    hb, wb = grid[0] * b, grid[1] * b
-    mask = np.zeros((hb, wb), dtype=bool)
-    mask[roi.y0 - y0 : roi.y0 - y0 + h, roi.x0 - x0 : roi.x0 - x0 + w] = roi.mask
+    b = _start_block(roi, block_size(frame, settings.block_px))
+    box, grid = _aligned_box(roi, b)
+    y0, x0, hb, wb = box
+    mask = _aligned_mask(roi, b, box)
     data = frame.data[y0 : y0 + hb, x0 : x0 + wb]
     if data.shape[:2] != (hb, wb):  # past the bottom or right edge: pad (outside the mask)
         pad = [(0, hb - data.shape[0]), (0, wb - data.shape[1])] + [(0, 0)] * (data.ndim - 2)
@@ -145,21 +188,85 @@ def roi_channel_stats(
                 acc[c].add(
                     data[sub], mask[sub], float(frame.black[dy, dx]), level, white, b, ph, dy, dx
                 )
-    out = [a.stats() for a in acc]
-    corr = channel_correlation([a.residuals() for a in acc])
-    return tuple(dataclasses.replace(o, channel_corr=corr) for o in out)  # type: ignore[return-value]
+    step = 1 if frame.cfa is None else frame.cfa.shape[0]
+    return _channel_stats(acc, step)
+
+
+def _channel_stats(
+    acc: list[_Accumulator], step: int
+) -> tuple[ChannelStats, ChannelStats, ChannelStats]:
+    """The three channels' statistics from their accumulated blocks."""
+    blocks = Blocks(
+        np.stack([a.counts for a in acc]),
+        np.stack([a.sums for a in acc]),
+        np.stack([a.sum_y for a in acc]),
+        np.stack([a.sum_x for a in acc]),
+        acc[0].block,
+    )
+    est = adaptive_covariance(blocks)
+    corrs = _correlations(est.cov)
+    defined = [c for c in corrs if math.isfinite(c)]
+    mean_corr = float(np.clip(np.mean(defined), 0.0, 1.0)) if defined else math.nan
+    out = []
+    for c, a in enumerate(acc):
+        base = a.stats()
+        if base.n_pixels == 0:
+            out.append(base)
+            continue
+        var, nu = float(est.cov[c, c]), float(est.dof[c])
+        # the variance of a pull (x - mu) / s with s^2 ~ V chi2_nu / nu is nu / (nu - 2)
+        infl = nu / (nu - 2) if nu > 2 else 1.0
+        stderr = math.sqrt(max(var, 0.0) * infl) if math.isfinite(var) else math.nan
+        noise = a.noise_variance(est.slopes[c], step)
+        out.append(
+            dataclasses.replace(
+                base,
+                stderr_dn=stderr,
+                n_blocks=int(est.n_blocks[c]),
+                channel_corr=mean_corr,
+                stderr_noise_dn=math.sqrt(noise / base.n_pixels) if noise >= 0 else math.nan,
+                dof=nu,
+                block_px=est.size_px,
+                channel_corrs=corrs,
+            )
+        )
+    return tuple(out)  # type: ignore[return-value]
+
+
+def _correlations(cov: np.ndarray) -> tuple[float, float, float]:
+    """(R, G), (R, B), (G, B) correlations from a covariance (NaN where undefined)."""
+    out = []
+    for a, b in ((0, 1), (0, 2), (1, 2)):
+        d = cov[a, a] * cov[b, b]
+        ok = math.isfinite(cov[a, b]) and math.isfinite(d) and d > 0
+        out.append(float(np.clip(cov[a, b] / math.sqrt(d), -1.0, 1.0)) if ok else math.nan)
+    return out[0], out[1], out[2]
+
+
+_NUGGET_LAGS: tuple[tuple[int, int], ...] = ((0, 1), (1, 0), (1, 1), (1, -1))
+"""Sub-plane lags of the noise estimate: two along the axes, two diagonal (x the CFA step)."""
+
+NUGGET_PAIRS = 1 << 16
+"""About this many pixel pairs per lag and sub-plane are used for the noise estimate."""
 
 
 class _Accumulator:
-    """Per-block sums of one channel, gathered from one or more CFA sub-planes."""
+    """Per-block sums of one channel, gathered from one or more CFA sub-planes.
+
+    Besides the block sums it keeps, per lag of `_NUGGET_LAGS`, the sums of the differences of
+    neighbouring same-colour pixels (both unsaturated, both in the ROI), their squares and
+    their number, from which `noise_variance` estimates the white-noise variance.
+    """
 
     def __init__(self, grid: tuple[int, int]) -> None:
         self.grid = grid
+        self.block = 0
         self.counts = np.zeros(grid)
         self.sums = np.zeros(grid)
         self.sum_y = np.zeros(grid)
         self.sum_x = np.zeros(grid)
         self.n_in = 0
+        self.diff = np.zeros((len(_NUGGET_LAGS), 3))  # per lag: pairs, sum d, sum d^2
 
     def add(
         self,
@@ -175,6 +282,7 @@ class _Accumulator:
     ) -> None:
         """Add a sub-plane sampled every `step` pixels from offset (dy, dx) of the aligned box."""
         nby, nbx = self.grid
+        self.block = block
         k = block // step  # sub-plane pixels per block side
         good = mask & (plane < black + level * (white - black))
         self.n_in += int(np.count_nonzero(mask))
@@ -189,8 +297,44 @@ class _Accumulator:
         self.sum_y += counts * (np.arange(nby) * block)[:, None]
         self.sum_x += np.einsum("abk,k->ab", g4.sum(axis=1), offsets + dx, dtype=np.float64)
         self.sum_x += counts * (np.arange(nbx) * block)[None, :]
+        self._add_differences(signal, good)
+
+    def _add_differences(self, signal: np.ndarray, good: np.ndarray) -> None:
+        h, w = signal.shape
+        # every m-th row is plenty for a large ROI: NUGGET_PAIRS pairs fix g to ~1%
+        m = max(1, int(np.count_nonzero(good)) // NUGGET_PAIRS)
+        for i, (ly, lx) in enumerate(_NUGGET_LAGS):
+            a = (slice(0, h - ly, m), slice(max(0, -lx), w - max(0, lx)))
+            b = (slice(ly, h, m), slice(max(0, lx), w - max(0, -lx)))
+            both = good[a] & good[b]
+            d = np.where(both, signal[a] - signal[b], np.float32(0))
+            self.diff[i] += (
+                np.count_nonzero(both),
+                np.sum(d, dtype=np.float64),
+                np.sum(d * d, dtype=np.float64),
+            )
+
+    def noise_variance(self, slope: np.ndarray, step: int) -> float:
+        """White-noise variance per pixel (DN^2) from neighbour differences; -1 if undefined.
+
+        The semivariance `g(h) = E[(x_p - x_p+h)^2] / 2` of the plane-detrended pixels is
+        `sigma_w^2 + sigma_t^2 (1 - rho_t(h))` for white noise sigma_w and a texture with
+        correlation rho_t. With g1 at the axis lags (step px) and g2 at the diagonal ones
+        (step sqrt 2 px), `2 g1 - g2` removes a texture term proportional to |h|^2, that of any
+        texture smooth at the scale of the lag (docs/imaging.md §Standard errors).
+        """
+        g = []
+        for i, (ly, lx) in enumerate(_NUGGET_LAGS):
+            pairs, s1, s2 = self.diff[i]
+            if pairs == 0 or not np.all(np.isfinite(slope)):
+                return -1.0
+            t = float(slope[0] * ly * step + slope[1] * lx * step)  # E[x_p - x_p+h] = -t
+            g.append((s2 + 2 * t * s1 + t * t * pairs) / (2 * pairs))
+        g1, g2 = (g[0] + g[1]) / 2, (g[2] + g[3]) / 2
+        return float(min(max(2 * g1 - g2, 0.0), g1))
 
     def stats(self) -> ChannelStats:
+        """Mean, counts and saturation (the standard error is filled in by the caller)."""
         n_good = int(self.counts.sum())
         n_in = self.n_in
         if n_in == 0:
@@ -199,99 +343,4 @@ class _Accumulator:
         if n_good == 0:
             return ChannelStats(math.nan, math.nan, 0, 0, n_in, sat_frac)
         mean = float(self.sums.sum() / n_good)
-        ok = self.counts > 0
-        k = int(ok.sum())
-        stderr = _block_stderr(self.counts, self.sums, self.sum_y, self.sum_x, ok)
-        return ChannelStats(mean, stderr, n_good, k, n_in, sat_frac)
-
-    def residuals(self) -> np.ndarray | None:
-        """Block residual grid `e_b / N` of `_block_residuals` (None when it is undefined)."""
-        ok = self.counts > 0
-        if not np.any(ok):
-            return None
-        res = _block_residuals(self.counts, self.sums, self.sum_y, self.sum_x, ok)
-        if res is None:
-            return None
-        grid_e, n_total, _k, _rank = res
-        return grid_e / n_total
-
-
-_LAG_WEIGHTS = ((0, 1, 0.5), (1, 0, 0.5), (1, 1, 0.25), (1, -1, 0.25))
-"""Bartlett weights w(dy) w(dx) of the neighbouring-block covariances (one of each +- pair)."""
-
-
-def _block_residuals(
-    counts: np.ndarray, sums: np.ndarray, sum_y: np.ndarray, sum_x: np.ndarray, ok: np.ndarray
-) -> tuple[np.ndarray, float, int, int] | None:
-    """Block residuals `e_b = n_b (m_b - plane_b)` on the grid, N, K and the plane's rank.
-
-    None when there are no more blocks than the plane has parameters (module docstring).
-    """
-    n = counts[ok]
-    k = n.size
-    n_total = float(n.sum())
-    # Block means and pixel centroids; the plane a + b (x - xw) + c (y - yw) is fitted to the
-    # block means with weights n, centred so that a is the ROI mean itself.
-    m = sums[ok] / n
-    xc = sum_x[ok] / n
-    yc = sum_y[ok] / n
-    design = np.stack([np.ones(k), xc - np.average(xc, weights=n), yc - np.average(yc, weights=n)])
-    sw = np.sqrt(n)
-    coef, _res, rank, _sv = np.linalg.lstsq((design * sw).T, m * sw, rcond=None)
-    if k <= rank:
-        return None
-    grid_e = np.zeros(counts.shape)
-    grid_e[ok] = n * (m - coef @ design)
-    return grid_e, n_total, k, int(rank)
-
-
-def _bartlett(a_grid: np.ndarray, b_grid: np.ndarray) -> float:
-    """`sum_b sum_b' w(b - b') a_b b_b'` with the Bartlett weights (symmetrised in a, b)."""
-    total = float(np.sum(a_grid * b_grid))
-    h, w = a_grid.shape
-    for dy, dx, wgt in _LAG_WEIGHTS:
-        sl_a = (slice(0, h - dy), slice(max(0, -dx), w - max(0, dx)))
-        sl_b = (slice(dy, h), slice(max(0, dx), w - max(0, -dx)))
-        total += wgt * float(np.sum(a_grid[sl_a] * b_grid[sl_b]))
-        total += wgt * float(np.sum(b_grid[sl_a] * a_grid[sl_b]))
-    return total
-
-
-def _block_stderr(
-    counts: np.ndarray, sums: np.ndarray, sum_y: np.ndarray, sum_x: np.ndarray, ok: np.ndarray
-) -> float:
-    """Standard error of the mean from block means about a fitted plane (module docstring).
-
-    All arrays are on the block grid; `sum_y`, `sum_x` are the sums of the pixels' coordinates
-    (any common origin) in each block, `ok` marks the non-empty blocks.
-    """
-    res = _block_residuals(counts, sums, sum_y, sum_x, ok)
-    if res is None:
-        return math.nan
-    grid_e, n_total, k, rank = res
-    var = k / (k - rank) * max(_bartlett(grid_e, grid_e), 0.0) / n_total**2
-    return math.sqrt(var)
-
-
-def channel_correlation(residuals: list[np.ndarray | None]) -> float:
-    """Mean pairwise correlation of the channels' errors of the mean within one ROI.
-
-    The same Bartlett (HAC) estimate as the standard error, applied to the cross-covariance of
-    two channels' block residuals: texture multiplies every channel alike, so the R, G and B
-    means of one ROI err together (correlation near 1 when texture dominates, near 0 when
-    pixel noise does). The mean of the defined pairs, clipped to [0, 1]; NaN when no pair is
-    defined. See docs/imaging.md §Channel correlation.
-    """
-    corr = []
-    for a in range(len(residuals)):
-        for b in range(a + 1, len(residuals)):
-            ea, eb = residuals[a], residuals[b]
-            if ea is None or eb is None or ea.shape != eb.shape:
-                continue
-            vab = _bartlett(ea, eb)
-            va, vb = _bartlett(ea, ea), _bartlett(eb, eb)
-            if va > 0 and vb > 0:
-                corr.append(vab / math.sqrt(va * vb))
-    if not corr:
-        return math.nan
-    return float(np.clip(np.mean(corr), 0.0, 1.0))
+        return ChannelStats(mean, math.nan, n_good, int((self.counts > 0).sum()), n_in, sat_frac)

@@ -45,13 +45,16 @@ from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import Polygon, RoiMask, as_polygon, roi_mask
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 6
+TABLE_VERSION = 7
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
 4: rows flagged below_black carry NaN (were negative values).
-5: the radiometry column (dark frames, flat fields, HDR brackets).
-6: the face_view_deg column (a pinhole-placed face's own view angle).
+5: standard errors from the 1-dependent block covariance at a block size chosen from the data;
+   the stderr_noise, stderr_dof, block_px, corr_rg, corr_rb and corr_gb columns (issue 13).
+5 (radiometry branch): the radiometry column (dark frames, flat fields, HDR brackets).
+6 (radiometry branch): the face_view_deg column (a pinhole-placed face's own view angle).
+7: both of the above together (the two branches' tables 5 and 6 are stale).
 """
 
 
@@ -250,7 +253,7 @@ def _flags(s: ChannelStats, settings: ExtractionSettings) -> list[str]:
         flags.append("no_pixels")
     elif s.saturated_fraction > settings.max_saturated_fraction or s.n_pixels == 0:
         flags.append("saturated")
-    if s.n_pixels > 0 and s.n_blocks < settings.min_blocks:
+    if s.n_pixels > 0 and not s.dof >= settings.min_blocks:  # also when dof is NaN
         flags.append("few_blocks")
     if s.mean_dn < -5 * s.stderr_dn:
         # E[raw - black] >= 0 with a correct black level; 5 sigma below is a wrong black level
@@ -258,13 +261,35 @@ def _flags(s: ChannelStats, settings: ExtractionSettings) -> list[str]:
     return flags
 
 
-def _radiance(
-    mean_dn: float, stderr_dn: float, scale: float, flags: list[str]
-) -> tuple[float, float]:
-    """(value, stderr) in relative radiance; NaN when below black (never a negative value)."""
-    if "below_black" in flags:
-        return math.nan, math.nan
-    return mean_dn * scale, stderr_dn * scale
+def _scaled(
+    s: ChannelStats,
+    r: ChannelStats | None,
+    scale: float,
+    below_black: bool,
+    common: tuple[float, float] = (0.0, 0.0),
+) -> tuple[float, float, float, float]:
+    """A row's value, stderr, stderr_noise and dof: exposure-scaled, or the ratio to `r`.
+
+    `common` is the calibration frames' part of the standard error (DN) of the ROI and of the
+    reference (`_common_stderr`): added in quadrature to the total error, not to the noise
+    part, since the same dark and flat frames enter every photo that uses them. The ROIs do not
+    overlap, so the ratio's error adds the two relative errors in quadrature; its dof is the
+    smaller of the two (docs/imaging.md §Reference patch). NaN below black (never a negative
+    value) and for a reference mean <= 0.
+    """
+    if below_black or (r is not None and not r.mean_dn > 0):
+        return math.nan, math.nan, math.nan, s.dof
+    se = math.hypot(s.stderr_dn, common[0])
+    if r is None:
+        return s.mean_dn * scale, se * scale, s.stderr_noise_dn * scale, s.dof
+    ratio = s.mean_dn / r.mean_dn
+
+    def err(se: float, se_ref: float) -> float:
+        return math.hypot(se / r.mean_dn, ratio * se_ref / r.mean_dn)
+
+    noise = err(s.stderr_noise_dn, r.stderr_noise_dn)
+    total = err(se, math.hypot(r.stderr_dn, common[1]))
+    return ratio, total, noise, min(s.dof, r.dof)
 
 
 def measure_frame(
@@ -313,16 +338,18 @@ def measure_frame(
     for n, roi in rois.items():
         by_marker = roi.source == "markers" and placement is not None
         for c, s in enumerate(stats[n]):
-            se_dn = math.hypot(s.stderr_dn, common[n][c])
             flags = _flags(s, settings)
-            value, stderr = _radiance(s.mean_dn, se_dn, exposure.scale, flags)
-            normalised_by = ""
+            normalised_by, r, r_common = "", None, 0.0
             if ref is not None and ref_flags is not None and n != spec.reference:
+                r = ref[c]
                 normalised_by = spec.reference or ""
+                r_common = common[normalised_by][c]
                 flags += [f"reference-{f}" for f in ref_flags[c]]
-                r_se = math.hypot(ref[c].stderr_dn, common[normalised_by][c])
-                value, stderr, extra = _ratio(s.mean_dn, se_dn, ref[c].mean_dn, r_se, flags)
-                flags += extra
+                if "below_black" not in flags and not r.mean_dn > 0:
+                    flags.append("reference-nonpositive")
+            value, stderr, noise, dof = _scaled(
+                s, r, exposure.scale, "below_black" in flags, (common[n][c], r_common)
+            )
             rows.append(
                 MeasurementRow(
                     photo=photo,
@@ -336,6 +363,12 @@ def measure_frame(
                     n_blocks=s.n_blocks,
                     saturated_fraction=float(s.saturated_fraction),
                     channel_corr=float(s.channel_corr),
+                    stderr_noise=float(noise),
+                    stderr_dof=float(dof),
+                    block_px=int(s.block_px),
+                    corr_rg=float(s.channel_corrs[0]),
+                    corr_rb=float(s.channel_corrs[1]),
+                    corr_gb=float(s.channel_corrs[2]),
                     flag=";".join(flags),
                     normalised_by=normalised_by,
                     exposure_time_s=exposure.exposure_time_s,
@@ -475,20 +508,6 @@ def _stats_source(
     if radiometry is None:
         return frame, frame.black_level_per_channel()
     return radiometry.frame, radiometry.black_per_channel
-
-
-def _ratio(
-    mean: float, se: float, ref: float, ref_se: float, flags: Sequence[str]
-) -> tuple[float, float, list[str]]:
-    """(value, stderr, extra flags) of `mean / ref` (independent errors; docs/imaging.md
-    §Reference patch); NaN and "reference-nonpositive" when the reference mean is <= 0; NaN
-    when the value itself is flagged below_black (no ratio of a value below black)."""
-    if "below_black" in flags:
-        return math.nan, math.nan, []
-    if ref > 0:
-        ratio = mean / ref
-        return ratio, math.hypot(se / ref, ratio * ref_se / ref), []
-    return math.nan, math.nan, ["reference-nonpositive"]
 
 
 def _common_stderr(
@@ -901,7 +920,7 @@ def _with_failures(
     if failures and raise_on_failure:
         raise PhotosFailedError(
             f"{len(failures)} of {len(table.photos()) + len(failures)} photos could not be "
-            f"measured: {_summarise_failures(failures)}",
+            f"measured: {summarise_failures(failures)}",
             tuple(n for n, _ in failures),
         )
     if not failures:
@@ -944,7 +963,7 @@ def _build_calibrations(
     return {c: build_calibration(c, settings.saturation_level) for c in specs}
 
 
-def _summarise_failures(failures: Sequence[tuple[str, str]]) -> str:
+def summarise_failures(failures: Sequence[tuple[str, str]]) -> str:
     """The failures of several photos on one line, photos that failed alike named together.
 
     Each message starts with `photo '<name>'` (the convention of every ImagingError about one

@@ -38,6 +38,15 @@ class MeasurementRow:
         channel_corr: mean correlation of the errors of this ROI's R, G and B values, from the
             cross-covariance of their block residuals (docs/imaging.md §Channel correlation);
             the same on the ROI's three rows; NaN when undefined.
+        stderr_noise: the part of `stderr` due to white pixel noise (shot, read,
+            quantisation), which differs between photos; the rest (`sqrt(stderr^2 -
+            stderr_noise^2)`) is texture, the same in every photo of a face
+            (docs/imaging.md §Standard errors). NaN when undefined.
+        stderr_dof: degrees of freedom of the standard error (its estimate's own precision);
+            0 when the ROI is too small to estimate it.
+        block_px: side (raw pixels) of the blocks the standard error was computed from.
+        corr_rg, corr_rb, corr_gb: correlations of the errors of this ROI's (R, G), (R, B) and
+            (G, B) means; the same on the ROI's three rows; NaN when undefined.
         flag: "" when usable, else ";"-separated reasons ("saturated", "few_blocks",
             "below_black", "no_pixels", "reference-..."). Flagged rows must not be fitted.
         normalised_by: the reference patch `value` is divided by ("" if none).
@@ -75,6 +84,12 @@ class MeasurementRow:
     n_blocks: int
     saturated_fraction: float
     channel_corr: float
+    stderr_noise: float
+    stderr_dof: float
+    block_px: int
+    corr_rg: float
+    corr_rb: float
+    corr_gb: float
     flag: str
     normalised_by: str
     exposure_time_s: float
