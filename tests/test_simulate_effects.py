@@ -31,7 +31,7 @@ EFFECTS = [
 @pytest.fixture(scope="module")
 def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.mktemp("session") / "photos"
-    args = ["simulate", str(folder), "--megapixels", "0.3", "--views", "5", "--quiet"]
+    args = ["simulate", str(folder), "--megapixels", "2.0", "--views", "5", "--quiet"]
     assert main([*args, *EFFECTS]) == 0
     return folder
 
