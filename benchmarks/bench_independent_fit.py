@@ -101,15 +101,17 @@ def main(argv: list[str] | None = None) -> int:
             return proc.returncode
         wall, cpu, peak_mb = map(float, proc.stdout.split()[-3:])
         results = json.loads((tmp / "fit" / "results.json").read_text())
-        csv = (tmp / "fit" / "measurements.csv").read_text().splitlines()
-        by_markers = sum(",markers," in line for line in csv)
+        from stairfit import imaging
+
+        rows = list(imaging.MeasurementTable.read_csv(tmp / "fit" / "measurements.csv"))
+        by_markers = sum(r.roi_source == "markers" for r in rows)
     report = {
         "set": "quick (0.5 MP, 8 views)" if args.quick else "1600 x 1200",
         "layout": args.layout,
         "views": len(truth["photos"]),
         "exposure tags": truth["exposure_tags"],
         "hand-drawn ROIs (photos)": truth["hand_drawn_rois"],
-        "rows placed by markers": f"{by_markers} of {len(csv) - 1}",
+        "rows placed by markers": f"{by_markers} of {len(rows)}",
         "wall_s": round(wall, 1),
         "cpu_s": round(cpu, 1),
         "peak_mb": round(peak_mb),
