@@ -324,12 +324,9 @@ def render_photo(
         raise ImagingError(f"render_photo: no radiance for faces {missing}")
     pattern = sensor.pattern()
     bg = np.asarray(background, dtype=np.float32).reshape(3)
-    lut = np.vstack([bg] + [np.asarray(radiance[n], dtype=np.float32).reshape(3) for n in names])
-    label = np.zeros((h_img, w_img), dtype=np.uint8)
     polys = {n: as_polygon(faces_px[n], f"face {n!r}") for n in names}
-    for k, n in enumerate(names, start=1):
-        pts = np.round(np.asarray(polys[n]) * (1 << _SHIFT)).astype(np.int32)
-        cv2.fillPoly(label, [pts], k, lineType=cv2.LINE_8, shift=_SHIFT)
+    label = _face_labels((h_img, w_img), [polys[n] for n in names])
+    lut = np.vstack([bg] + [np.asarray(radiance[n], dtype=np.float32).reshape(3) for n in names])
     field = _cfa_field(pattern, lut, label)
     corners_px: dict[int, np.ndarray] = {}
     if markers is not None:
@@ -347,22 +344,57 @@ def render_photo(
     rng = np.random.default_rng(seed)
     tex_rng = rng if texture_seed is None else np.random.default_rng(texture_seed)
     untextured = field
-    if texture_amplitude > 0:
-        noise = tex_rng.standard_normal((h_img, w_img), dtype=np.float32)
-        if texture_sigma_px > 0:
-            noise = cv2.GaussianBlur(noise, (0, 0), texture_sigma_px)
-        noise -= noise.mean()
-        noise *= texture_amplitude / noise.std()
-        noise += 1.0
-        field = untextured * noise
-        del noise
+    field = _textured(untextured, texture_amplitude, texture_sigma_px, tex_rng)
     expected, expected_untextured = {}, {}
     for n in names:
         roi = roi_mask(polys[n], (h_img, w_img), erode_px, photo="synthetic", wedge=n)
         expected[n] = _channel_means(field, pattern, roi)
         expected_untextured[n] = _channel_means(untextured, pattern, roi)
     del untextured
-    # The sensor: electrons -> Poisson -> DN, read noise, black, quantisation, clipping.
+    return SyntheticPhoto(
+        mosaic=_expose(field, exposure, sensor, rng),
+        exposure=exposure,
+        sensor=sensor,
+        faces_px=polys,
+        erode_px=erode_px,
+        expected=expected,
+        expected_untextured=expected_untextured,
+        marker_corners_px=corners_px,
+        field=field if keep_field else None,
+    )
+
+
+def _face_labels(shape: tuple[int, int], polygons: Sequence[Polygon]) -> np.ndarray:
+    """Label image (uint8): 0 for the base, k for the k-th polygon (1-based, later ones on
+    top), filled at sub-pixel precision."""
+    label = np.zeros(shape, dtype=np.uint8)
+    for k, poly in enumerate(polygons, start=1):
+        pts = np.round(np.asarray(poly) * (1 << _SHIFT)).astype(np.int32)
+        cv2.fillPoly(label, [pts], k, lineType=cv2.LINE_8, shift=_SHIFT)
+    return label
+
+
+def _textured(
+    field: np.ndarray, amplitude: float, sigma_px: float, rng: np.random.Generator
+) -> np.ndarray:
+    """`field` times a multiplicative texture of mean 1 and relative sd `amplitude`: white
+    noise smoothed by a Gaussian of `sigma_px` (none at 0); `field` itself when amplitude is 0."""
+    if amplitude <= 0:
+        return field
+    noise = rng.standard_normal(field.shape, dtype=np.float32)
+    if sigma_px > 0:
+        noise = cv2.GaussianBlur(noise, (0, 0), sigma_px)
+    noise -= noise.mean()
+    noise *= amplitude / noise.std()
+    noise += 1.0
+    return field * noise
+
+
+def _expose(
+    field: np.ndarray, exposure: Exposure, sensor: SensorModel, rng: np.random.Generator
+) -> np.ndarray:
+    """The sensor: electrons -> Poisson -> DN, read noise, black, quantisation, clipping."""
+    h_img, w_img = field.shape
     gain = sensor.gain_e_per_dn * 100.0 / exposure.iso  # electrons per DN at this ISO
     electrons = np.maximum(field / np.float32(exposure.scale), 0.0) * np.float32(gain)
     dn = rng.poisson(electrons).astype(np.float32)
@@ -373,18 +405,7 @@ def render_photo(
     dn += sensor.offset_dn(h_img, w_img)
     np.rint(dn, out=dn)
     np.clip(dn, 0, sensor.white, out=dn)
-    mosaic = dn.astype(np.uint16)
-    return SyntheticPhoto(
-        mosaic=mosaic,
-        exposure=exposure,
-        sensor=sensor,
-        faces_px=polys,
-        erode_px=erode_px,
-        expected=expected,
-        expected_untextured=expected_untextured,
-        marker_corners_px=corners_px,
-        field=field if keep_field else None,
-    )
+    return dn.astype(np.uint16)
 
 
 _UINT32_MAX = 2**32 - 1
