@@ -19,6 +19,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from stairfit.fitting import ESS_MIN, RHAT_MAX
+
 from . import __version__
 from .figures import brdf_map, fixed_layout, log_y, reflected_colours, refractive_index, save
 
@@ -38,6 +40,8 @@ PACKAGES = (
     "colour-science",
     "tifffile",
     "matplotlib",
+    "arviz",
+    "h5netcdf",
 )
 
 
@@ -84,10 +88,23 @@ def parameter_records(outcome: FitOutcome) -> list[dict[str, Any]]:
                 "p2_5": float(post.p2_5[j]) * f,
                 "p97_5": float(post.p97_5[j]) * f,
                 "width_over_ls_stderr": float(post.width_ratio[j]),
+                **chain_checks(post, j),
             }
         rec["index"] = i
         records.append(rec)
     return records
+
+
+def chain_checks(post: Any, j: int) -> dict[str, Any]:
+    """Parameter `j`'s convergence diagnostics for results.json: split R-hat, bulk and tail
+    ESS, and whether they pass the thresholds (R-hat < 1.01, ESS >= 400; docs/fitting.md §5)."""
+    rhat, bulk, tail = float(post.rhat[j]), float(post.ess_bulk[j]), float(post.ess_tail[j])
+    return {
+        "rhat": rhat,
+        "ess_bulk": bulk,
+        "ess_tail": tail,
+        "converged": bool(rhat < RHAT_MAX and min(bulk, tail) >= ESS_MIN),
+    }
 
 
 def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
@@ -119,6 +136,8 @@ def write_outputs(outcome: FitOutcome, out: Path) -> None:
     results = results_dict(outcome, figures)
     (out / "results.json").write_text(json.dumps(results, indent=2, allow_nan=False))
     (out / "report.html").write_text(report_html(outcome, results, figures, out))
+    if outcome.posterior is not None:  # the chain for ArviZ (docs/fitting.md §5)
+        outcome.posterior.to_netcdf(out / "chain.nc", degrees=True)
 
 
 def write_observations(outcome: FitOutcome, path: Path) -> None:
@@ -281,7 +300,11 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
                 "n_samples": post.n_samples,
                 "n_independent": post.n_independent,
                 "acceptance_fraction": post.acceptance_fraction,
+                "rhat_max": RHAT_MAX,
+                "ess_min": ESS_MIN,
+                "tau_reliable": post.tau_reliable,
                 "chain_file": "chain.npz",
+                "inference_data_file": "chain.nc",
                 "warnings": [
                     {"code": w.code, "parameter": w.parameter, "message": w.message}
                     for w in post.warnings
@@ -542,7 +565,7 @@ def report_html(
         )
         rows.append(
             f"<tr><td>{e(rec['name'])}</td><td>{e(rec['unit'])}</td>"
-            f"<td>{ls['value']:.5g} &plusmn; {se}</td><td>{e(post)}</td></tr>"
+            f"<td>{ls['value']:.5g} &plusmn; {se}</td><td>{e(post)}</td>{_checks_html(po)}</tr>"
         )
     fixed = "".join(f"<li>{e(k)} = {v:.4g}</li>" for k, v in results["fixed_parameters"].items())
     table = "".join(
@@ -589,7 +612,9 @@ table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}</style
 <h1>stairfit report: {e(outcome.scene.folder.name)}</h1>
 <p>Chosen model: <b>{e(sel.chosen)}</b>. {e(sel.reason)}</p>
 <h2>Parameters</h2><table><tr><th>parameter</th><th>unit</th><th>least squares</th>
-<th>posterior median [16%, 84%]</th></tr>{"".join(rows)}</table>
+<th>posterior median [16%, 84%]</th><th>R-hat</th><th>ESS bulk / tail</th></tr>{"".join(rows)}
+</table><p>R-hat: rank-normalised split R-hat over the emcee walkers; ESS: effective sample
+sizes (ArviZ). In red: outside R-hat &lt; {RHAT_MAX:g}, ESS &ge; {ESS_MIN:g}.</p>
 <p>Fixed:</p><ul>{fixed}</ul>
 <h2>Model selection ({e(sel.criterion.upper())}, threshold {sel.threshold:g})</h2>
 <table><tr><th></th><th>variant</th><th>k</th><th>chi2</th><th>BIC</th><th>delta</th>
@@ -605,6 +630,17 @@ also in results.json.</p></body></html>
 """
 
 
+def _checks_html(po: dict[str, Any] | None) -> str:
+    """The R-hat and ESS cells of a parameter row (red outside the thresholds)."""
+    if not po:
+        return "<td></td><td></td>"
+    style = "" if po["converged"] else " style='color:#b00;font-weight:bold'"
+    return (
+        f"<td{style}>{_fmt(po['rhat'], '.4f')}</td>"
+        f"<td{style}>{_fmt(po['ess_bulk'], '.0f')} / {_fmt(po['ess_tail'], '.0f')}</td>"
+    )
+
+
 def _markers_html(outcome: FitOutcome) -> str:
     """The per-photo marker table (app/measure.py), as in markers.csv."""
     from .measure import MARKER_COLUMNS, fit_marker_reports, html_table
@@ -617,6 +653,39 @@ def _fmt(x: Any, spec: str) -> str:
     return "" if x is None else format(x, spec)
 
 
+def _checks_text(po: dict[str, Any] | None) -> str:
+    """`1.0032  1893/2410` (R-hat, bulk / tail ESS) for the summary, `!` past a threshold."""
+    if not po:
+        return ""
+    rhat, bulk, tail = (float("nan") if v is None else v
+                        for v in (po["rhat"], po["ess_bulk"], po["ess_tail"]))  # fmt: skip
+    flag = "" if po["converged"] else " !"
+    return f"{rhat:>6.4f} {bulk:>5.0f}/{tail:<5.0f}{flag}"
+
+
+def posterior_warning_lines(post: Any) -> list[str]:
+    """The posterior's warnings for the summary: the step limit and the acceptance as they
+    are, R-hat and ESS one line each naming every parameter concerned."""
+    if post is None:
+        return []
+    lines = [w.message for w in post.warnings if w.code not in ("rhat_high", "ess_low")]
+    named = {"rhat_high": [], "ess_low": []}
+    for w in post.warnings:
+        if w.code in named:
+            named[w.code].append(w.parameter)
+    if named["rhat_high"]:
+        lines.append(
+            f"split R-hat is not below {RHAT_MAX:g} for {', '.join(named['rhat_high'])}: the "
+            "walkers have not mixed; run a longer chain (e.g. --preset accurate)"
+        )
+    if named["ess_low"]:
+        lines.append(
+            f"bulk or tail ESS is below {ESS_MIN:g} for {', '.join(named['ess_low'])}: the "
+            "intervals (the 95% most) are noisy; run a longer chain"
+        )
+    return lines
+
+
 def print_summary(outcome: FitOutcome, out: Path, source: Path | None = None) -> None:
     """The one-screen summary printed at the end of `fit` (`source`: the photo folder)."""
     sel = outcome.selection
@@ -624,7 +693,10 @@ def print_summary(outcome: FitOutcome, out: Path, source: Path | None = None) ->
     print()
     print(f"stairfit fit: {source or outcome.scene.folder}")
     print(f"  model: {sel.chosen}  ({sel.reason})")
-    print(f"  {'parameter':<26} {'least squares':>24}   {'posterior median [16%, 84%]':>34}")
+    print(
+        f"  {'parameter':<26} {'least squares':>24}   {'posterior median [16%, 84%]':>34}"
+        f"  {'R-hat':>6} {'ESS b/t':>11}"
+    )
     for rec in recs:
         ls = rec["least_squares"]
         se = "n/a" if ls["stderr"] is None else f"{ls['stderr']:.3g}"
@@ -632,7 +704,7 @@ def print_summary(outcome: FitOutcome, out: Path, source: Path | None = None) ->
         pos = f"{po['median']:.5g} [{po['p16']:.5g}, {po['p84']:.5g}]" if po else "-"
         print(
             f"  {rec['name'] + ' (' + rec['unit'] + ')':<26} {ls['value']:>13.5g} +- {se:<8}"
-            f"   {pos:>34}"
+            f"   {pos:>34}  {_checks_text(po)}"
         )
     for k, v in fixed_parameters(outcome).items():
         print(f"  {k} fixed at {v:.4g}")
@@ -643,8 +715,8 @@ def print_summary(outcome: FitOutcome, out: Path, source: Path | None = None) ->
     )
     for w in fit.warnings:
         print(f"  warning: {w.message}")
-    if outcome.posterior is not None and not outcome.posterior.converged:
-        print("  warning: the posterior chain hit its step limit before 50 tau (see results.json)")
+    for line in posterior_warning_lines(outcome.posterior):
+        print(f"  warning: {line}")
     for note in outcome.notes:
         print(f"  note: {note}")
     print(f"  results: {out / 'results.json'}; report: {out / 'report.html'}")

@@ -10,6 +10,8 @@ from ._chain import ChainInfo as ChainInfo
 from ._chain import load_chain as load_chain
 from ._core import SOLVERS as SOLVERS
 from ._core import fisher_information as fisher_information
+from ._diagnostics import ESS_MIN as ESS_MIN
+from ._diagnostics import RHAT_MAX as RHAT_MAX
 from ._errors import BoundaryWarning as BoundaryWarning
 from ._errors import ConvergenceWarning as ConvergenceWarning
 from ._errors import FitError as FitError

@@ -55,8 +55,9 @@ class FitWarning(NamedTuple):
     """One structured warning recorded in a result.
 
     `code` is one of `"unidentified"`, `"at_bound"`, `"start_failed"`, `"not_converged"`,
-    `"chain_too_short"`, `"low_acceptance"`; `parameter` names the parameter concerned (or is
-    None); `message` is the human-readable sentence also passed to `warnings.warn`.
+    `"chain_too_short"`, `"low_acceptance"`, `"rhat_high"`, `"ess_low"`; `parameter` names the
+    parameter concerned (or is None); `message` is the human-readable sentence also passed to
+    `warnings.warn`.
     """
 
     code: str
@@ -71,6 +72,8 @@ WARNING_CATEGORIES: dict[str, type[FitWarningCategory]] = {
     "not_converged": ConvergenceWarning,
     "chain_too_short": ConvergenceWarning,
     "low_acceptance": ConvergenceWarning,
+    "rhat_high": ConvergenceWarning,
+    "ess_low": ConvergenceWarning,
 }
 """The `warnings` category used for each `FitWarning.code`."""
 
