@@ -74,11 +74,11 @@ def run(args: argparse.Namespace) -> int:
         write_outputs(scene, table, reports, tmp)
     print_summary(scene, reports, out)
     if table.failed:
-        from stairfit.imaging._pipeline import _summarise_failures
+        from stairfit.imaging import summarise_failures
 
         raise UserError(
             f"{scene.path}: {len(table.failed)} of {len(specs)} photos could not be measured "
-            f"(see {out / 'report.html'}): {_summarise_failures(list(table.failed))}"
+            f"(see {out / 'report.html'}): {summarise_failures(list(table.failed))}"
         )
     return 0
 

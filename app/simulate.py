@@ -179,8 +179,6 @@ def _check_edge_radius(s: SimulationSettings) -> None:
     if r > 0:
         from stairfit import model
 
-        if not hasattr(model, "max_edge_radius"):
-            raise UserError("--edge-radius-um: this installation lacks the rounded-edge model")
         r_max = min(float(model.max_edge_radius(b * DEG, s.layer_um)) for b in s.wedges_deg)
         if r > r_max:
             raise UserError(

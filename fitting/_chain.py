@@ -66,6 +66,22 @@ def _unpack_random_state(f: dict[str, np.ndarray]) -> tuple:
     )
 
 
+def save_npz(path: Path, payload: dict[str, np.ndarray]) -> None:
+    """Write `payload` to `path` atomically: a temporary file in the same folder, then
+    `os.replace` (never a half-written file). Not `tempfile.mkstemp`: its 0600 would stay on the
+    chain file; 0666 less the umask instead, as for every other output."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = str(path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp"))
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **payload)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
 class ChainBackend(emcee.backends.Backend):
     """emcee's in-memory backend, saved to and restored from a chain file.
 
@@ -108,19 +124,8 @@ class ChainBackend(emcee.backends.Backend):
         """Write the chain so far atomically: a temporary file in the same folder, then
         `os.replace` (never a half-written file). `physical`: the chain in physical values
         `(n_steps, n_walkers, p)`; `tau`: the last autocorrelation estimate."""
-        if self.path is None:
-            return
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        # not tempfile.mkstemp: its 0600 would stay on the chain file; 0666 less the umask instead
-        tmp = str(self.path.with_name(f".{self.path.name}.{secrets.token_hex(4)}.tmp"))
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez(fh, **self._payload(physical, tau))
-            os.replace(tmp, self.path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        if self.path is not None:
+            save_npz(self.path, self._payload(physical, tau))
 
     def _payload(self, physical: np.ndarray, tau: np.ndarray) -> dict[str, np.ndarray]:
         info = self.info

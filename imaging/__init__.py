@@ -44,6 +44,7 @@ from ._pipeline import measure_photo as measure_photo
 from ._pipeline import measure_photos as measure_photos
 from ._pipeline import place_faces as place_faces
 from ._pipeline import preview_path as preview_path
+from ._pipeline import summarise_failures as summarise_failures
 from ._placement import MIN_DETECTABLE_CELL_PX as MIN_DETECTABLE_CELL_PX
 from ._placement import PLACEMENT_MODELS as PLACEMENT_MODELS
 from ._placement import CameraPose as CameraPose

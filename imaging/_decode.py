@@ -128,6 +128,79 @@ def file_sha256(path: str | Path) -> str:
     return h.hexdigest()
 
 
+def _read_blob(path: Path, name: str) -> bytes:
+    """The file's bytes, or an `ImagingError` naming the photo and the fix."""
+    if not path.is_file():
+        raise ImagingError(
+            f"photo {name!r}: file {path} does not exist; check the photo's file name "
+            "(it is relative to the scene file's folder)"
+        )
+    try:
+        return path.read_bytes()
+    except OSError as e:
+        raise ImagingError(
+            f"photo {name!r}: cannot read {path} ({e}); check its permissions"
+        ) from e
+
+
+def _libraw_parts(
+    blob: bytes, path: Path, name: str
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, float, tuple[float, float, float]]:
+    """`_read_libraw` of the file's bytes; LibRaw's and rawpy's failures as one `ImagingError`
+    with the fix (a RAW converter, or DNG)."""
+    try:
+        with rawpy.imread(io.BytesIO(blob)) as raw:
+            return _read_libraw(raw, name)
+    except rawpy.LibRawError as e:
+        reason = (
+            e.args[0].decode(errors="replace")
+            if e.args and isinstance(e.args[0], bytes)
+            else str(e)
+        )
+        raise ImagingError(
+            f"photo {name!r}: LibRaw {'.'.join(map(str, rawpy.libraw_version))} cannot decode "
+            f"{path} ({type(e).__name__}: {reason}); it is not a camera RAW file LibRaw supports, "
+            "or it is truncated or corrupt. Check that it opens in a RAW converter, copy it from "
+            "the camera again, or convert it to DNG with Adobe DNG Converter"
+        ) from e
+    except (NotImplementedError, RuntimeError, ValueError) as e:
+        raise ImagingError(
+            f"photo {name!r}: rawpy cannot give the raw mosaic of {path} ({e}); convert it to "
+            "DNG with Adobe DNG Converter"
+        ) from e
+
+
+def _black_level_note(data: np.ndarray, black: np.ndarray) -> list[str]:
+    """A note when the median raw value lies below the black level (a black level not in the
+    data's units, seen in 8-bit lossy linear DNGs)."""
+    median = float(
+        np.median(data[:: max(1, data.shape[0] // 256), :: max(1, data.shape[1] // 256)])
+    )
+    if median >= float(black.min()):
+        return []
+    return [
+        f"the median raw value ({median:g}) is below the black level ({float(black.min()):g}): "
+        "the black level may not be in the data's units (seen in 8-bit lossy linear DNGs)"
+    ]
+
+
+def _exposure_tags(tags: dict) -> tuple[dict[str, float | None], list[str], list[str]]:
+    """Exposure time, f-number and ISO from the EXIF tags (EXIF IFD or IFD0), with the source
+    of each and the notes their reading gave."""
+    values: dict[str, float | None] = {}
+    sources: list[str] = []
+    notes: list[str] = []
+    for key, names in (
+        ("exposure_time_s", _EXIF_EXPOSURE_TIME),
+        ("f_number", _EXIF_F_NUMBER),
+        ("iso", _EXIF_ISO),
+    ):
+        values[key], source, tag_notes = _exif_number(tags, names)
+        sources.append(source)
+        notes.extend(tag_notes)
+    return values, sources, notes
+
+
 def decode_raw(path: str | Path, name: str | None = None) -> RawFrame:
     """Decode a camera RAW file (anything LibRaw reads; DNG, CR2, NEF, ARW, ...) without demosaic.
 
@@ -146,62 +219,15 @@ def decode_raw(path: str | Path, name: str | None = None) -> RawFrame:
     """
     path = Path(path)
     name = name or path.name
-    if not path.is_file():
-        raise ImagingError(
-            f"photo {name!r}: file {path} does not exist; check the photo's file name "
-            "(it is relative to the scene file's folder)"
-        )
-    try:
-        blob = path.read_bytes()
-    except OSError as e:
-        raise ImagingError(
-            f"photo {name!r}: cannot read {path} ({e}); check its permissions"
-        ) from e
-    sha = hashlib.sha256(blob).hexdigest()
-    try:
-        with rawpy.imread(io.BytesIO(blob)) as raw:
-            frame_parts = _read_libraw(raw, name)
-    except rawpy.LibRawError as e:
-        reason = (
-            e.args[0].decode(errors="replace")
-            if e.args and isinstance(e.args[0], bytes)
-            else str(e)
-        )
-        raise ImagingError(
-            f"photo {name!r}: LibRaw {'.'.join(map(str, rawpy.libraw_version))} cannot decode "
-            f"{path} ({type(e).__name__}: {reason}); it is not a camera RAW file LibRaw supports, "
-            "or it is truncated or corrupt. Check that it opens in a RAW converter, copy it from "
-            "the camera again, or convert it to DNG with Adobe DNG Converter"
-        ) from e
-    except (NotImplementedError, RuntimeError, ValueError) as e:
-        raise ImagingError(
-            f"photo {name!r}: rawpy cannot give the raw mosaic of {path} ({e}); convert it to "
-            "DNG with Adobe DNG Converter"
-        ) from e
-    data, cfa, black, white, wb = frame_parts
+    blob = _read_blob(path, name)
+    data, cfa, black, white, wb = _libraw_parts(blob, path, name)
     tags, exif_note = _read_exif(blob)
-    notes = [exif_note] if exif_note else []
-    median = float(
-        np.median(data[:: max(1, data.shape[0] // 256), :: max(1, data.shape[1] // 256)])
-    )
-    if median < float(black.min()):
-        notes.append(
-            f"the median raw value ({median:g}) is below the black level ({float(black.min()):g}): "
-            "the black level may not be in the data's units (seen in 8-bit lossy linear DNGs)"
-        )
-    values, sources = {}, []
-    for key, names in (
-        ("exposure_time_s", _EXIF_EXPOSURE_TIME),
-        ("f_number", _EXIF_F_NUMBER),
-        ("iso", _EXIF_ISO),
-    ):
-        values[key], source, tag_notes = _exif_number(tags, names)
-        sources.append(source)
-        notes.extend(tag_notes)
+    values, sources, tag_notes = _exposure_tags(tags)
+    notes = ([exif_note] if exif_note else []) + _black_level_note(data, black) + tag_notes
     return RawFrame(
         path=path,
         name=name,
-        sha256=sha,
+        sha256=hashlib.sha256(blob).hexdigest(),
         data=data,
         cfa=cfa,
         black=black,

@@ -742,7 +742,7 @@ def _with_failures(
     if failures and raise_on_failure:
         raise PhotosFailedError(
             f"{len(failures)} of {len(table.photos()) + len(failures)} photos could not be "
-            f"measured: {_summarise_failures(failures)}",
+            f"measured: {summarise_failures(failures)}",
             tuple(n for n, _ in failures),
         )
     if not failures:
@@ -773,7 +773,7 @@ def _collect(
         bar.update(1)
 
 
-def _summarise_failures(failures: Sequence[tuple[str, str]]) -> str:
+def summarise_failures(failures: Sequence[tuple[str, str]]) -> str:
     """The failures of several photos on one line, photos that failed alike named together.
 
     Each message starts with `photo '<name>'` (the convention of every ImagingError about one

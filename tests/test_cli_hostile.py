@@ -292,11 +292,11 @@ def test_written_files_honour_the_umask(tmp_path: Path, capsys: pytest.CaptureFi
 def test_simulated_photos_and_chain_honour_the_umask(simulated: Path, tmp_path: Path) -> None:
     import numpy as np
 
-    from stairfit.fitting._posterior import _save_chain
+    from stairfit.fitting._chain import save_npz
 
     umask = os.umask(0)
     os.umask(umask)
-    _save_chain(tmp_path / "chain.npz", {"x": np.zeros(3)})
+    save_npz(tmp_path / "chain.npz", {"x": np.zeros(3)})
     for p in [*simulated.iterdir(), tmp_path / "chain.npz"]:
         assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~umask, p.name
 

@@ -18,7 +18,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from PIL import Image
 
-from stairfit import figures, model
+from stairfit import figures, fitting, model
 from stairfit.model import materials, spectral
 from stairfit.report import value_with_errors
 
@@ -250,8 +250,14 @@ def test_corner_figure_is_not_registered_with_pyplot():
     from stairfit.report import corner_figure, corner_size_in
 
     rng = np.random.default_rng(0)
+    params = tuple(
+        fitting.Parameter(name, None, slot, "", fitting.PARAMETERS[0].transform, (0.0, 1.0))
+        for slot, name in enumerate(("sigma_rad", "scale"))
+    )
     post = SimpleNamespace(
-        names=("sigma_rad", "scale"), samples=rng.normal(size=(400, 2)) * [0.01, 1.0]
+        names=("sigma_rad", "scale"),
+        parameters=params,
+        samples=rng.normal(size=(400, 2)) * [0.01, 1.0],
     )
     before = plt.get_fignums()
     fig = corner_figure(SimpleNamespace(posterior=post))

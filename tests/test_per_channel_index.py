@@ -88,11 +88,13 @@ def test_the_fit_model_sees_the_per_channel_index():
     n_rgb = (1.6, 1.46, 1.3)  # far apart, so that a mixed-up channel cannot pass
     per = fitting.spectral_setup(materials.PerChannel(n=n_rgb), sampling="effective")
     obs = fitting.simulate_observations(truth, design, per, fitting.Noise(0.01), seed=0)
-    got = fitting.predict(truth, obs, per)
+    got = fitting.model_radiance(truth, obs, per)
     for c, n_c in enumerate(n_rgb):
         const = fitting.spectral_setup(materials.ConstantIndex(n=n_c), sampling="effective")
         rows = obs.channel_index == c
-        np.testing.assert_allclose(got[rows], fitting.predict(truth, obs, const)[rows], rtol=1e-12)
+        np.testing.assert_allclose(
+            got[rows], fitting.model_radiance(truth, obs, const)[rows], rtol=1e-12
+        )
     red, blue = got[obs.channel_index == 0], got[obs.channel_index == 2]
     assert np.all(red > 1.5 * blue)  # and the index matters: n = 1.6 reflects far more than 1.3
 
