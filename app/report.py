@@ -22,6 +22,14 @@ from matplotlib.figure import Figure
 from stairfit.fitting import ESS_MIN, RHAT_MAX
 
 from . import __version__
+from ._misfit_report import (
+    assessment_record,
+    misfit_html,
+    residual_pattern_figure,
+    rounding_record,
+    rounding_sentence,
+    summary_lines,
+)
 from .figures import brdf_map, fixed_layout, log_y, reflected_colours, refractive_index, save
 
 if TYPE_CHECKING:
@@ -256,11 +264,16 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
                     "laplace_log_evidence": r.laplace_log_evidence,
                     "delta": r.delta,
                     "status": r.status,
+                    "detail": r.detail,
+                    "chi2_measurement_errors_only": r.chi2_measurement,
+                    "elapsed_s": r.elapsed_s,
                     "notes": r.notes,
                 }
                 for r in sel.table
             ],
+            "rounding": rounding_record(outcome),
         },
+        "assessment": assessment_record(outcome),
         "parameters": parameter_records(outcome),
         "fixed_parameters": fixed_parameters(outcome),
         "spectral": spectral_record(outcome),
@@ -366,6 +379,9 @@ def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
     figs: dict[str, str] = {}
     figs["fit"] = _rel(save(fit_per_wedge(outcome), folder / "fit_per_wedge.png"), folder)
     figs["residuals"] = _rel(save(residual_figure(outcome), folder / "residuals.png"), folder)
+    figs["misfit"] = _rel(
+        save(residual_pattern_figure(outcome), folder / "residual_pattern.png"), folder
+    )
     if outcome.posterior is not None and outcome.posterior.samples.shape[1] >= 1:
         figs["corner"] = _rel(save(corner_figure(outcome), folder / "corner.png"), folder)
     wedges = [w.angle_deg for w in outcome.scene.specimen.wedges]
@@ -580,11 +596,12 @@ def report_html(
         for key, title in (
             ("fit", "Measured against model"),
             ("residuals", "Residuals"),
+            ("misfit", "Residual pattern per wedge and view"),
             ("corner", "Posterior"),
             ("brdf_map", "Fitted BRDF (Fig. 3 style)"),
             ("colours", "Colour of the reflected light (Fig. 7 style)"),
         )
-        if key in figures
+        if key in figures and not (key == "misfit" and _misfits(outcome))  # shown on top
     )
     previews = sorted((out / "previews").glob("*.png")) if (out / "previews").exists() else []
     prev = "".join(
@@ -609,7 +626,7 @@ def report_html(
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>stairfit report</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}td,th{{padding:2px 8px}}
 table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}</style></head><body>
-<h1>stairfit report: {e(outcome.scene.folder.name)}</h1>
+<h1>stairfit report: {e(outcome.scene.folder.name)}</h1>{misfit_html(outcome, figures)}
 <p>Chosen model: <b>{e(sel.chosen)}</b>. {e(sel.reason)}</p>
 <h2>Parameters</h2><table><tr><th>parameter</th><th>unit</th><th>least squares</th>
 <th>posterior median [16%, 84%]</th><th>R-hat</th><th>ESS bulk / tail</th></tr>{"".join(rows)}
@@ -619,6 +636,7 @@ sizes (ArviZ). In red: outside R-hat &lt; {RHAT_MAX:g}, ESS &ge; {ESS_MIN:g}.</p
 <h2>Model selection ({e(sel.criterion.upper())}, threshold {sel.threshold:g})</h2>
 <table><tr><th></th><th>variant</th><th>k</th><th>chi2</th><th>BIC</th><th>delta</th>
 <th>status / notes</th></tr>{table}</table>
+<p>Rounded edges: {e(rounding_sentence(outcome))}.</p>
 <h2>Diagnostics</h2><p>least squares: {e(ls["message"])}, {ls["num_steps"]} steps; chi2 =
 {ls["chi2"]:.5g} for {ls["dof"]} degrees of freedom (reduced {ls["reduced_chi2"]:.3g});
 {ls["n_used"]} of {ls["n_rows"]} measurements fitted.<br>{e(post_line)}</p>
@@ -628,6 +646,11 @@ sizes (ArviZ). In red: outside R-hat &lt; {RHAT_MAX:g}, ESS &ge; {ESS_MIN:g}.</p
 <p style="color:#777">stairfit {e(__version__)}; conventions: docs/conventions.md; all numbers
 also in results.json.</p></body></html>
 """
+
+
+def _misfits(outcome: FitOutcome) -> bool:
+    a = outcome.selection.assessment
+    return a is not None and a.misfits
 
 
 def _checks_html(po: dict[str, Any] | None) -> str:
@@ -692,6 +715,8 @@ def print_summary(outcome: FitOutcome, out: Path, source: Path | None = None) ->
     recs = parameter_records(outcome)
     print()
     print(f"stairfit fit: {source or outcome.scene.folder}")
+    for line in summary_lines(outcome):  # a misfit is said first (issue 13)
+        print(f"  {line}")
     print(f"  model: {sel.chosen}  ({sel.reason})")
     print(
         f"  {'parameter':<26} {'least squares':>24}   {'posterior median [16%, 84%]':>34}"

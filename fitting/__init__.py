@@ -30,6 +30,7 @@ from ._misfit import ResidualGroup as ResidualGroup
 from ._misfit import Status as Status
 from ._misfit import chi2_p_value as chi2_p_value
 from ._misfit import describe_fit as describe_fit
+from ._misfit import measurement_residuals as measurement_residuals
 from ._observations import Observations as Observations
 from ._observations import Spectral as Spectral
 from ._observations import spectral_setup as spectral_setup

@@ -158,6 +158,18 @@ def _pattern(by_wedge: tuple[ResidualGroup, ...], ratio: np.ndarray) -> str:
     )
 
 
+def measurement_residuals(fit: FitResult) -> np.ndarray:
+    """Per row of the fit's observations, `(value - model) / stderr`: the residual with the
+    measurement errors alone (the model-error term left out); 0 for rows not fitted."""
+    obs = fit.problem.observations if fit.problem is not None else None
+    if obs is None:
+        return np.zeros(0)
+    use = np.asarray(obs.use, bool)
+    value, stderr = np.asarray(obs.value, float), np.asarray(obs.stderr, float)
+    z = (value - np.asarray(fit.model, float)) / np.where(use, stderr, 1.0)
+    return np.where(use, z, 0.0)
+
+
 def describe_fit(fit: FitResult) -> Assessment:
     """Whether `fit` describes its data (module doc), with the residual pattern."""
     obs = fit.problem.observations if fit.problem is not None else None
@@ -165,7 +177,7 @@ def describe_fit(fit: FitResult) -> Assessment:
     value = np.zeros(0) if obs is None else np.asarray(obs.value, float)
     stderr = np.ones(0) if obs is None else np.asarray(obs.stderr, float)
     model = np.asarray(fit.model, float)
-    z = ((value - model) / stderr)[use]
+    z = measurement_residuals(fit)[use]
     chi2_meas = float(np.sum(z**2))
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(value[use] != 0, model[use] / value[use], np.nan)
