@@ -10,6 +10,7 @@ a few standard errors.
 
 from __future__ import annotations
 
+import html
 import json
 from pathlib import Path
 
@@ -26,7 +27,7 @@ def _run(tmp_path: Path, *sim_args: str, fit_args: tuple[str, ...] = ()) -> tupl
     assert main(sim) == 0
     out = tmp_path / "fit"
     assert main(["fit", str(photos), "-o", str(out), "--quiet", *fit_args]) == 0
-    for name in ("fit_per_wedge", "residuals", "corner", "brdf_map", "colours"):
+    for name in ("fit_per_wedge", "residuals", "residual_pattern", "corner", "brdf_map", "colours"):
         assert (out / "figures" / f"{name}.png").is_file(), name
     assert (out / "report.html").is_file()
     truth = json.loads((photos / "truth.json").read_text())["parameters"]
@@ -53,6 +54,13 @@ def test_sharp_scene_is_recovered(tmp_path: Path) -> None:
     assert {"sigma_deg", "scale"} <= set(pulls), pulls
     assert all(abs(p) < PULL_MAX for p in pulls.values()), pulls
     _check_chain_diagnostics(tmp_path / "fit", results)
+    # the sharp scene is described by its model, and the report says what became of rounding
+    assert results["assessment"]["misfits"] is False, results["assessment"]["headline"]
+    rounding = results["model_selection"]["rounding"]
+    assert rounding["policy"] == "when_needed" and rounding["n_variants"] == 4
+    page = (tmp_path / "fit" / "report.html").read_text()
+    assert "does not describe the data" not in page
+    assert f"Rounded edges: {html.escape(rounding['sentence'])}" in page
 
 
 def _check_chain_diagnostics(out: Path, results: dict) -> None:
