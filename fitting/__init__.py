@@ -4,6 +4,9 @@ Public API (everything else is internal). Conventions: docs/conventions.md; desi
 transforms and the selection rule: docs/fitting.md.
 """
 
+from ._accuracy import ACCURACY_LIMIT as ACCURACY_LIMIT
+from ._accuracy import NumericalError as NumericalError
+from ._accuracy import numerical_error as numerical_error
 from ._chain import CHAIN_FORMAT_VERSION as CHAIN_FORMAT_VERSION
 from ._chain import ChainBackend as ChainBackend
 from ._chain import ChainInfo as ChainInfo
