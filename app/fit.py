@@ -198,6 +198,7 @@ class FitOutcome:
     posterior: Any | None
     timings: dict[str, float]
     notes: list[str]
+    accuracy: Any = None  # _accuracy_check.AccuracyCheck
 
 
 def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
@@ -222,6 +223,7 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     spectral, aperture = fit_setup(scene, options.preset)
     notes.extend(index_notes(scene, spectral))
     selection = select(observations, spectral, aperture, options)
+    selection, accuracy = refine(scene, observations, selection, options)
     timings["fit_s"] = time.perf_counter() - t0
 
     posterior = None
@@ -241,6 +243,7 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
         posterior,
         timings,
         notes,
+        accuracy,
     )
     t0 = time.perf_counter()
     write_outputs(outcome, out)
@@ -515,6 +518,17 @@ def select(observations: Any, spectral: Any, aperture: Any, options: FitOptions)
         except (fitting.FitError, fitting.FitInputError) as err:
             raise UserError(f"the fit failed: {err}") from None
     return selection
+
+
+def refine(scene: Scene, observations: Any, selection: Any, options: FitOptions) -> Any:
+    """The preset's numerical error at the optimum, and the chosen fit refined when the data
+    need it (app/_accuracy_check.py; issue 13)."""
+    from ._accuracy_check import check_accuracy
+
+    with _Progress(options.progress, "checking numerical accuracy") as tick:
+        out = check_accuracy(scene, observations, selection, options.preset)
+        tick()
+    return out
 
 
 def sample(fit: Any, out: Path, options: FitOptions) -> Any:

@@ -207,6 +207,56 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
+def table_records(sel: Any) -> list[dict[str, Any]]:
+    """results.json's `model_selection.table`: one record per ladder variant."""
+    return [
+        {
+            "variant": r.name,
+            "features": list(r.features),
+            "n_free": r.n_free,
+            "chi2": r.chi2,
+            "log_likelihood": r.log_likelihood,
+            "bic": r.bic,
+            "aic": r.aic,
+            "laplace_log_evidence": r.laplace_log_evidence,
+            "delta": r.delta,
+            "status": r.status,
+            "detail": r.detail,
+            "chi2_measurement_errors_only": r.chi2_measurement,
+            "elapsed_s": r.elapsed_s,
+            "notes": r.notes,
+        }
+        for r in sel.table
+    ]
+
+
+def posterior_diagnostics(post: Any) -> dict[str, Any] | None:
+    """results.json's `diagnostics.posterior` (None without a posterior)."""
+    if post is None:
+        return None
+    return {
+        "seed": post.seed,
+        "n_walkers": post.n_walkers,
+        "n_steps": post.n_steps,
+        "tau": list(post.tau),
+        "tau_max": post.tau_max,
+        "converged": post.converged,
+        "burn_in": post.burn_in,
+        "thin": post.thin,
+        "n_samples": post.n_samples,
+        "n_independent": post.n_independent,
+        "acceptance_fraction": post.acceptance_fraction,
+        "rhat_max": RHAT_MAX,
+        "ess_min": ESS_MIN,
+        "tau_reliable": post.tau_reliable,
+        "chain_file": "chain.npz",
+        "inference_data_file": "chain.nc",
+        "warnings": [
+            {"code": w.code, "parameter": w.parameter, "message": w.message} for w in post.warnings
+        ],
+    }
+
+
 def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]:
     """The content of results.json (see the README's "Outputs")."""
     from .fit import sha256_of
@@ -252,28 +302,11 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
             "criterion": sel.criterion,
             "threshold": sel.threshold,
             "reason": sel.reason,
-            "table": [
-                {
-                    "variant": r.name,
-                    "features": list(r.features),
-                    "n_free": r.n_free,
-                    "chi2": r.chi2,
-                    "log_likelihood": r.log_likelihood,
-                    "bic": r.bic,
-                    "aic": r.aic,
-                    "laplace_log_evidence": r.laplace_log_evidence,
-                    "delta": r.delta,
-                    "status": r.status,
-                    "detail": r.detail,
-                    "chi2_measurement_errors_only": r.chi2_measurement,
-                    "elapsed_s": r.elapsed_s,
-                    "notes": r.notes,
-                }
-                for r in sel.table
-            ],
+            "table": table_records(sel),
             "rounding": rounding_record(outcome),
         },
         "assessment": assessment_record(outcome),
+        "accuracy": None if outcome.accuracy is None else outcome.accuracy.record(),
         "parameters": parameter_records(outcome),
         "fixed_parameters": fixed_parameters(outcome),
         "spectral": spectral_record(outcome),
@@ -299,30 +332,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
                     for w in fit.warnings
                 ],
             },
-            "posterior": None
-            if post is None
-            else {
-                "seed": post.seed,
-                "n_walkers": post.n_walkers,
-                "n_steps": post.n_steps,
-                "tau": list(post.tau),
-                "tau_max": post.tau_max,
-                "converged": post.converged,
-                "burn_in": post.burn_in,
-                "thin": post.thin,
-                "n_samples": post.n_samples,
-                "n_independent": post.n_independent,
-                "acceptance_fraction": post.acceptance_fraction,
-                "rhat_max": RHAT_MAX,
-                "ess_min": ESS_MIN,
-                "tau_reliable": post.tau_reliable,
-                "chain_file": "chain.npz",
-                "inference_data_file": "chain.nc",
-                "warnings": [
-                    {"code": w.code, "parameter": w.parameter, "message": w.message}
-                    for w in post.warnings
-                ],
-            },
+            "posterior": posterior_diagnostics(post),
             "notes": outcome.notes,
             "timings_s": outcome.timings,
         },
@@ -562,12 +572,9 @@ def value_with_errors(value: float, minus: float, plus: float) -> str:
 # --- report and summary ---------------------------------------------------------------------
 
 
-def report_html(
-    outcome: FitOutcome, results: dict[str, Any], figures: dict[str, str], out: Path
-) -> str:
-    """A single self-explaining HTML page (figures referenced by relative path)."""
+def _parameter_rows_html(results: dict[str, Any]) -> list[str]:
+    """The rows of the report's parameter table."""
     e = html.escape
-    sel = outcome.selection
     rows = []
     for rec in results["parameters"]:
         ls = rec["least_squares"]
@@ -583,6 +590,16 @@ def report_html(
             f"<tr><td>{e(rec['name'])}</td><td>{e(rec['unit'])}</td>"
             f"<td>{ls['value']:.5g} &plusmn; {se}</td><td>{e(post)}</td>{_checks_html(po)}</tr>"
         )
+    return rows
+
+
+def report_html(
+    outcome: FitOutcome, results: dict[str, Any], figures: dict[str, str], out: Path
+) -> str:
+    """A single self-explaining HTML page (figures referenced by relative path)."""
+    e = html.escape
+    sel = outcome.selection
+    rows = _parameter_rows_html(results)
     fixed = "".join(f"<li>{e(k)} = {v:.4g}</li>" for k, v in results["fixed_parameters"].items())
     table = "".join(
         f"<tr><td>{'&#10003;' if r['variant'] == sel.chosen else ''}</td><td>{e(r['variant'])}"
@@ -639,13 +656,19 @@ sizes (ArviZ). In red: outside R-hat &lt; {RHAT_MAX:g}, ESS &ge; {ESS_MIN:g}.</p
 <p>Rounded edges: {e(rounding_sentence(outcome))}.</p>
 <h2>Diagnostics</h2><p>least squares: {e(ls["message"])}, {ls["num_steps"]} steps; chi2 =
 {ls["chi2"]:.5g} for {ls["dof"]} degrees of freedom (reduced {ls["reduced_chi2"]:.3g});
-{ls["n_used"]} of {ls["n_rows"]} measurements fitted.<br>{e(post_line)}</p>
+{ls["n_used"]} of {ls["n_rows"]} measurements fitted.<br>{e(_accuracy_line(outcome))}
+<br>{e(post_line)}</p>
 <ul>{warn}{notes}</ul>
 <h2>Figures</h2>{imgs}
 <h2>Regions of interest</h2>{prev}<h3>Markers per photo</h3>{_markers_html(outcome)}
 <p style="color:#777">stairfit {e(__version__)}; conventions: docs/conventions.md; all numbers
 also in results.json.</p></body></html>
 """
+
+
+def _accuracy_line(outcome: FitOutcome) -> str:
+    acc = getattr(outcome, "accuracy", None)
+    return "numerical accuracy not checked" if acc is None else f"accuracy: {acc.message}"
 
 
 def _misfits(outcome: FitOutcome) -> bool:
@@ -740,6 +763,9 @@ def print_summary(outcome: FitOutcome, out: Path, source: Path | None = None) ->
     )
     for w in fit.warnings:
         print(f"  warning: {w.message}")
+    acc = getattr(outcome, "accuracy", None)
+    if acc is not None and acc.error is not None:
+        print(f"  {'warning' if acc.action != 'none' else 'note'}: {acc.message}")
     for line in posterior_warning_lines(outcome.posterior):
         print(f"  warning: {line}")
     for note in outcome.notes:
