@@ -201,6 +201,7 @@ class FitOutcome:
     posterior: Any | None
     timings: dict[str, float]
     notes: list[str]
+    accuracy: Any = None  # _accuracy_check.AccuracyCheck
 
 
 def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
@@ -225,6 +226,7 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     spectral, aperture = fit_setup(scene, options.preset)
     notes.extend(index_notes(scene, spectral))
     selection = select(observations, spectral, aperture, options)
+    selection, accuracy = refine(scene, observations, selection, options)
     timings["fit_s"] = time.perf_counter() - t0
 
     posterior = None
@@ -244,6 +246,7 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
         posterior,
         timings,
         notes,
+        accuracy,
     )
     t0 = time.perf_counter()
     write_outputs(outcome, out)
@@ -536,103 +539,44 @@ def ladder_for(preset: Preset) -> tuple[Any, ...]:
 
 
 def select(observations: Any, spectral: Any, aperture: Any, options: FitOptions) -> Any:
-    """Fit the ladder and choose (or fit the forced variant)."""
+    """Fit the ladder and choose (or fit the forced variant): `fitting.select_model` with the
+    preset's settings; the science (nested starts, the rounding gate, status words) is there."""
     from stairfit import fitting
 
     ladder = ladder_for(options.preset)
     if options.model is not None:
         check_model_name(options.model)
         ladder = fitting.DEFAULT_LADDER
-    rounded = [v for v in ladder if "edge_radius_um" in v.free]
-    policy = options.preset.rounded_rungs
-    gated = options.model is None and bool(rounded) and policy == "when_needed"
-    stages = 2 if gated else 1
-    with _Progress(options.progress, "fitting models", total=stages) as tick:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", fitting.FitWarningCategory)
-            try:
-                if gated:
-                    sharp = tuple(v for v in ladder if v not in rounded)
-                    selection = _select(observations, spectral, aperture, options, sharp)
-                    tick()
-                    needed, why = rounding_needed(selection)
-                    if not needed:
-                        return _rounded_not_fitted(selection, rounded, why)
-                selection = _select(observations, spectral, aperture, options, ladder)
-            except (fitting.FitError, fitting.FitInputError) as err:
-                raise UserError(f"the fit failed: {err}") from None
-        tick()
+    bar = _Progress(options.progress, "fitting models", total=len(ladder))
+    with bar as tick, warnings.catch_warnings():
+        warnings.simplefilter("ignore", fitting.FitWarningCategory)
+        try:
+            selection = fitting.select_model(
+                observations,
+                spectral,
+                ladder,
+                force=options.model,
+                model_error=options.model_error,
+                rounded_rungs=options.preset.rounded_rungs,
+                sigma_starts_rad=tuple(s * DEG for s in options.preset.sigma_starts_deg),
+                aperture=aperture,
+                resolution=options.preset.rounded_resolution,
+                on_variant=lambda name: tick(),
+            )
+        except (fitting.FitError, fitting.FitInputError) as err:
+            raise UserError(f"the fit failed: {err}") from None
     return selection
 
 
-def _select(
-    observations: Any, spectral: Any, aperture: Any, options: FitOptions, ladder: tuple[Any, ...]
-) -> Any:
-    from stairfit import fitting
+def refine(scene: Scene, observations: Any, selection: Any, options: FitOptions) -> Any:
+    """The preset's numerical error at the optimum, and the chosen fit refined when the data
+    need it (app/_accuracy_check.py; issue 13)."""
+    from ._accuracy_check import check_accuracy
 
-    return fitting.select_model(
-        observations,
-        spectral,
-        ladder,
-        force=options.model,
-        model_error=options.model_error,
-        sigma_starts_rad=tuple(s * DEG for s in options.preset.sigma_starts_deg),
-        aperture=aperture,
-        resolution=options.preset.rounded_resolution,
-    )
-
-
-GATE_P_VALUE = 1e-3
-"""The sharp variants 'describe the data' unless chi^2 is beyond this tail probability."""
-
-
-def rounding_needed(selection: Any) -> tuple[bool, str]:
-    """Whether the best sharp variant leaves a misfit that edge rounding could explain.
-
-    The rounded rungs cost minutes (the rounded model's compilation), so the `when_needed`
-    presets fit them only when the chosen sharp variant does not describe the data: it needed a
-    fractional model-error term, or its chi^2 has a tail probability below `GATE_P_VALUE`.
-    Returns (needed, the reason in words). README "Speed and accuracy"; docs/fitting.md §4.
-    """
-    from jax.scipy.special import gammaincc
-
-    fit = selection.fit
-    if "model_error_frac" in fit.names:
-        f = fit.estimate("model_error_frac").value
-        return True, (
-            f"the best sharp variant {selection.chosen!r} needs a model-error term "
-            f"({100 * f:.2g}% of the model)"
-        )
-    p = float(gammaincc(0.5 * max(fit.dof, 1), 0.5 * fit.chi2))
-    if p < GATE_P_VALUE:
-        return True, (
-            f"the best sharp variant {selection.chosen!r} misfits (chi2 = {fit.chi2:.4g} for "
-            f"{fit.dof} degrees of freedom, p = {p:.2g})"
-        )
-    return False, (
-        f"the best sharp variant {selection.chosen!r} describes the data (no model-error term "
-        f"needed, chi2 = {fit.chi2:.4g} for {fit.dof} degrees of freedom, p = {p:.2g})"
-    )
-
-
-def _rounded_not_fitted(selection: Any, rounded: list[Any], why: str) -> Any:
-    """The sharp selection, with the rounded rungs listed as not fitted and why."""
-    import dataclasses
-    import math
-
-    from stairfit import fitting
-
-    nan = math.nan
-    rows = [
-        fitting.ComparisonRow(v.name, v.features, 0, nan, nan, nan, nan, None, nan,
-                              "not fitted: rounding not needed", "")
-        for v in rounded
-    ]  # fmt: skip
-    return dataclasses.replace(
-        selection,
-        table=(*selection.table, *rows),
-        reason=f"{selection.reason}; the rounded variants were not fitted because {why}",
-    )
+    with _Progress(options.progress, "checking numerical accuracy") as tick:
+        out = check_accuracy(scene, observations, selection, options.preset)
+        tick()
+    return out
 
 
 def sample(fit: Any, out: Path, options: FitOptions) -> Any:

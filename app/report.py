@@ -19,7 +19,17 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from stairfit.fitting import ESS_MIN, RHAT_MAX
+
 from . import __version__
+from ._misfit_report import (
+    assessment_record,
+    misfit_html,
+    residual_pattern_figure,
+    rounding_record,
+    rounding_sentence,
+    summary_lines,
+)
 from .figures import brdf_map, fixed_layout, log_y, reflected_colours, refractive_index, save
 
 if TYPE_CHECKING:
@@ -38,6 +48,8 @@ PACKAGES = (
     "colour-science",
     "tifffile",
     "matplotlib",
+    "arviz",
+    "h5netcdf",
 )
 
 
@@ -84,10 +96,23 @@ def parameter_records(outcome: FitOutcome) -> list[dict[str, Any]]:
                 "p2_5": float(post.p2_5[j]) * f,
                 "p97_5": float(post.p97_5[j]) * f,
                 "width_over_ls_stderr": float(post.width_ratio[j]),
+                **chain_checks(post, j),
             }
         rec["index"] = i
         records.append(rec)
     return records
+
+
+def chain_checks(post: Any, j: int) -> dict[str, Any]:
+    """Parameter `j`'s convergence diagnostics for results.json: split R-hat, bulk and tail
+    ESS, and whether they pass the thresholds (R-hat < 1.01, ESS >= 400; docs/fitting.md §5)."""
+    rhat, bulk, tail = float(post.rhat[j]), float(post.ess_bulk[j]), float(post.ess_tail[j])
+    return {
+        "rhat": rhat,
+        "ess_bulk": bulk,
+        "ess_tail": tail,
+        "converged": bool(rhat < RHAT_MAX and min(bulk, tail) >= ESS_MIN),
+    }
 
 
 def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
@@ -119,6 +144,8 @@ def write_outputs(outcome: FitOutcome, out: Path) -> None:
     results = results_dict(outcome, figures)
     (out / "results.json").write_text(json.dumps(results, indent=2, allow_nan=False))
     (out / "report.html").write_text(report_html(outcome, results, figures, out))
+    if outcome.posterior is not None:  # the chain for ArviZ (docs/fitting.md §5)
+        outcome.posterior.to_netcdf(out / "chain.nc", degrees=True)
 
 
 def write_observations(outcome: FitOutcome, path: Path) -> None:
@@ -180,6 +207,56 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
+def table_records(sel: Any) -> list[dict[str, Any]]:
+    """results.json's `model_selection.table`: one record per ladder variant."""
+    return [
+        {
+            "variant": r.name,
+            "features": list(r.features),
+            "n_free": r.n_free,
+            "chi2": r.chi2,
+            "log_likelihood": r.log_likelihood,
+            "bic": r.bic,
+            "aic": r.aic,
+            "laplace_log_evidence": r.laplace_log_evidence,
+            "delta": r.delta,
+            "status": r.status,
+            "detail": r.detail,
+            "chi2_measurement_errors_only": r.chi2_measurement,
+            "elapsed_s": r.elapsed_s,
+            "notes": r.notes,
+        }
+        for r in sel.table
+    ]
+
+
+def posterior_diagnostics(post: Any) -> dict[str, Any] | None:
+    """results.json's `diagnostics.posterior` (None without a posterior)."""
+    if post is None:
+        return None
+    return {
+        "seed": post.seed,
+        "n_walkers": post.n_walkers,
+        "n_steps": post.n_steps,
+        "tau": list(post.tau),
+        "tau_max": post.tau_max,
+        "converged": post.converged,
+        "burn_in": post.burn_in,
+        "thin": post.thin,
+        "n_samples": post.n_samples,
+        "n_independent": post.n_independent,
+        "acceptance_fraction": post.acceptance_fraction,
+        "rhat_max": RHAT_MAX,
+        "ess_min": ESS_MIN,
+        "tau_reliable": post.tau_reliable,
+        "chain_file": "chain.npz",
+        "inference_data_file": "chain.nc",
+        "warnings": [
+            {"code": w.code, "parameter": w.parameter, "message": w.message} for w in post.warnings
+        ],
+    }
+
+
 def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]:
     """The content of results.json (see the README's "Outputs")."""
     from .fit import sha256_of
@@ -230,23 +307,11 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
             "criterion": sel.criterion,
             "threshold": sel.threshold,
             "reason": sel.reason,
-            "table": [
-                {
-                    "variant": r.name,
-                    "features": list(r.features),
-                    "n_free": r.n_free,
-                    "chi2": r.chi2,
-                    "log_likelihood": r.log_likelihood,
-                    "bic": r.bic,
-                    "aic": r.aic,
-                    "laplace_log_evidence": r.laplace_log_evidence,
-                    "delta": r.delta,
-                    "status": r.status,
-                    "notes": r.notes,
-                }
-                for r in sel.table
-            ],
+            "table": table_records(sel),
+            "rounding": rounding_record(outcome),
         },
+        "assessment": assessment_record(outcome),
+        "accuracy": None if outcome.accuracy is None else outcome.accuracy.record(),
         "parameters": parameter_records(outcome),
         "fixed_parameters": fixed_parameters(outcome),
         "spectral": spectral_record(outcome),
@@ -272,26 +337,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
                     for w in fit.warnings
                 ],
             },
-            "posterior": None
-            if post is None
-            else {
-                "seed": post.seed,
-                "n_walkers": post.n_walkers,
-                "n_steps": post.n_steps,
-                "tau": list(post.tau),
-                "tau_max": post.tau_max,
-                "converged": post.converged,
-                "burn_in": post.burn_in,
-                "thin": post.thin,
-                "n_samples": post.n_samples,
-                "n_independent": post.n_independent,
-                "acceptance_fraction": post.acceptance_fraction,
-                "chain_file": "chain.npz",
-                "warnings": [
-                    {"code": w.code, "parameter": w.parameter, "message": w.message}
-                    for w in post.warnings
-                ],
-            },
+            "posterior": posterior_diagnostics(post),
             "notes": outcome.notes,
             "timings_s": outcome.timings,
         },
@@ -348,6 +394,9 @@ def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
     figs: dict[str, str] = {}
     figs["fit"] = _rel(save(fit_per_wedge(outcome), folder / "fit_per_wedge.png"), folder)
     figs["residuals"] = _rel(save(residual_figure(outcome), folder / "residuals.png"), folder)
+    figs["misfit"] = _rel(
+        save(residual_pattern_figure(outcome), folder / "residual_pattern.png"), folder
+    )
     if outcome.posterior is not None and outcome.posterior.samples.shape[1] >= 1:
         figs["corner"] = _rel(save(corner_figure(outcome), folder / "corner.png"), folder)
     wedges = [w.angle_deg for w in outcome.scene.specimen.wedges]
@@ -528,12 +577,9 @@ def value_with_errors(value: float, minus: float, plus: float) -> str:
 # --- report and summary ---------------------------------------------------------------------
 
 
-def report_html(
-    outcome: FitOutcome, results: dict[str, Any], figures: dict[str, str], out: Path
-) -> str:
-    """A single self-explaining HTML page (figures referenced by relative path)."""
+def _parameter_rows_html(results: dict[str, Any]) -> list[str]:
+    """The rows of the report's parameter table."""
     e = html.escape
-    sel = outcome.selection
     rows = []
     for rec in results["parameters"]:
         ls = rec["least_squares"]
@@ -547,8 +593,18 @@ def report_html(
         )
         rows.append(
             f"<tr><td>{e(rec['name'])}</td><td>{e(rec['unit'])}</td>"
-            f"<td>{ls['value']:.5g} &plusmn; {se}</td><td>{e(post)}</td></tr>"
+            f"<td>{ls['value']:.5g} &plusmn; {se}</td><td>{e(post)}</td>{_checks_html(po)}</tr>"
         )
+    return rows
+
+
+def report_html(
+    outcome: FitOutcome, results: dict[str, Any], figures: dict[str, str], out: Path
+) -> str:
+    """A single self-explaining HTML page (figures referenced by relative path)."""
+    e = html.escape
+    sel = outcome.selection
+    rows = _parameter_rows_html(results)
     fixed = "".join(f"<li>{e(k)} = {v:.4g}</li>" for k, v in results["fixed_parameters"].items())
     table = "".join(
         f"<tr><td>{'&#10003;' if r['variant'] == sel.chosen else ''}</td><td>{e(r['variant'])}"
@@ -562,11 +618,12 @@ def report_html(
         for key, title in (
             ("fit", "Measured against model"),
             ("residuals", "Residuals"),
+            ("misfit", "Residual pattern per wedge and view"),
             ("corner", "Posterior"),
             ("brdf_map", "Fitted BRDF (Fig. 3 style)"),
             ("colours", "Colour of the reflected light (Fig. 7 style)"),
         )
-        if key in figures
+        if key in figures and not (key == "misfit" and _misfits(outcome))  # shown on top
     )
     previews = sorted((out / "previews").glob("*.png")) if (out / "previews").exists() else []
     prev = "".join(
@@ -591,23 +648,48 @@ def report_html(
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>stairfit report</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}td,th{{padding:2px 8px}}
 table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}</style></head><body>
-<h1>stairfit report: {e(outcome.scene.folder.name)}</h1>
+<h1>stairfit report: {e(outcome.scene.folder.name)}</h1>{misfit_html(outcome, figures)}
 <p>Chosen model: <b>{e(sel.chosen)}</b>. {e(sel.reason)}</p>
 <h2>Parameters</h2><table><tr><th>parameter</th><th>unit</th><th>least squares</th>
-<th>posterior median [16%, 84%]</th></tr>{"".join(rows)}</table>
+<th>posterior median [16%, 84%]</th><th>R-hat</th><th>ESS bulk / tail</th></tr>{"".join(rows)}
+</table><p>R-hat: rank-normalised split R-hat over the emcee walkers; ESS: effective sample
+sizes (ArviZ). In red: outside R-hat &lt; {RHAT_MAX:g}, ESS &ge; {ESS_MIN:g}.</p>
 <p>Fixed:</p><ul>{fixed}</ul>
 <h2>Model selection ({e(sel.criterion.upper())}, threshold {sel.threshold:g})</h2>
 <table><tr><th></th><th>variant</th><th>k</th><th>chi2</th><th>BIC</th><th>delta</th>
 <th>status / notes</th></tr>{table}</table>
+<p>Rounded edges: {e(rounding_sentence(outcome))}.</p>
 <h2>Diagnostics</h2><p>least squares: {e(ls["message"])}, {ls["num_steps"]} steps; chi2 =
 {ls["chi2"]:.5g} for {ls["dof"]} degrees of freedom (reduced {ls["reduced_chi2"]:.3g});
-{ls["n_used"]} of {ls["n_rows"]} measurements fitted.<br>{e(post_line)}</p>
+{ls["n_used"]} of {ls["n_rows"]} measurements fitted.<br>{e(_accuracy_line(outcome))}
+<br>{e(post_line)}</p>
 <ul>{warn}{notes}</ul>
 <h2>Figures</h2>{imgs}
 <h2>Regions of interest</h2>{prev}<h3>Markers per photo</h3>{_markers_html(outcome)}
 <p style="color:#777">stairfit {e(__version__)}; conventions: docs/conventions.md; all numbers
 also in results.json.</p></body></html>
 """
+
+
+def _accuracy_line(outcome: FitOutcome) -> str:
+    acc = getattr(outcome, "accuracy", None)
+    return "numerical accuracy not checked" if acc is None else f"accuracy: {acc.message}"
+
+
+def _misfits(outcome: FitOutcome) -> bool:
+    a = outcome.selection.assessment
+    return a is not None and a.misfits
+
+
+def _checks_html(po: dict[str, Any] | None) -> str:
+    """The R-hat and ESS cells of a parameter row (red outside the thresholds)."""
+    if not po:
+        return "<td></td><td></td>"
+    style = "" if po["converged"] else " style='color:#b00;font-weight:bold'"
+    return (
+        f"<td{style}>{_fmt(po['rhat'], '.4f')}</td>"
+        f"<td{style}>{_fmt(po['ess_bulk'], '.0f')} / {_fmt(po['ess_tail'], '.0f')}</td>"
+    )
 
 
 def _markers_html(outcome: FitOutcome) -> str:
@@ -622,14 +704,52 @@ def _fmt(x: Any, spec: str) -> str:
     return "" if x is None else format(x, spec)
 
 
+def _checks_text(po: dict[str, Any] | None) -> str:
+    """`1.0032  1893/2410` (R-hat, bulk / tail ESS) for the summary, `!` past a threshold."""
+    if not po:
+        return ""
+    rhat, bulk, tail = (float("nan") if v is None else v
+                        for v in (po["rhat"], po["ess_bulk"], po["ess_tail"]))  # fmt: skip
+    flag = "" if po["converged"] else " !"
+    return f"{rhat:>6.4f} {bulk:>5.0f}/{tail:<5.0f}{flag}"
+
+
+def posterior_warning_lines(post: Any) -> list[str]:
+    """The posterior's warnings for the summary: the step limit and the acceptance as they
+    are, R-hat and ESS one line each naming every parameter concerned."""
+    if post is None:
+        return []
+    lines = [w.message for w in post.warnings if w.code not in ("rhat_high", "ess_low")]
+    named = {"rhat_high": [], "ess_low": []}
+    for w in post.warnings:
+        if w.code in named:
+            named[w.code].append(w.parameter)
+    if named["rhat_high"]:
+        lines.append(
+            f"split R-hat is not below {RHAT_MAX:g} for {', '.join(named['rhat_high'])}: the "
+            "walkers have not mixed; run a longer chain (e.g. --preset accurate)"
+        )
+    if named["ess_low"]:
+        lines.append(
+            f"bulk or tail ESS is below {ESS_MIN:g} for {', '.join(named['ess_low'])}: the "
+            "intervals (the 95% most) are noisy; run a longer chain"
+        )
+    return lines
+
+
 def print_summary(outcome: FitOutcome, out: Path, source: Path | None = None) -> None:
     """The one-screen summary printed at the end of `fit` (`source`: the photo folder)."""
     sel = outcome.selection
     recs = parameter_records(outcome)
     print()
     print(f"stairfit fit: {source or outcome.scene.folder}")
+    for line in summary_lines(outcome):  # a misfit is said first (issue 13)
+        print(f"  {line}")
     print(f"  model: {sel.chosen}  ({sel.reason})")
-    print(f"  {'parameter':<26} {'least squares':>24}   {'posterior median [16%, 84%]':>34}")
+    print(
+        f"  {'parameter':<26} {'least squares':>24}   {'posterior median [16%, 84%]':>34}"
+        f"  {'R-hat':>6} {'ESS b/t':>11}"
+    )
     for rec in recs:
         ls = rec["least_squares"]
         se = "n/a" if ls["stderr"] is None else f"{ls['stderr']:.3g}"
@@ -637,7 +757,7 @@ def print_summary(outcome: FitOutcome, out: Path, source: Path | None = None) ->
         pos = f"{po['median']:.5g} [{po['p16']:.5g}, {po['p84']:.5g}]" if po else "-"
         print(
             f"  {rec['name'] + ' (' + rec['unit'] + ')':<26} {ls['value']:>13.5g} +- {se:<8}"
-            f"   {pos:>34}"
+            f"   {pos:>34}  {_checks_text(po)}"
         )
     for k, v in fixed_parameters(outcome).items():
         print(f"  {k} fixed at {v:.4g}")
@@ -648,8 +768,11 @@ def print_summary(outcome: FitOutcome, out: Path, source: Path | None = None) ->
     )
     for w in fit.warnings:
         print(f"  warning: {w.message}")
-    if outcome.posterior is not None and not outcome.posterior.converged:
-        print("  warning: the posterior chain hit its step limit before 50 tau (see results.json)")
+    acc = getattr(outcome, "accuracy", None)
+    if acc is not None and acc.error is not None:
+        print(f"  {'warning' if acc.action != 'none' else 'note'}: {acc.message}")
+    for line in posterior_warning_lines(outcome.posterior):
+        print(f"  warning: {line}")
     for note in outcome.notes:
         print(f"  note: {note}")
     print(f"  results: {out / 'results.json'}; report: {out / 'report.html'}")

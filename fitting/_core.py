@@ -241,11 +241,20 @@ def fit_core(
     solver: optx.AbstractLeastSquaresSolver,
     max_steps: int,
     sigmas: tuple[float, ...],
+    extra: tuple[np.ndarray, ...] = (),
 ) -> CoreFit:
     """Multi-start solve and evaluation at the best converged start (numpy outputs); raises
-    `FitError` when no start gives finite values."""
+    `FitError` when no start gives finite values.
+
+    `extra`: further start vectors (every slot of `z`), e.g. a parent variant's optimum
+    (`_least_squares.nested_start`); with them, the width starts `sigmas` are used only when
+    `spec` is sharp (a rounded solve costs tens of seconds per start). The best start is the one
+    with the lowest `-2 log L` (the solver's objective; chi^2 when there is no model-error
+    term, whose variance term chi^2 alone would ignore)."""
     static, data = problem.static_for(spec), problem.arrays_for(spec)
     z0s = start_vectors(problem, spec, sigmas)
+    if extra:
+        z0s = np.concatenate([np.stack(extra), z0s[:1] if static.rounded else z0s])
     runs = [_run(z0, static, data, solver, max_steps) for z0 in z0s]
     if not any(r.finite for r in runs):
         raise FitError(
@@ -254,10 +263,11 @@ def fit_core(
             "stderr) and the fixed parameters"
         )
     chi2 = np.array([float(r.ev.chi2) if r.finite else np.inf for r in runs])
+    objective = np.array([-2.0 * float(r.ev.loglik) if r.finite else np.inf for r in runs])
     pool = [i for i, r in enumerate(runs) if r.converged] or [
         i for i, r in enumerate(runs) if r.finite
     ]
-    best = runs[min(pool, key=lambda i: chi2[i])]
+    best = runs[min(pool, key=lambda i: objective[i])]
     return CoreFit(
         success=best.converged,
         message=best.name if best.converged else f"{best.name}: {best.msg}",

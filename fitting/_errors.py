@@ -21,6 +21,20 @@ class FitError(RuntimeError):
     """A fit did not converge or produced non-finite values; nothing is reported as success."""
 
 
+class UnconstrainedError(FitError):
+    """An essential parameter (the shared width or the scale) is not constrained by the data.
+
+    `parameter` names it; `chi2` and `dof` are those of the fit where it happened. A grossly
+    misfitting variant can run to a degenerate limit (e.g. a width so wide that the model no
+    longer depends on it); `select_model` then reports the variant as misfitting, not as
+    unidentifiable.
+    """
+
+    def __init__(self, message: str, parameter: str, chi2: float, dof: int) -> None:
+        super().__init__(message)
+        self.parameter, self.chi2, self.dof = parameter, float(chi2), int(dof)
+
+
 class FitWarningCategory(UserWarning):
     """Base class of every warning the fitting layer emits."""
 
@@ -41,8 +55,9 @@ class FitWarning(NamedTuple):
     """One structured warning recorded in a result.
 
     `code` is one of `"unidentified"`, `"at_bound"`, `"start_failed"`, `"not_converged"`,
-    `"chain_too_short"`, `"low_acceptance"`; `parameter` names the parameter concerned (or is
-    None); `message` is the human-readable sentence also passed to `warnings.warn`.
+    `"chain_too_short"`, `"low_acceptance"`, `"rhat_high"`, `"ess_low"`; `parameter` names the
+    parameter concerned (or is None); `message` is the human-readable sentence also passed to
+    `warnings.warn`.
     """
 
     code: str
@@ -57,6 +72,8 @@ WARNING_CATEGORIES: dict[str, type[FitWarningCategory]] = {
     "not_converged": ConvergenceWarning,
     "chain_too_short": ConvergenceWarning,
     "low_acceptance": ConvergenceWarning,
+    "rhat_high": ConvergenceWarning,
+    "ess_low": ConvergenceWarning,
 }
 """The `warnings` category used for each `FitWarning.code`."""
 

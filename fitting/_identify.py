@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._core import CoreFit
-from ._errors import FitError, FitWarning
+from ._errors import FitWarning, UnconstrainedError
 from ._params import LOG, SIN, Parameter, dx_dz
 from ._problem import FreeSpec, Problem
 
@@ -112,6 +112,21 @@ def _stderr_vs_prior(p: Parameter, se_z: float, d: float, x: float) -> tuple[flo
     return se, width, space
 
 
+SIGNIFICANT = 3.0
+"""A parameter in the prior's linear space whose value lies this many standard errors from its
+default (0 for delta_n, the floor, the edge radius and the model error) is constrained by the
+data however wide its error bar is next to the prior: a grossly misfitting variant can need a
+model error of 50% +- 10%, which is not "unidentified"."""
+
+
+def _significant(problem: Problem, p: Parameter, core: CoreFit, se: float, space: str) -> bool:
+    """`|value - default| / stderr >= SIGNIFICANT` (linear-space parameters only)."""
+    if space != "linear" or p.param == "sigma_rad" or not se > 0:
+        return False
+    default = float(getattr(problem.fixed, p.param))
+    return abs(float(core.ev.x[p.slot]) - default) >= SIGNIFICANT * se
+
+
 def unidentified(problem: Problem, core: CoreFit, threshold: float) -> Unidentified | None:
     """The parameter to fix next, or None when every free one is constrained."""
     params = problem.parameters(core.spec)
@@ -128,7 +143,7 @@ def unidentified(problem: Problem, core: CoreFit, threshold: float) -> Unidentif
         for i, k in enumerate(slots):
             se_z = math.sqrt(max(cov.z[i, i], 0.0))
             se, width, space = _stderr_vs_prior(params[k], se_z, d[k], core.ev.x[k])
-            if se > threshold * width:
+            if se > threshold * width and not _significant(problem, params[k], core, se, space):
                 candidates[int(k)] = (
                     f"its standard error ({se:.3g}{' in ln' if space == 'log' else ''}) exceeds "
                     f"{threshold:g} x the prior's sd ({width:.3g})"
@@ -149,14 +164,18 @@ def apply_fix(
 ) -> tuple[FreeSpec, FitWarning]:
     """Fix an unidentified parameter at its default; an unidentified per-wedge width is fixed
     at the geometric mean of the other fitted widths (or joins the shared width if other wedges
-    use it). The shared width or the scale cannot be fixed: `FitError`."""
+    use it). The shared width or the scale cannot be fixed: `UnconstrainedError`."""
     p = fix.parameter
     if p.param == "sigma_rad" and p.wedge is not None:
         return _fix_wedge_width(problem, spec, fix, core)
     if p.param in ("sigma_rad", "scale"):
-        raise FitError(
+        dof = problem.observations.n_used - int(core.free_slots.size)
+        raise UnconstrainedError(
             f"the data cannot constrain {p.param}: {fix.reason}; the observations hold no "
-            "usable signal for the model (check angles, wedge indices and values)"
+            "usable signal for the model (check angles, wedge indices and values)",
+            p.param,
+            float(core.ev.chi2),
+            dof,
         )
     value = getattr(problem.fixed, p.param)
     msg = (

@@ -21,7 +21,7 @@ from ._core import CoreFit, fit_core, make_solver
 from ._errors import FitError, FitInputError, FitWarning, emit, with_overrides
 from ._identify import IDENTIFIABILITY_THRESHOLD, PROFILE_DELTA, apply_fix, on_bound, unidentified
 from ._observations import Observations, Spectral
-from ._params import DEFAULTS, SIMPLEST, Params, Priors, Variant
+from ._params import DEFAULTS, PARAM_NAMES, SIMPLEST, Params, Priors, Variant, from_physical
 from ._problem import FreeSpec, Problem, as_problem, spec_for
 from ._result import FitResult, make_result
 
@@ -78,6 +78,7 @@ def fit_least_squares(
     priors: Priors | None = None,
     aperture: model.Aperture | None = None,
     resolution: int | None = None,
+    start_from: tuple[FitResult, ...] = (),
     **option_overrides: Any,
 ) -> FitResult:
     """Fit one model variant by least squares [conventions §9].
@@ -95,6 +96,11 @@ def fit_least_squares(
     from it). With `on_failure="raise"` a fit whose best start did not converge raises
     `FitError`; with `"flag"` it returns a result with `success=False` and no covariance.
     Non-finite optima always raise.
+
+    `start_from`: fits of the same problem (e.g. the variants with one optional feature fewer)
+    whose optima are also used as starts (`nested_start`), in every solve of the refinement
+    loop: a superset of parameters started at a subset's optimum cannot end worse than it
+    (Levenberg-Marquardt only accepts steps that lower the objective).
     """
     t0 = time.perf_counter()
     opts = (options or LeastSquaresOptions()).updated(**option_overrides)
@@ -103,7 +109,8 @@ def fit_least_squares(
     opts.validated()
     _check_signal(problem)
     solver = make_solver(opts.solver, opts.rtol, opts.atol)
-    refined = _refine(problem, spec_for(variant, problem), solver, opts)
+    extra = tuple(nested_start(problem, f) for f in start_from)
+    refined = _refine(problem, spec_for(variant, problem), solver, opts, extra)
     result = make_result(problem, variant, refined.core, opts.solver, refined.records,
                          refined.unidentified, t0)  # fmt: skip
     if not result.success and opts.on_failure == "raise":
@@ -140,12 +147,13 @@ def _refine(
     spec: FreeSpec,
     solver: optx.AbstractLeastSquaresSolver,
     opts: LeastSquaresOptions,
+    extra: tuple[np.ndarray, ...] = (),
 ) -> _Refined:
     """Fit, then fix parameters on bounds or unidentified one at a time and refit, until
-    nothing changes (at most `2 x slots + 2` rounds)."""
+    nothing changes (at most `2 x slots + 2` rounds); `extra` starts go into every solve."""
 
     def solve(s: FreeSpec) -> CoreFit:
-        return fit_core(problem, s, solver, opts.max_steps, opts.sigma_starts_rad)
+        return fit_core(problem, s, solver, opts.max_steps, opts.sigma_starts_rad, extra)
 
     core = solve(spec)
     records: list[FitWarning] = []
@@ -180,6 +188,13 @@ def _next_step(
         bound = on_bound(problem, spec, core)
         if bound is not None and bound.warning is not None and bound.param == "model_error_frac":
             return _Step(bound.spec, warning=bound.warning)
+        if bound is not None and bound.param == "edge_radius_um" and spec not in checked:
+            # An edge radius crawling towards 0, where its sine transform is flat, can keep the
+            # solver from meeting its tolerance; the profile-likelihood check at the bound
+            # decides, as for a converged fit.
+            checked.add(spec)
+            step = _near_bound_step(core, bound.spec, bound.param, solve)
+            return step if step.warning is not None else _Step(None)
         return _Step(None)
     bound = on_bound(problem, spec, core) if spec not in checked else None
     if bound is not None and bound.warning is None:  # near a bound: keep it if the data agree
@@ -231,3 +246,33 @@ def _check_signal(problem: Problem) -> None:
             f"a zero model = {chi2_zero:.4g} for {n} rows); nothing to fit: check the "
             "exposures, the ROIs and the angles"
         )
+
+
+SIN_NUDGE = 0.05
+"""A nested start with the edge radius on a bound of its sine transform (where `dr/dz = 0`,
+so no solver could move it) starts `SIN_NUDGE` rad inside it instead: `r = r_max (1 - cos
+0.05) / 2 = 6e-4 r_max`, with `dr/dz = 0.025 r_max`."""
+
+
+def nested_start(problem: Problem, parent: FitResult) -> np.ndarray:
+    """A start vector (every slot) at the optimum of `parent`, a fit of the same problem.
+
+    Slots the parent fitted keep its `z`; the others start at the parent's physical values
+    (a per-wedge width at the parent's width of that wedge, a parameter the parent fixed at its
+    fixed value), an edge radius on a bound just inside it (`SIN_NUDGE`).
+    """
+    lay = problem.layout
+    p = parent.params
+    sigma = np.asarray(p.sigma_rad, float).reshape(-1)
+    x = np.zeros(lay.size)
+    x[lay.slot("sigma_rad")] = float(np.exp(np.mean(np.log(sigma))))
+    for w in range(lay.n_wedges):
+        x[lay.slot("sigma_rad", w)] = float(sigma[w] if sigma.size > 1 else sigma[0])
+    for name in PARAM_NAMES[1:]:
+        x[lay.slot(name)] = float(getattr(p, name))
+    z = np.array([from_physical(v, k, problem.r_max_um) for v, k in zip(x, lay.kinds, strict=True)])
+    k = lay.slot("edge_radius_um")
+    z[k] = float(np.clip(z[k], -0.5 * math.pi + SIN_NUDGE, 0.5 * math.pi - SIN_NUDGE))
+    free = list(parent.free_slots)
+    z[free] = np.asarray(parent.z)[free]
+    return z

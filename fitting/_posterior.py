@@ -24,6 +24,17 @@ import numpy as np
 from jaxtyping import Array
 
 from ._chain import ChainBackend, ChainInfo
+from ._diagnostics import (
+    ESS_MIN,
+    RHAT_MAX,
+    Diagnostics,
+    chain_diagnostics,
+    diagnostic_warnings,
+    display_factors,
+    inference_data,
+    variable_names,
+    write_netcdf,
+)
 from ._errors import FitError, FitInputError, FitWarning, emit, with_overrides
 from ._forward import Data, Static, log_likelihood_z, physical
 from ._params import SIN, Parameter, PriorSpec, in_support, log_prior_z
@@ -68,6 +79,14 @@ _batched_log_probability = jax.jit(
 )
 """All walkers at once; compiled once per scene shape, variant and prior specification."""
 
+DIAGNOSE_GROWTH = 1.5
+"""After a failed R-hat / ESS check the next one waits until the chain is this many times
+longer (the check costs about a second on a long chain; R-hat - 1 falls about as 1 / length)."""
+
+TAU_RELIABLE = 50.0
+"""emcee's `get_autocorr_time` trusts its estimate only on chains longer than 50 tau (it raises
+otherwise; the stopping rule uses `integrated_time(tol=0)`, which does not)."""
+
 _batched_physical = jax.jit(jax.vmap(physical, in_axes=(0, None, None)), static_argnums=(1,))
 
 
@@ -76,10 +95,13 @@ class PosteriorOptions(NamedTuple):
 
     `n_walkers` (default `max(32, 4 x n_params)`, even); `seed` (the walker ball and emcee's
     generator both derive from it); the sampler runs in chunks of `chunk_steps` until the chain
-    is longer than `tau_factor` integrated autocorrelation times and tau changed by less than
-    `tau_rtol` since the previous chunk, or `max_steps` is reached; burn-in `burn_tau x
-    tau_max` steps, thinning `thin_frac x tau_min`; walkers start in a ball of `ball_scale`
-    least-squares standard errors around the optimum.
+    is longer than `tau_factor` integrated autocorrelation times, tau changed by less than
+    `tau_rtol` since the previous chunk, and every parameter's split R-hat is below `rhat_max`
+    and its bulk and tail ESS at least `ess_min` (after burn-in; checked once the tau rule
+    holds, then whenever the chain has grown by `DIAGNOSE_GROWTH`), or `max_steps` is reached;
+    burn-in `burn_tau x tau_max` steps, thinning `thin_frac x tau_min`; walkers start in a ball
+    of `ball_scale` least-squares standard errors around the optimum. `rhat_max = inf` and
+    `ess_min = 0` stop on the tau rule alone (the warnings keep the field's thresholds).
     """
 
     n_walkers: int | None = None
@@ -91,6 +113,8 @@ class PosteriorOptions(NamedTuple):
     burn_tau: float = 3.0
     thin_frac: float = 0.5
     ball_scale: float = 1e-2
+    rhat_max: float = RHAT_MAX
+    ess_min: float = ESS_MIN
 
     def updated(self, **overrides: Any) -> PosteriorOptions:
         """A copy with `overrides` (field names; a `TypeError` for an unknown one)."""
@@ -108,8 +132,9 @@ class PosteriorResult:
         n_walkers, n_steps: walkers and steps per walker in the whole chain (resumes included).
         tau: integrated autocorrelation time per parameter (steps), `emcee.autocorr`,
             computed with `tol=0` on the whole chain; `tau_max` its maximum.
-        converged: True when `n_steps > tau_factor * tau_max` and tau changed by less than
-            `tau_rtol` since the previous chunk; False means the step limit was hit.
+        converged: True when `n_steps > tau_factor * tau_max`, tau changed by less than
+            `tau_rtol` since the previous chunk, and R-hat and ESS passed `rhat_max` and
+            `ess_min` (`PosteriorOptions`); False means the step limit was hit.
         burn_in: steps discarded (`ceil(burn_tau * tau_max)`); thin: `max(1, floor(thin_frac *
             min(tau)))`.
         n_samples: kept samples (walkers x thinned steps); n_independent: `n_walkers x
@@ -122,6 +147,12 @@ class PosteriorResult:
         median, p16, p84, p2_5, p97_5: percentiles per parameter (physical units).
         ls_value, ls_stderr: the least-squares estimate and standard error per parameter.
         width_ratio: `((p84 - p16) / 2) / ls_stderr`: posterior width over LS standard error.
+        rhat, ess_bulk, ess_tail: rank-normalised split R-hat and the bulk / tail effective
+            sample sizes per parameter after burn-in (ArviZ, walkers as chains; `_diagnostics`);
+            a parameter with R-hat >= 1.01 or an ESS below 400 has a warning.
+        tau_reliable: the chain is at least `TAU_RELIABLE` x tau_max long, where emcee
+            considers its autocorrelation estimate reliable (shorter chains stop on the
+            `tau_factor` rule with a rougher tau; R-hat and ESS are the convergence checks).
         chain_path: the chain file (None if not saved).
         warnings: structured warnings (also emitted).
         elapsed_s: wall time of this call; sampling_s: time spent in emcee.
@@ -152,10 +183,38 @@ class PosteriorResult:
     ls_value: np.ndarray = field(repr=False)
     ls_stderr: np.ndarray = field(repr=False)
     width_ratio: np.ndarray = field(repr=False)
+    rhat: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    ess_bulk: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    ess_tail: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    tau_reliable: bool = False
     chain_path: Path | None = None
     warnings: tuple[FitWarning, ...] = ()
     elapsed_s: float = 0.0
     sampling_s: float = 0.0
+
+    def inference_data(self, degrees: bool = False) -> Any:
+        """The chain as an `arviz.InferenceData`: `posterior` after burn-in and
+        `warmup_posterior` (each variable `(chain = walker, draw = step)`, physical units in
+        its `units` attribute, named by `_diagnostics.variable_names`: `sigma_rad`,
+        `sigma_rad_w2`, `delta_n`, ...), `sample_stats.lp` (log posterior); `degrees=True`
+        writes widths in degrees as `sigma_deg` (the CLI's files [conventions §1])."""
+        names = variable_names(self.parameters, degrees)
+        factors, units = display_factors(self.parameters, degrees)
+        attrs = {
+            "labels": list(self.names),
+            "seed": int(self.seed),
+            "burn_in": int(self.burn_in),
+            "sampler": "emcee EnsembleSampler (stretch move); ArviZ chains are emcee walkers",
+            "source": "stairfit.fitting.sample_posterior",
+        }
+        chain = self.chain * factors
+        return inference_data(chain, self.log_prob, self.burn_in, names, units, attrs)
+
+    def to_netcdf(self, path: str | Path, degrees: bool = False) -> Path:
+        """Write `inference_data(degrees)` to `path` (e.g. `chain.nc`; netCDF-4 through
+        h5netcdf, written atomically) for `arviz.from_netcdf`; returns the path.
+        docs/fitting.md §5 ("Diagnostics")."""
+        return write_netcdf(self.inference_data(degrees), path)
 
     def index(self, param: str, wedge: int | None = None) -> int:
         """Position of the parameter `(param, wedge)` in every array of this result."""
@@ -173,12 +232,13 @@ class PosteriorResult:
             f"{self.n_independent:.0f} independent samples, acceptance "
             f"{self.acceptance_fraction:.2f}",
             f"  {'parameter':<28} {'median':>12} {'16%':>12} {'84%':>12} {'2.5%':>12} "
-            f"{'97.5%':>12} {'width/LS':>9}",
+            f"{'97.5%':>12} {'width/LS':>9} {'R-hat':>7} {'ESS b/t':>11}",
         ]
         for i, n in enumerate(self.names):
             lines.append(
                 f"  {n:<28} {self.median[i]:>12.6g} {self.p16[i]:>12.6g} {self.p84[i]:>12.6g} "
-                f"{self.p2_5[i]:>12.6g} {self.p97_5[i]:>12.6g} {self.width_ratio[i]:>9.3g}"
+                f"{self.p2_5[i]:>12.6g} {self.p97_5[i]:>12.6g} {self.width_ratio[i]:>9.3g} "
+                f"{self.rhat[i]:>7.4f} {self.ess_bulk[i]:>5.0f}/{self.ess_tail[i]:<5.0f}"
             )
         if self.chain_path is not None:
             lines.append(f"  chain: {self.chain_path}")
@@ -336,11 +396,25 @@ def _sampler(
 
 
 class _Run(NamedTuple):
-    """The chain's autocorrelation times, whether it converged, and the time spent in emcee."""
+    """The chain's autocorrelation times, whether it converged, the time spent in emcee, and
+    the last R-hat / ESS check (`diagnostics` of the chain `diagnosed` steps long, or None)."""
 
     tau: np.ndarray
     converged: bool
     sampling_s: float
+    diagnostics: Diagnostics | None = None
+    diagnosed: int = 0
+
+
+def _burn_in(tau: np.ndarray, n_steps: int, opts: PosteriorOptions) -> int:
+    """`ceil(burn_tau x tau_max)`, leaving at least one step."""
+    return min(math.ceil(opts.burn_tau * float(np.max(tau))), n_steps - 1)
+
+
+def _diagnostics_pass(d: Diagnostics, opts: PosteriorOptions) -> bool:
+    """Every parameter has R-hat below `rhat_max` and bulk and tail ESS of at least `ess_min`."""
+    ess = np.minimum(d.ess_bulk, d.ess_tail)
+    return bool(np.all(d.rhat < opts.rhat_max) and np.all(ess >= opts.ess_min))
 
 
 def _run_chunks(
@@ -352,10 +426,10 @@ def _run_chunks(
 ) -> _Run:
     """Run in chunks of `chunk_steps` (the first from `state`, every later one, and every one of
     a resumed chain, from where emcee stopped: `run_mcmc(None, n)`), saving the chain after
-    each, until it is converged (module doc) or `max_steps` long."""
+    each, until it is converged (`PosteriorOptions`) or `max_steps` long."""
     backend: ChainBackend = sampler.backend
     tau = np.full(t.slots.size, np.inf)
-    spent = 0.0
+    spent, check_at, last = 0.0, 0, _Run(tau, False, 0.0)
     while (n_run := min(opts.chunk_steps, opts.max_steps - backend.iteration)) > 0:
         t0 = time.perf_counter()
         sampler.run_mcmc(state, n_run, progress=progress)
@@ -364,12 +438,19 @@ def _run_chunks(
         chain_z = backend.get_chain()
         tau_new = emcee.autocorr.integrated_time(chain_z, tol=0)
         settled = bool(np.all(np.abs(tau_new - tau) < opts.tau_rtol * tau_new))
-        tau = tau_new
+        tau, n = tau_new, chain_z.shape[0]
+        check = n > opts.tau_factor * np.max(tau) and settled and n >= check_at
+        chain = _physical_chain(t, chain_z) if check or backend.path is not None else None
         if backend.path is not None:
-            backend.save(_physical_chain(t, chain_z), tau)
-        if chain_z.shape[0] > opts.tau_factor * np.max(tau) and settled:
-            return _Run(tau, True, spent)
-    return _Run(tau, False, spent)
+            backend.save(chain, tau)
+        last = last._replace(tau=tau, sampling_s=spent)
+        if check:
+            d = chain_diagnostics(chain, _burn_in(tau, n, opts))
+            last = last._replace(diagnostics=d, diagnosed=n)
+            if _diagnostics_pass(d, opts):
+                return last._replace(converged=True)
+            check_at = math.ceil(DIAGNOSE_GROWTH * n)
+    return last
 
 
 def _physical_chain(t: Target, chain_z: np.ndarray) -> np.ndarray:
@@ -391,7 +472,8 @@ def _diagnostic_warnings(
                 None,
                 f"the chain reached max_steps = {opts.max_steps} with {n_steps} steps, which is "
                 f"not longer than {opts.tau_factor:g} x tau_max = {limit:.0f} (or tau has "
-                "not settled); the percentiles are less reliable — raise max_steps or resume",
+                "not settled, or R-hat / ESS have not passed); the percentiles are less "
+                "reliable — raise max_steps or resume",
             )
         )
     if not 0.15 <= acceptance <= 0.75:
@@ -415,11 +497,15 @@ def _summary(
     n_steps, walkers, p = chain_z.shape
     tau_max = float(np.max(run.tau))
     acc = backend.accepted / n_steps
-    burn = min(math.ceil(opts.burn_tau * tau_max), n_steps - 1)
+    burn = _burn_in(run.tau, n_steps, opts)
     thin = max(1, int(opts.thin_frac * float(np.min(run.tau))))
     samples = t.physical(chain_z[burn::thin].reshape(-1, p))
     q = np.percentile(samples, [2.5, 16, 50, 84, 97.5], axis=0)
     ls_se = np.asarray(t.fit.stderrs)
+    chain = _physical_chain(t, chain_z)
+    same = run.diagnostics is not None and run.diagnosed == n_steps
+    diag = run.diagnostics if same else chain_diagnostics(chain, burn)
+    checks = diagnostic_warnings(diag, t.fit.names)
     return PosteriorResult(
         names=t.fit.names,
         parameters=t.fit.parameters,
@@ -436,7 +522,7 @@ def _summary(
         acceptance_fraction=float(np.mean(acc)),
         acceptance_per_walker=acc,
         samples=samples,
-        chain=_physical_chain(t, chain_z),
+        chain=chain,
         log_prob=backend.get_log_prob(),
         median=q[2],
         p16=q[1],
@@ -446,8 +532,12 @@ def _summary(
         ls_value=t.fit.values,
         ls_stderr=ls_se,
         width_ratio=0.5 * (q[3] - q[1]) / ls_se,
+        rhat=diag.rhat,
+        ess_bulk=diag.ess_bulk,
+        ess_tail=diag.ess_tail,
+        tau_reliable=bool(n_steps >= TAU_RELIABLE * tau_max),
         chain_path=backend.path,
-        warnings=_diagnostic_warnings(run, n_steps, float(np.mean(acc)), opts),
+        warnings=_diagnostic_warnings(run, n_steps, float(np.mean(acc)), opts) + checks,
         elapsed_s=time.perf_counter() - t0,
         sampling_s=run.sampling_s,
     )

@@ -8,14 +8,18 @@ the lowest, choose the one with the fewest free parameters (ties: lower BIC, the
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 from stairfit import model
 
-from ._errors import FitError, FitInputError, emit
+from ._errors import FitError, FitInputError, UnconstrainedError, emit
 from ._least_squares import LeastSquaresOptions, fit_least_squares
+from ._misfit import P_VALUE_LIMIT, Assessment, Status, chi2_p_value, chi2_text, describe_fit
 from ._observations import Observations, Spectral
 from ._params import DEFAULT_LADDER, DEFAULTS, Params, Priors, Variant
 from ._problem import Problem, as_problem
@@ -36,8 +40,12 @@ class ComparisonRow:
     `name`, `features` (optional features switched on as requested), `n_free` (free
     parameters after removing unidentified / bound ones), `chi2`, `log_likelihood`, `bic`,
     `aic`, `laplace_log_evidence` (None without covariance), `delta` (criterion minus the
-    best), `status` (`ok`, `not converged`, `skipped: ...`), `notes` (parameters fixed by the
-    fit and why, in short).
+    best), `status` (a `Status`: ok, misfits, unidentifiable, did not converge, not fitted) and
+    `detail` (its reason: the chi^2 and tail probability of a misfit, the parameter the data
+    cannot constrain, the solver's message, why a rung was skipped), `notes` (parameters fixed
+    by the fit and why, in short), `chi2_measurement` (chi^2 with the measurement errors alone,
+    without the model-error term), `dof`, `elapsed_s` (wall time of the variant's fit).
+    `status_text` is the status in words with its detail.
     """
 
     name: str
@@ -49,14 +57,41 @@ class ComparisonRow:
     aic: float
     laplace_log_evidence: float | None
     delta: float
-    status: str
+    status: Status
     notes: str
+    detail: str = ""
+    chi2_measurement: float = math.nan
+    dof: int = 0
+    elapsed_s: float = 0.0
+
+    @property
+    def status_text(self) -> str:
+        """`misfits (chi^2 = 3.6e+04 for 340 dof, p < 1e-300)`, `ok`, ..."""
+        return f"{self.status} ({self.detail})" if self.detail else str(self.status)
 
 
-def not_fitted_row(v: Variant, status: str) -> ComparisonRow:
-    """The table row of a variant that was not fitted (numbers NaN), with its `status`."""
+def not_fitted_row(
+    v: Variant, status: Status | str, detail: str = "", chi2: float = math.nan, dof: int = 0
+) -> ComparisonRow:
+    """The table row of a variant without a usable fit (numbers NaN but a misfit's chi^2):
+    a `Status` (a string is read as `not fitted` with that string as the detail)."""
+    if not isinstance(status, Status):
+        status, detail = Status.NOT_FITTED, detail or str(status)
     nan = math.nan
-    return ComparisonRow(v.name, v.features, 0, nan, nan, nan, nan, None, nan, status, "")
+    return ComparisonRow(v.name, v.features, 0, chi2, nan, nan, nan, None, nan, status, "",
+                         detail, nan, dof)  # fmt: skip
+
+
+class Rounding(NamedTuple):
+    """Whether the rounded-edge rungs were fitted (`select_model(rounded_rungs=...)`):
+    `policy` (`always`, `when_needed`), `fitted`, `reason` (in words), `n_variants` rounded
+    variants in the ladder, `elapsed_s` spent fitting them."""
+
+    policy: str
+    fitted: bool
+    reason: str
+    n_variants: int
+    elapsed_s: float
 
 
 @dataclass(frozen=True)
@@ -66,7 +101,9 @@ class Selection:
     `chosen`: name of the chosen variant; `fit`: its least-squares result; `table`: one
     `ComparisonRow` per ladder variant, in ladder order; `reason`: one sentence saying why;
     `criterion`, `threshold`: the rule used; `forced`: True when the caller forced the variant;
-    `fits`: every successful `FitResult` by variant name.
+    `fits`: every successful `FitResult` by variant name; `rounding`: whether the rounded rungs
+    were fitted, why and how long they took (None when the ladder has none); `assessment`:
+    whether the chosen fit describes the data (`describe_fit`).
     """
 
     chosen: str
@@ -77,6 +114,8 @@ class Selection:
     threshold: float
     forced: bool
     fits: dict[str, FitResult] = field(repr=False)
+    rounding: Rounding | None = None
+    assessment: Assessment | None = field(default=None, repr=False)
 
     def report(self) -> str:
         """The comparison table and the reason, as plain text."""
@@ -87,19 +126,21 @@ class Selection:
         ]
         lines += [self._line(row) for row in self.table]
         lines.append(f"  reason: {self.reason}")
+        if self.assessment is not None and self.assessment.misfits:
+            lines.insert(0, self.assessment.headline())
         return "\n".join(lines)
 
     def _line(self, row: ComparisonRow) -> str:
         mark = "*" if row.name == self.chosen else " "
-        if row.status.startswith("skipped"):
-            return f" {mark}{row.name:<40} {'':>3} {'':>10} {'':>12} {'':>9}  {row.status}"
+        if not math.isfinite(row.bic):
+            return f" {mark}{row.name:<40} {'':>3} {'':>10} {'':>12} {'':>9}  {row.status_text}"
         if self.criterion == "bic":
             value = row.bic
         elif row.laplace_log_evidence is None:
             value = float("nan")
         else:
             value = -2 * row.laplace_log_evidence
-        notes = f"{row.status}{'; ' + row.notes if row.notes else ''}"
+        notes = f"{row.status_text}{'; ' + row.notes if row.notes else ''}"
         return (
             f" {mark}{row.name:<40} {row.n_free:>3} {row.chi2:>10.4g} {value:>12.6g} "
             f"{row.delta:>9.3g}  {notes}"
@@ -114,6 +155,12 @@ def _criterion(fit: FitResult, criterion: str) -> float | None:
     return -2.0 * fit.laplace_log_evidence
 
 
+ROUNDED_RUNGS: tuple[str, ...] = ("always", "when_needed")
+"""`always` fits every rounded-edge variant of the ladder; `when_needed` first selects among
+the sharp variants and adds the rounded ones only when the chosen sharp variant does not
+describe the data (`rounding_needed`): a rounded fit costs minutes of compilation."""
+
+
 def select_model(
     observations: Observations | Problem,
     spectral: Spectral | None = None,
@@ -123,25 +170,36 @@ def select_model(
     threshold: float = DEFAULT_THRESHOLD,
     force: str | Variant | None = None,
     model_error: bool = False,
+    rounded_rungs: str = "always",
     fixed: Params = DEFAULTS,
     priors: Priors | None = None,
     aperture: model.Aperture | None = None,
     resolution: int | None = None,
     options: LeastSquaresOptions | None = None,
+    on_variant: Callable[[str], None] | None = None,
     **option_overrides: Any,
 ) -> Selection:
     """Fit every variant of `ladder` and choose the simplest the data support (module doc).
 
-    `force` (a variant or a ladder name) skips the comparison and fits only that variant.
-    `model_error=True` frees `model_error_frac` in every variant. `options` (and keywords
-    naming its fields, e.g. `solver`, `max_steps`, `sigma_starts_rad`) set each least-squares
-    fit; failures are recorded in the table (`on_failure="flag"`), and warnings of the chosen
-    fit are emitted while those of the others are only recorded in their results.
+    Variants are fitted from simple to rich, each also started from the optimum of every
+    fitted parent (the variants with one optional feature fewer), so that none ends worse than
+    its parent. `force` (a variant or a ladder name) skips the comparison and fits only that
+    variant (a rounded one started from its sharp counterpart's optimum). `model_error=True`
+    frees `model_error_frac` in every variant. `rounded_rungs` (`ROUNDED_RUNGS`) says when the
+    rounded-edge variants are fitted. `options` (and keywords naming its fields, e.g.
+    `solver`, `max_steps`, `sigma_starts_rad`) set each least-squares fit; failures are
+    recorded in the table with their `Status`, and warnings of the chosen fit are emitted while
+    those of the others are only recorded in their results. `on_variant(name)` is called after
+    each variant's fit (for progress bars).
     """
     if criterion not in CRITERIA:
         raise FitInputError(f"criterion = {criterion!r}; choose one of {', '.join(CRITERIA)}")
     if not threshold >= 0:
         raise FitInputError(f"threshold = {threshold!r}; give a non-negative number")
+    if rounded_rungs not in ROUNDED_RUNGS:
+        raise FitInputError(
+            f"rounded_rungs = {rounded_rungs!r}; choose one of {', '.join(ROUNDED_RUNGS)}"
+        )
     problem = as_problem(observations, spectral, fixed=fixed, priors=priors, aperture=aperture,
                          resolution=resolution)  # fmt: skip
     opts = (options or LeastSquaresOptions()).updated(**option_overrides)
@@ -150,8 +208,82 @@ def select_model(
         return _forced(problem, _find(force, ladder), model_error, criterion, threshold, opts)
     if len(ladder) == 0:
         raise FitInputError("the ladder is empty; give at least one variant")
-    fits, skipped = _fit_ladder(problem, ladder, model_error, opts)
-    return _choose(ladder, fits, skipped, criterion, threshold)
+    opts = _Settings(opts, model_error, on_variant or (lambda name: None))
+    return _select_ladder(problem, ladder, rounded_rungs, criterion, threshold, opts)
+
+
+class _Settings(NamedTuple):
+    """How every variant of a ladder is fitted."""
+
+    options: LeastSquaresOptions
+    model_error: bool
+    on_variant: Callable[[str], None]
+
+
+def _select_ladder(
+    problem: Problem,
+    ladder: tuple[Variant, ...],
+    policy: str,
+    criterion: str,
+    threshold: float,
+    opts: _Settings,
+) -> Selection:
+    """The sharp rungs, then (always, or when they do not describe the data) the rounded ones."""
+    rounded = tuple(v for v in ladder if _is_rounded(v))
+    if not rounded:
+        return _choose(ladder, _fit_ladder(problem, ladder, opts), criterion, threshold)
+    sharp = tuple(v for v in ladder if not _is_rounded(v))
+    runs = _fit_ladder(problem, sharp, opts)
+    why = "the preset fits them always"
+    if policy == "when_needed" and sharp:
+        sel = _choose(sharp, runs, criterion, threshold)
+        needed, why = rounding_needed(sel)
+        if not needed:
+            skipped = {v.name: not_fitted_row(v, Status.NOT_FITTED, "rounding not needed")
+                       for v in rounded}  # fmt: skip
+            return _with_rounding(
+                _choose(ladder, _Runs(runs.fits, {**runs.rows, **skipped}), criterion,
+                        threshold),
+                Rounding(policy, False, why, len(rounded), 0.0),
+            )  # fmt: skip
+    t0 = time.perf_counter()
+    runs = _fit_ladder(problem, rounded, opts, runs)
+    sel = _choose(ladder, runs, criterion, threshold)
+    return _with_rounding(sel, Rounding(policy, True, why, len(rounded), time.perf_counter() - t0))
+
+
+def _with_rounding(sel: Selection, rounding: Rounding) -> Selection:
+    """The selection with its rounding record, and the reason saying what happened."""
+    what = "were fitted" if rounding.fitted else "were not fitted"
+    took = f" (in {rounding.elapsed_s:.0f} s)" if rounding.fitted else ""
+    reason = f"{sel.reason}; the rounded variants {what}{took} because {rounding.reason}"
+    return dataclasses.replace(sel, rounding=rounding, reason=reason)
+
+
+def _is_rounded(v: Variant) -> bool:
+    return "edge_radius_um" in v.free
+
+
+def rounding_needed(selection: Selection) -> tuple[bool, str]:
+    """Whether the chosen sharp variant leaves a misfit that edge rounding could explain: it
+    needed a fractional model-error term, or its chi^2 has a tail probability below
+    `P_VALUE_LIMIT`. Returns (needed, the reason in words). docs/fitting.md §4."""
+    fit = selection.fit
+    if "model_error_frac" in fit.variant.free:
+        f = fit.estimate("model_error_frac").value
+        return True, (
+            f"the best sharp variant {selection.chosen!r} needs a model-error term "
+            f"({100 * f:.2g}% of the model)"
+        )
+    p = chi2_p_value(fit.chi2, fit.dof)
+    if p < P_VALUE_LIMIT:
+        return True, (
+            f"the best sharp variant {selection.chosen!r} misfits ({chi2_text(fit.chi2, fit.dof)})"
+        )
+    return False, (
+        f"the best sharp variant {selection.chosen!r} describes the data (no model-error term "
+        f"needed, {chi2_text(fit.chi2, fit.dof)})"
+    )
 
 
 def _forced(
@@ -163,49 +295,109 @@ def _forced(
     opts: LeastSquaresOptions,
 ) -> Selection:
     v = v.with_free(model_error=True) if model_error else v
-    fit = fit_least_squares(problem, variant=v, options=opts)
+    parents: tuple[FitResult, ...] = ()
+    if _is_rounded(v):  # start from the sharp counterpart: r near 0 if the data are sharp
+        sharp = v._replace(free=v.free - {"edge_radius_um"})
+        parent = fit_least_squares(problem, variant=sharp, options=opts)
+        parents = (parent,) if parent.success else ()
+    t0 = time.perf_counter()
+    fit = fit_least_squares(problem, variant=v, options=opts, start_from=parents)
     if not fit.success:
         raise FitError(f"the forced variant {v.name!r} did not converge: {fit.message}")
     emit(fit.warnings)
-    row = _row(fit, v, 0.0)
+    row = _row(fit, v, 0.0, time.perf_counter() - t0)
     return Selection(v.name, fit, (row,), f"{v.name!r} was forced by the caller", criterion,
-                     threshold, True, {v.name: fit})  # fmt: skip
+                     threshold, True, {v.name: fit}, None, describe_fit(fit))  # fmt: skip
+
+
+class _Runs(NamedTuple):
+    """Fits of the ladder so far: converged fits by name and the table row of every variant."""
+
+    fits: dict[str, FitResult]
+    rows: dict[str, ComparisonRow]
+
+
+def parents_of(v: Variant, ladder: tuple[Variant, ...]) -> tuple[Variant, ...]:
+    """The variants of `ladder` with exactly one optional feature fewer than `v` (its parents:
+    `sharp` for `sharp+floor`; `sharp+floor` and `sharp+delta_n` for `sharp+delta_n+floor`)."""
+    mine = set(v.features)
+    return tuple(u for u in ladder if set(u.features) < mine and len(mine - set(u.features)) == 1)
 
 
 def _fit_ladder(
-    problem: Problem, ladder: tuple[Variant, ...], model_error: bool, opts: LeastSquaresOptions
-) -> tuple[dict[str, FitResult], dict[str, str]]:
-    """(converged fits by variant name, status of every variant that failed)."""
-    fits: dict[str, FitResult] = {}
-    skipped: dict[str, str] = {}
-    for v in ladder:
-        v_run = v.with_free(model_error=True) if model_error else v
+    problem: Problem, ladder: tuple[Variant, ...], settings: _Settings, done: _Runs | None = None
+) -> _Runs:
+    """Fit `ladder` from simple to rich, each variant also from its fitted parents' optima
+    (parents among `done` too); every variant gets a row, failures with their status."""
+    fits = dict(done.fits) if done else {}
+    rows = dict(done.rows) if done else {}
+    known = tuple({v.name: v for v in ladder}.values()) + tuple(
+        _ladder_variant(f) for n, f in fits.items() if n not in {v.name for v in ladder}
+    )
+    for v in sorted(ladder, key=lambda u: len(u.features)):
+        parents = tuple(fits[u.name] for u in parents_of(v, known) if u.name in fits)
+        t0 = time.perf_counter()
         try:
-            fit = fit_least_squares(problem, variant=v_run, options=opts)
-        except FitError as err:  # e.g. a variant whose width the data cannot constrain
-            skipped[v.name] = f"failed: {err}"
+            fit = _fit_variant(problem, v, settings, parents)
+        except UnconstrainedError as err:  # a misfit running to a degenerate limit, or no signal
+            rows[v.name] = _unconstrained_row(v, err)
             continue
+        except FitError as err:
+            rows[v.name] = not_fitted_row(v, Status.UNIDENTIFIABLE, str(err))
+            continue
+        row = _row(fit, v, math.nan, time.perf_counter() - t0)
         if fit.success:
             fits[v.name] = fit
-        else:
-            skipped[v.name] = f"not converged ({fit.message.split(':')[0]})"
-    return fits, skipped
+            rows[v.name] = row
+        else:  # its best start's numbers are kept: an upper bound of what the variant reaches
+            detail = f"{fit.message.split(':')[0]} after {fit.num_steps} steps"
+            rows[v.name] = dataclasses.replace(row, status=Status.NOT_CONVERGED, detail=detail,
+                                               bic=math.nan, aic=math.nan,
+                                               laplace_log_evidence=None)  # fmt: skip
+    return _Runs(fits, rows)
+
+
+def _fit_variant(
+    problem: Problem, v: Variant, settings: _Settings, parents: tuple[FitResult, ...]
+) -> FitResult:
+    """One variant of the ladder, also started from its parents' optima."""
+    v_run = v.with_free(model_error=True) if settings.model_error else v
+    try:
+        return fit_least_squares(problem, variant=v_run, options=settings.options,
+                                 start_from=parents)  # fmt: skip
+    finally:
+        settings.on_variant(v.name)
+
+
+def _ladder_variant(fit: FitResult) -> Variant:
+    """The ladder variant a fit was asked for (without the model-error term all share)."""
+    v = fit.requested
+    return v._replace(free=v.free - {"model_error_frac"})
+
+
+def _unconstrained_row(v: Variant, err: UnconstrainedError) -> ComparisonRow:
+    """A variant whose width or scale the data cannot constrain: a misfit if its chi^2 is
+    improbable (it ran to a degenerate limit), else unidentifiable."""
+    if chi2_p_value(err.chi2, err.dof) < P_VALUE_LIMIT:
+        detail = (
+            f"{chi2_text(err.chi2, err.dof)}; {err.parameter} ran to a degenerate limit where "
+            "the data no longer constrain it"
+        )
+        return not_fitted_row(v, Status.MISFITS, detail, err.chi2, err.dof)
+    return not_fitted_row(v, Status.UNIDENTIFIABLE, str(err), err.chi2, err.dof)
 
 
 def _choose(
-    ladder: tuple[Variant, ...],
-    fits: dict[str, FitResult],
-    skipped: dict[str, str],
-    criterion: str,
-    threshold: float,
+    ladder: tuple[Variant, ...], runs: _Runs, criterion: str, threshold: float
 ) -> Selection:
     """Apply the rule (module doc) to the fitted variants and build the table."""
+    fits = {n: f for n, f in runs.fits.items() if n in {v.name for v in ladder}}
     scored = {n: _criterion(f, criterion) for n, f in fits.items()}
     scored = {n: c for n, c in scored.items() if c is not None and math.isfinite(c)}
     if not scored:
         raise FitError(
             "no variant of the ladder converged: "
-            + "; ".join(f"{k}: {v}" for k, v in skipped.items())
+            + "; ".join(f"{k}: {r.status_text}" for k, r in runs.rows.items())
         )
     best_name = min(scored, key=lambda n: scored[n])
     best = scored[best_name]
@@ -214,14 +406,14 @@ def _choose(
     chosen = min(candidates, key=lambda n: (fits[n].n_free, round(scored[n], 6), order[n]))
     table = []
     for v in ladder:
-        if v.name not in fits:
-            table.append(not_fitted_row(v, skipped[v.name]))
-            continue
+        row = runs.rows[v.name]
         c = scored.get(v.name)
-        table.append(_row(fits[v.name], v, float("nan") if c is None else c - best))
+        delta = math.nan if c is None or v.name not in fits else c - best
+        table.append(dataclasses.replace(row, delta=delta))
     reason = _reason(chosen, best_name, fits, scored, criterion, threshold)
     emit(fits[chosen].warnings)
-    return Selection(chosen, fits[chosen], tuple(table), reason, criterion, threshold, False, fits)
+    return Selection(chosen, fits[chosen], tuple(table), reason, criterion, threshold, False, fits,
+                     None, describe_fit(fits[chosen]))  # fmt: skip
 
 
 def _find(force: str | Variant, ladder: tuple[Variant, ...]) -> Variant:
@@ -234,9 +426,10 @@ def _find(force: str | Variant, ladder: tuple[Variant, ...]) -> Variant:
     raise FitInputError(f"force = {force!r} is not a variant of the ladder; choose one of {names}")
 
 
-def _row(fit: FitResult, v: Variant, delta: float) -> ComparisonRow:
+def _row(fit: FitResult, v: Variant, delta: float, elapsed_s: float) -> ComparisonRow:
     notes = ", ".join(f"{w.parameter} {w.code.replace('_', ' ')}" for w in fit.warnings
                       if w.code in ("unidentified", "at_bound"))  # fmt: skip
+    a = describe_fit(fit)
     return ComparisonRow(
         name=v.name,
         features=v.features,
@@ -247,8 +440,12 @@ def _row(fit: FitResult, v: Variant, delta: float) -> ComparisonRow:
         aic=fit.aic,
         laplace_log_evidence=fit.laplace_log_evidence,
         delta=delta,
-        status="ok",
+        status=a.status,
         notes=notes,
+        detail="; ".join(a.reasons),
+        chi2_measurement=a.chi2_measurement,
+        dof=fit.dof,
+        elapsed_s=elapsed_s,
     )
 
 
@@ -263,7 +460,9 @@ def _reason(
     """One sentence: why this variant."""
     crit = "BIC" if criterion == "bic" else "-2 ln Z"
     k = fits[chosen].n_free
-    simpler = [scored[n] - scored[best] for n in scored if fits[n].n_free < k]
+    mine = set(fits[chosen].requested.features)
+    simpler = [scored[n] - scored[best] for n in scored
+               if set(fits[n].requested.features) < mine]  # fmt: skip
     tail = (
         f"; every simpler variant is worse by at least {min(simpler):.3g}"
         if simpler

@@ -10,6 +10,7 @@ a few standard errors.
 
 from __future__ import annotations
 
+import html
 import json
 from pathlib import Path
 
@@ -26,7 +27,7 @@ def _run(tmp_path: Path, *sim_args: str, fit_args: tuple[str, ...] = ()) -> tupl
     assert main(sim) == 0
     out = tmp_path / "fit"
     assert main(["fit", str(photos), "-o", str(out), "--quiet", *fit_args]) == 0
-    for name in ("fit_per_wedge", "residuals", "corner", "brdf_map", "colours"):
+    for name in ("fit_per_wedge", "residuals", "residual_pattern", "corner", "brdf_map", "colours"):
         assert (out / "figures" / f"{name}.png").is_file(), name
     assert (out / "report.html").is_file()
     truth = json.loads((photos / "truth.json").read_text())["parameters"]
@@ -52,6 +53,38 @@ def test_sharp_scene_is_recovered(tmp_path: Path) -> None:
     pulls = _pulls(truth, results)
     assert {"sigma_deg", "scale"} <= set(pulls), pulls
     assert all(abs(p) < PULL_MAX for p in pulls.values()), pulls
+    _check_chain_diagnostics(tmp_path / "fit", results)
+    # the sharp scene is described by its model, and the report says what became of rounding
+    assert results["assessment"]["misfits"] is False, results["assessment"]["headline"]
+    rounding = results["model_selection"]["rounding"]
+    assert rounding["policy"] == "when_needed" and rounding["n_variants"] == 4
+    page = (tmp_path / "fit" / "report.html").read_text()
+    assert "does not describe the data" not in page
+    assert f"Rounded edges: {html.escape(rounding['sentence'])}" in page
+
+
+def _check_chain_diagnostics(out: Path, results: dict) -> None:
+    """R-hat and ESS per parameter in results.json, and chain.nc opens in ArviZ with the
+    same draws (degrees for widths) and the same diagnostics."""
+    import arviz as az
+    import numpy as np
+
+    post = results["diagnostics"]["posterior"]
+    assert (post["rhat_max"], post["ess_min"]) == (1.01, 400)
+    records = [r for r in results["parameters"] if "posterior" in r]
+    idata = az.from_netcdf(out / post["inference_data_file"])
+    table = az.summary(idata, kind="diagnostics", round_to="none")
+    assert len(idata.posterior.data_vars) == len(records)
+    for rec, var in zip(records, idata.posterior.data_vars, strict=True):
+        po = rec["posterior"]
+        np.testing.assert_allclose(table.loc[var, "r_hat"], po["rhat"], rtol=1e-9)
+        np.testing.assert_allclose(table.loc[var, "ess_bulk"], po["ess_bulk"], rtol=1e-9)
+        # same draws in the same units (results.json's percentiles come from the thinned chain)
+        half = 0.5 * (po["p84"] - po["p16"])
+        assert abs(float(idata.posterior[var].median()) - po["median"]) < 0.1 * half, var
+        # the default preset runs the chain until the field's thresholds pass
+        assert po["converged"] and po["rhat"] < 1.01, po
+        assert min(po["ess_bulk"], po["ess_tail"]) >= 400, po
 
 
 @pytest.mark.slow  # the rounded model compiles for minutes on 2 cores

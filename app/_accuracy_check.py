@@ -1,0 +1,102 @@
+"""Accuracy that follows the data (issue 13): after the fit, the preset's numerical error at the
+optimum against the `accurate` preset's knobs (`fitting.numerical_error`, one evaluation); when
+it exceeds `fitting.ACCURACY_LIMIT` (0.2 measurement standard errors, rms over the rows), the
+chosen variant is fitted again with the accurate knobs, started from its optimum — or, with the
+`fast` preset, a warning says so. docs/fitting.md §3 ("Numerical error at the optimum").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from .presets import PRESETS, Preset
+
+DEG = np.pi / 180
+REFERENCE = "accurate"
+"""The preset whose knobs (5 nm spectral sampling, aperture nodes, rounded resolution) are the
+converged reference."""
+
+
+class AccuracyCheck(NamedTuple):
+    """What the check found and did: `preset`; `error` (a `fitting.NumericalError` of the
+    preset's fit, None when the preset is the reference); `action` (`none`, `warned`,
+    `refitted`, `refit failed`); `elapsed_s` of the refit; `message` in words."""
+
+    preset: str
+    error: Any
+    action: str
+    elapsed_s: float
+    message: str
+
+    def record(self) -> dict[str, Any]:
+        """results.json's `accuracy`."""
+        e = self.error
+        return {
+            "preset": self.preset,
+            "reference": REFERENCE,
+            "rms_over_stderr": None if e is None else e.rms,
+            "max_over_stderr": None if e is None else e.max,
+            "of_peak": None if e is None else e.of_peak,
+            "limit": None if e is None else e.limit,
+            "exceeds": None if e is None else e.exceeds,
+            "action": self.action,
+            "refit_s": self.elapsed_s,
+            "message": self.message,
+        }
+
+
+def check_accuracy(
+    scene: Any, observations: Any, selection: Any, preset: Preset
+) -> tuple[Any, AccuracyCheck]:
+    """The selection (its chosen fit refined when needed) and what the check did (module doc)."""
+    from stairfit import fitting
+
+    from .fit import fit_setup
+
+    if preset.name == REFERENCE:
+        return selection, AccuracyCheck(preset.name, None, "none", 0.0,
+                                        "the accurate preset is its own reference")  # fmt: skip
+    ref = PRESETS[REFERENCE]
+    spectral, aperture = fit_setup(scene, ref)
+    knobs = {"aperture": aperture, "resolution": ref.rounded_resolution}
+    error = fitting.numerical_error(selection.fit, spectral, **knobs)
+    if not error.exceeds:
+        return selection, AccuracyCheck(preset.name, error, "none", 0.0, error.sentence())
+    if preset.name == "fast":
+        message = f"{error.sentence()}; fast does not refine: rerun with --preset balanced"
+        return selection, AccuracyCheck(preset.name, error, "warned", 0.0, message)
+    return _refit(selection, observations, spectral, knobs, preset, error)
+
+
+def _refit(
+    selection: Any, observations: Any, spectral: Any, knobs: dict[str, Any], preset: Preset,
+    error: Any,
+) -> tuple[Any, AccuracyCheck]:  # fmt: skip
+    """The chosen variant fitted again with the reference knobs, from its own optimum."""
+    import time
+
+    from stairfit import fitting
+
+    t0 = time.perf_counter()
+    fit = fitting.fit_least_squares(
+        observations, spectral, selection.fit.requested, start_from=(selection.fit,),
+        sigma_starts_rad=tuple(s * DEG for s in preset.sigma_starts_deg), on_failure="flag",
+        emit_warnings=False, **knobs,
+    )  # fmt: skip
+    elapsed = time.perf_counter() - t0
+    if not fit.success:
+        message = f"{error.sentence()}; the refit with the accurate knobs failed ({fit.message})"
+        return selection, AccuracyCheck(preset.name, error, "refit failed", elapsed, message)
+    refined = dataclasses.replace(
+        selection, fit=fit, assessment=fitting.describe_fit(fit),
+        fits={**selection.fits, selection.chosen: fit},
+    )  # fmt: skip
+    message = (
+        f"{error.sentence()}; {selection.chosen!r} was fitted again with the accurate preset's "
+        f"knobs in {elapsed:.0f} s (chi^2 {selection.fit.chi2:.5g} -> {fit.chi2:.5g}); the "
+        "parameters, the posterior and the figures are the refined fit's"
+    )
+    return refined, AccuracyCheck(preset.name, error, "refitted", elapsed, message)

@@ -1,0 +1,64 @@
+"""`stairfit fit`'s accuracy check (issue 13, app/_accuracy_check.py): the preset's numerical
+error at the optimum against the accurate preset's knobs; precise data make `balanced` refit the
+chosen variant with those knobs and `fast` warn; ordinary data change nothing."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import zoo
+
+from stairfit import fitting
+from stairfit._accuracy_check import check_accuracy
+from stairfit.fit import fit_setup
+from stairfit.presets import PRESETS
+
+DEG = np.pi / 180
+SCENE = SimpleNamespace(  # what fit_setup reads of a scene: a dispersive index, a point light
+    specimen=SimpleNamespace(index=SimpleNamespace(build=lambda: "pla-bodurov2016")),
+    camera=SimpleNamespace(sensitivity="ideal", angular_extent_deg=0.0),
+    light=SimpleNamespace(illuminant="D65", angular_diameter_deg=0.0),
+)
+
+
+def _selection(noise: float, preset: str) -> tuple[fitting.Selection, fitting.Observations]:
+    """Data made with the accurate knobs (5 nm), selected with the preset's."""
+    full, _ = fit_setup(SCENE, PRESETS["accurate"])
+    s = zoo.scene(fitting.Params(sigma_rad=3 * DEG, scale=1.0), zoo.small_design(), full,
+                  fitting.Noise(noise, absolute=1e-12), 3)  # fmt: skip
+    spectral, aperture = fit_setup(SCENE, PRESETS[preset])
+    sel = fitting.select_model(s.obs, spectral, (zoo.LADDER["sharp"],), aperture=aperture)
+    return sel, s.obs
+
+
+@pytest.fixture(scope="module")
+def precise() -> tuple[fitting.Selection, fitting.Observations]:
+    return _selection(5e-4, "balanced")
+
+
+def test_precise_data_make_balanced_refit_with_the_accurate_knobs(precise):
+    sel, obs = precise
+    refined, check = check_accuracy(SCENE, obs, sel, PRESETS["balanced"])
+    assert check.error.exceeds and check.action == "refitted", check.message
+    assert refined.fit is not sel.fit and refined.chosen == sel.chosen
+    # the refit's model is the reference's, and it describes data made with those knobs better
+    full, aperture = fit_setup(SCENE, PRESETS["accurate"])
+    again = fitting.numerical_error(refined.fit, full, aperture=aperture)
+    assert again.rms < 1e-6, again
+    assert refined.fit.chi2 < sel.fit.chi2
+    assert refined.assessment.chi2 == refined.fit.chi2
+    rec = check.record()
+    assert rec["exceeds"] and rec["rms_over_stderr"] > 0.2 and rec["action"] == "refitted"
+
+
+def test_fast_warns_instead_and_ordinary_data_change_nothing(precise):
+    sel, obs = precise
+    same, check = check_accuracy(SCENE, obs, sel, PRESETS["fast"])
+    assert same is sel and check.action == "warned" and "--preset balanced" in check.message
+    sel2, obs2 = _selection(0.02, "balanced")
+    same, check = check_accuracy(SCENE, obs2, sel2, PRESETS["balanced"])
+    assert same is sel2 and check.action == "none" and not check.error.exceeds
+    same, check = check_accuracy(SCENE, obs2, sel2, PRESETS["accurate"])
+    assert same is sel2 and check.error is None
