@@ -259,28 +259,15 @@ def posterior_diagnostics(post: Any) -> dict[str, Any] | None:
 
 def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]:
     """The content of results.json (see the README's "Outputs")."""
-    from .fit import sha256_of
-
-    sel, fit, post, scene = (
-        outcome.selection,
-        outcome.selection.fit,
-        outcome.posterior,
-        outcome.scene,
-    )
+    sel, fit, post = outcome.selection, outcome.selection.fit, outcome.posterior
     names = [display_name(e)[0] for e in fit.estimates]
     corr = None if fit.correlation is None else np.round(fit.correlation, 6)
-    versions = {}
-    for pkg in PACKAGES:
-        try:
-            versions[pkg] = metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            versions[pkg] = None
     result = {
         "stairfit_version": __version__,
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "python": sys.version.split()[0],
         "platform": platform.platform(),
-        "package_versions": versions,
+        "package_versions": package_versions(),
         "settings": {
             "preset": outcome.options.preset.as_dict(),
             "posterior": outcome.options.posterior,
@@ -289,18 +276,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
             "seed": outcome.options.seed,
             "workers": outcome.options.workers,
         },
-        "inputs": {
-            "scene": {"file": scene.path.name, "sha256": sha256_of(scene.path)},
-            "photos": [
-                {"file": name, "sha256": outcome.table.for_photo(name)[0].photo_sha256}
-                for name in outcome.table.photos()
-            ],  # a bracket's: SHA-256 of its files' digests joined by "," (docs/imaging.md)
-            "calibration": [
-                {"field": where, "file": name, "sha256": sha256_of(path)}
-                for where, name, path in scene.input_fields()
-                if where.startswith("calibration.")
-            ],
-        },
+        "inputs": inputs_record(outcome),
         "model_selection": {
             "chosen": sel.chosen,
             "forced": sel.forced,
@@ -317,26 +293,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         "spectral": spectral_record(outcome),
         "correlation": {"names": names, "matrix": corr},
         "diagnostics": {
-            "least_squares": {
-                "solver": fit.solver,
-                "success": fit.success,
-                "message": fit.message,
-                "num_steps": fit.num_steps,
-                "chi2": fit.chi2,
-                "dof": fit.dof,
-                "reduced_chi2": fit.reduced_chi2,
-                "n_used": fit.n_used,
-                "n_rows": fit.n_rows,
-                "n_excluded": len(fit.excluded_rows),
-                "n_saturated": fit.n_saturated,
-                "starts_sigma_deg": [s / DEG for s in fit.starts_sigma_rad],
-                "starts_chi2": list(fit.starts_chi2),
-                "unidentified": list(fit.unidentified),
-                "warnings": [
-                    {"code": w.code, "parameter": w.parameter, "message": w.message}
-                    for w in fit.warnings
-                ],
-            },
+            "least_squares": least_squares_diagnostics(fit),
             "posterior": posterior_diagnostics(post),
             "notes": outcome.notes,
             "timings_s": outcome.timings,
@@ -350,6 +307,59 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         },
     }
     return _jsonable(result)
+
+
+def package_versions() -> dict[str, str | None]:
+    """Installed versions of the packages a result depends on (None where not installed)."""
+    versions: dict[str, str | None] = {}
+    for pkg in PACKAGES:
+        try:
+            versions[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            versions[pkg] = None
+    return versions
+
+
+def inputs_record(outcome: FitOutcome) -> dict[str, Any]:
+    """results.json's `inputs`: SHA-256 of the scene file, every photo and calibration frame."""
+    from .fit import sha256_of
+
+    scene = outcome.scene
+    return {
+        "scene": {"file": scene.path.name, "sha256": sha256_of(scene.path)},
+        "photos": [
+            {"file": name, "sha256": outcome.table.for_photo(name)[0].photo_sha256}
+            for name in outcome.table.photos()
+        ],  # a bracket's: SHA-256 of its files' digests joined by "," (docs/imaging.md)
+        "calibration": [
+            {"field": where, "file": name, "sha256": sha256_of(path)}
+            for where, name, path in scene.input_fields()
+            if where.startswith("calibration.")
+        ],
+    }
+
+
+def least_squares_diagnostics(fit: Any) -> dict[str, Any]:
+    """results.json's `diagnostics.least_squares` of the chosen fit (a `fitting.FitResult`)."""
+    return {
+        "solver": fit.solver,
+        "success": fit.success,
+        "message": fit.message,
+        "num_steps": fit.num_steps,
+        "chi2": fit.chi2,
+        "dof": fit.dof,
+        "reduced_chi2": fit.reduced_chi2,
+        "n_used": fit.n_used,
+        "n_rows": fit.n_rows,
+        "n_excluded": len(fit.excluded_rows),
+        "n_saturated": fit.n_saturated,
+        "starts_sigma_deg": [s / DEG for s in fit.starts_sigma_rad],
+        "starts_chi2": list(fit.starts_chi2),
+        "unidentified": list(fit.unidentified),
+        "warnings": [
+            {"code": w.code, "parameter": w.parameter, "message": w.message} for w in fit.warnings
+        ],
+    }
 
 
 def spectral_record(outcome: FitOutcome) -> dict[str, Any]:
