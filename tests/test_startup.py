@@ -59,3 +59,18 @@ def test_predict_of_one_case_imports_little_and_compiles_two_programs(tmp_path):
     np.testing.assert_allclose([float(r["theta_o_deg"]) for r in rows], [60.0, -120.0, 0.0])
     ref = model.sharp_lobes(0.0, np.deg2rad(30.0), 1.46)
     np.testing.assert_allclose([float(r["ratio"]) for r in rows], ref.ratio, rtol=1e-9)
+
+
+def test_fitting_without_a_posterior_does_not_import_emcee():
+    """emcee (and the SciPy it imports, about 1 s) is loaded only when a posterior is asked for:
+    `stairfit fit --no-posterior` and the report's module do not need it (issue 14)."""
+    code = (
+        "import sys\n"
+        "from stairfit import fitting, report\n"
+        "before = sorted(m for m in ('emcee', 'scipy') if m in sys.modules)\n"
+        "fitting.sample_posterior, fitting.load_chain, fitting.PosteriorOptions\n"
+        "from stairfit.fitting import ChainBackend\n"
+        "print(before, 'emcee' in sys.modules, ChainBackend.__module__)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.split() == ["[]", "True", "stairfit.fitting._chain"], run.stdout
