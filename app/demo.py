@@ -68,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"\n  simulate {t_sim:.1f} s; measure {outcome.timings['measure_s']:.1f} s, fit "
         f"{outcome.timings['fit_s']:.1f} s, posterior {outcome.timings.get('posterior_s', 0):.1f}"
-        f" s, outputs {outcome.timings['outputs_s']:.1f} s"
+        f" s, outputs {outcome.timings['outputs_s']:.1f} s (compilation "
+        f"{outcome.timings.get('compile_s', 0):.1f} s of fit and posterior)"
     )
     return 0
 

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from . import _exclusions, _ranges
+from ._compile_watch import watching_compilation
 from ._failed_previews import FAILED_PREVIEWS, forget_previews, keep_previews
 from .errors import StairfitWarning, UserError
 from .presets import PRESETS, Preset, get_preset
@@ -225,15 +226,17 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     notes.extend(excluded_notes)
     spectral, aperture = fit_setup(scene, options.preset)
     notes.extend(index_notes(scene, spectral))
-    selection = select(observations, spectral, aperture, options)
-    selection, accuracy = refine(scene, observations, selection, options)
-    timings["fit_s"] = time.perf_counter() - t0
+    with watching_compilation(options.progress) as compiled:
+        selection = select(observations, spectral, aperture, options)
+        selection, accuracy = refine(scene, observations, selection, options)
+        timings["fit_s"] = time.perf_counter() - t0
 
-    posterior = None
-    if options.posterior:
-        t0 = time.perf_counter()
-        posterior = sample(selection.fit, out, options)
-        timings["posterior_s"] = time.perf_counter() - t0
+        posterior = None
+        if options.posterior:
+            t0 = time.perf_counter()
+            posterior = sample(selection.fit, out, options)
+            timings["posterior_s"] = time.perf_counter() - t0
+    timings.update(compiled.as_timings())
 
     outcome = FitOutcome(
         scene,
@@ -547,7 +550,8 @@ def select(observations: Any, spectral: Any, aperture: Any, options: FitOptions)
     if options.model is not None:
         check_model_name(options.model)
         ladder = fitting.DEFAULT_LADDER
-    bar = _Progress(options.progress, "fitting models", total=len(ladder))
+    forced = options.model is not None  # select_model reports each ladder fit, not a forced one
+    bar = _Progress(options.progress, "fitting models", total=1 if forced else len(ladder))
     with bar as tick, warnings.catch_warnings():
         warnings.simplefilter("ignore", fitting.FitWarningCategory)
         try:
@@ -565,6 +569,8 @@ def select(observations: Any, spectral: Any, aperture: Any, options: FitOptions)
             )
         except (fitting.FitError, fitting.FitInputError) as err:
             raise UserError(f"the fit failed: {err}") from None
+        if forced:
+            tick()
     return selection
 
 
