@@ -19,7 +19,7 @@ from matplotlib.figure import Figure
 from .figures import fixed_layout
 
 if TYPE_CHECKING:
-    from .fit import FitOutcome
+    from .commands.fit import FitOutcome
 
 
 def _photo_label(outcome: FitOutcome, label: str) -> str:

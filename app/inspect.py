@@ -327,7 +327,7 @@ def fit_model(fit: FitFolder) -> FitModel:
     """Rebuild the fitted model from the folder and its photo folder (needs scene.toml)."""
     from stairfit import imaging
 
-    from .fit import fit_setup, to_observations
+    from .commands.fit import fit_setup, to_observations
     from .presets import get_preset
     from .scene import load_scene
 
@@ -524,7 +524,7 @@ def photo_image(m: FitModel, photo: str) -> tuple[np.ndarray, float, dict[str, n
     """
     from stairfit import imaging
 
-    from .fit import photo_specs
+    from .commands.fit import photo_specs
 
     spec = next(s for s in photo_specs(m.scene) if s.name == photo)
     frame = imaging.decode_raw(spec.path)

@@ -33,7 +33,7 @@ from ._misfit_report import (
 from .figures import brdf_map, fixed_layout, log_y, reflected_colours, refractive_index, save
 
 if TYPE_CHECKING:
-    from .fit import FitOutcome
+    from .commands.fit import FitOutcome
 
 DEG = np.pi / 180
 PACKAGES = (
@@ -133,7 +133,7 @@ def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
 
 def write_outputs(outcome: FitOutcome, out: Path) -> None:
     """Write every output into `out` (a temporary folder moved into place by the caller)."""
-    from .measure import MARKER_COLUMNS, fit_marker_reports, write_table
+    from .commands.measure import MARKER_COLUMNS, fit_marker_reports, write_table
 
     out.mkdir(parents=True, exist_ok=True)
     outcome.table.write_csv(out / "measurements.csv")
@@ -322,7 +322,7 @@ def package_versions() -> dict[str, str | None]:
 
 def inputs_record(outcome: FitOutcome) -> dict[str, Any]:
     """results.json's `inputs`: SHA-256 of the scene file, every photo and calibration frame."""
-    from .fit import sha256_of
+    from .commands.fit import sha256_of
 
     scene = outcome.scene
     return {
@@ -703,8 +703,8 @@ def _checks_html(po: dict[str, Any] | None) -> str:
 
 
 def _markers_html(outcome: FitOutcome) -> str:
-    """The per-photo marker table (app/measure.py), as in markers.csv."""
-    from .measure import MARKER_COLUMNS, fit_marker_reports, html_table
+    """The per-photo marker table (app/commands/measure.py), as in markers.csv."""
+    from .commands.measure import MARKER_COLUMNS, fit_marker_reports, html_table
 
     return html_table(fit_marker_reports(outcome.scene, outcome.table), MARKER_COLUMNS)
 

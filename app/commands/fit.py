@@ -17,11 +17,12 @@ from typing import Any
 
 import numpy as np
 
-from . import _exclusions, _ranges
+from .. import _ranges
+from ..errors import StairfitWarning, UserError
+from ..presets import PRESETS, Preset, get_preset
+from ..scene import Photo, Scene, load_scene, visible
+from . import _exclusions
 from ._failed_previews import FAILED_PREVIEWS, forget_previews, keep_previews
-from .errors import StairfitWarning, UserError
-from .presets import PRESETS, Preset, get_preset
-from .scene import Photo, Scene, load_scene, visible
 
 DEG = np.pi / 180
 CACHE_DIR = ".stairfit-cache"
@@ -135,8 +136,8 @@ def default_output(folder: Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """`stairfit fit DIR`."""
-    from .outputs import staged_folder
-    from .report import print_summary
+    from ..outputs import staged_folder
+    from ..report import print_summary
 
     options = options_from_args(args)
     scene = load_scene(args.folder)
@@ -206,7 +207,7 @@ class FitOutcome:
 
 def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     """The whole pipeline into the (temporary) folder `out`."""
-    from .report import write_outputs
+    from ..report import write_outputs
 
     timings: dict[str, float] = {}
     notes: list[str] = []
@@ -261,7 +262,7 @@ def photo_specs(scene: Scene) -> list[Any]:
     """One `imaging.PhotoSpec` per photo: the ROIs of the wedges it can see."""
     from stairfit import imaging
 
-    from .placement import marker_layout, placement_fields
+    from ..placement import marker_layout, placement_fields
 
     layout = marker_layout(scene)
     calibration = calibration_spec(scene)
@@ -519,7 +520,7 @@ def fit_setup(scene: Scene, preset: Preset) -> tuple[Any, Any]:
 
 def index_notes(scene: Scene, spectral: Any) -> list[str]:
     """A warning (and a note for results.json) when the fit uses the index outside `valid_nm`."""
-    from ._index_checks import extrapolation_warning
+    from .._index_checks import extrapolation_warning
 
     index = scene.specimen.index
     name = index.name if index.model == "named" else f"the scene's {index.model} index"
@@ -570,7 +571,7 @@ def select(observations: Any, spectral: Any, aperture: Any, options: FitOptions)
 
 def refine(scene: Scene, observations: Any, selection: Any, options: FitOptions) -> Any:
     """The preset's numerical error at the optimum, and the chosen fit refined when the data
-    need it (app/_accuracy_check.py; issue 13)."""
+    need it (app/commands/_accuracy_check.py; issue 13)."""
     from ._accuracy_check import check_accuracy
 
     with _Progress(options.progress, "checking numerical accuracy") as tick:

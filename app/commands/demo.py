@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import UserError
+from ..outputs import staged_folder
 from . import fit, simulate
-from .errors import UserError
-from .outputs import staged_folder
 
 DEG = np.pi / 180
 
@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
         t_sim = time.perf_counter() - t0
         scene = fit.load_scene(photos)
         outcome = fit.fit_scene(scene, tmp / "fit", options)
-    from .report import print_summary
+    from ..report import print_summary
 
     print_summary(outcome, out / "fit", source=out / "photos")
     truth = json.loads((out / "photos" / simulate.TRUTH_FILE).read_text())["parameters"]
@@ -79,7 +79,7 @@ def compare_table(outcome: fit.FitOutcome, truth: dict[str, float]) -> str:
     A truth outside its 95% interval happens for about 1 parameter in 20 by chance; the last
     column says how far off it is (|pull| > 3 would point to a bias, not to chance).
     """
-    from .report import parameter_records
+    from ..report import parameter_records
 
     lines = [
         f"  {'parameter':<16} {'true':>12} {'recovered':>12} {'95% interval':>26}  "

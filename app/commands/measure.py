@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .errors import UserError
-from .scene import Scene, load_scene
+from ..errors import UserError
+from ..scene import Scene, load_scene
 
 NEAR_LIMIT = 1.5
 """Markers with cells under this many times the detection limit get a note."""
@@ -58,8 +58,8 @@ def default_output(folder: Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """`stairfit measure DIR`."""
+    from ..outputs import staged_folder
     from .fit import CACHE_DIR, check_photos
-    from .outputs import staged_folder
 
     if args.workers < 1:
         raise UserError("--workers: must be >= 1")
@@ -88,8 +88,8 @@ def measure_specs(scene: Scene) -> list[Any]:
     scene's patches (pixel polygons, or outlines on the base placed by the markers)."""
     from stairfit import imaging
 
+    from ..placement import marker_layout
     from .fit import calibration_spec, photo_specs, radiometry_fields
-    from .placement import marker_layout
 
     patches = scene.patches
     calibration = calibration_spec(scene) if scene.specimen is None else None
@@ -258,7 +258,7 @@ def write_outputs(scene: Scene, table: Any, reports: Sequence[PhotoReport], out:
 
 def report_html(scene: Scene, reports: Sequence[PhotoReport], out: Path) -> str:
     """A small page: the per-photo table and the previews."""
-    from . import __version__
+    from .. import __version__
 
     e = html.escape
     previews = sorted((out / "previews").glob("*.png")) if (out / "previews").exists() else []
