@@ -1,4 +1,4 @@
-"""Reading a fit output folder back, for notebooks: tables, chains, residuals on the photos,
+"""Exploring a fit output folder, for notebooks: tables, chains, residuals on the photos,
 and which further photos would teach the most.
 
 A fit folder (written by `stairfit fit` or `stairfit demo`, see `stairfit.report`) holds
