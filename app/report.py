@@ -14,7 +14,7 @@ import platform
 import sys
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -31,9 +31,7 @@ from ._misfit_report import (
     summary_lines,
 )
 from .figures import brdf_map, fixed_layout, log_y, reflected_colours, refractive_index, save
-
-if TYPE_CHECKING:
-    from .commands.fit import FitOutcome
+from .outcome import FitOutcome, sha256_of
 
 DEG = np.pi / 180
 PACKAGES = (
@@ -322,8 +320,6 @@ def package_versions() -> dict[str, str | None]:
 
 def inputs_record(outcome: FitOutcome) -> dict[str, Any]:
     """results.json's `inputs`: SHA-256 of the scene file, every photo and calibration frame."""
-    from .commands.fit import sha256_of
-
     scene = outcome.scene
     return {
         "scene": {"file": scene.path.name, "sha256": sha256_of(scene.path)},

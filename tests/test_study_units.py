@@ -23,10 +23,10 @@ from stairfit.commands._study_task import (
     up_to_date,
     write_ledger,
 )
-from stairfit.commands.fit import FitOptions
 from stairfit.commands.study import find_folders, output_name, output_names, prepare_output
 from stairfit.commands.study_report import Z95, csv_text, parameter_cells, study_row
 from stairfit.errors import UserError
+from stairfit.outcome import FitOptions
 from stairfit.presets import get_preset
 from stairfit.scene import load_scene
 

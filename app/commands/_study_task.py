@@ -161,7 +161,7 @@ def input_fingerprint(scene: Any, options: Any) -> dict[str, Any]:
     Input files are named relative to the photo folder where they lie inside it (so that a
     study folder moved as a whole keeps its fingerprints), else by absolute path.
     """
-    from .fit import sha256_of
+    from ..outcome import sha256_of
 
     files = {}
     for path in scene.input_files():

@@ -7,11 +7,9 @@ results are written into a temporary folder that is moved into place only when c
 from __future__ import annotations
 
 import argparse
-import hashlib
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +17,7 @@ import numpy as np
 
 from .. import _ranges
 from ..errors import StairfitWarning, UserError
+from ..outcome import FitOptions, FitOutcome
 from ..presets import PRESETS, Preset, get_preset
 from ..scene import Photo, Scene, load_scene, visible
 from . import _exclusions
@@ -80,20 +79,6 @@ def add_fit_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--force", action="store_true", help="replace an existing results folder")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-
-
-@dataclass(frozen=True)
-class FitOptions:
-    """What `fit` was asked to do (recorded in results.json)."""
-
-    preset: Preset
-    posterior: bool
-    model: str | None
-    model_error: bool
-    seed: int
-    workers: int
-    cache: bool
-    progress: bool
 
 
 def options_from_args(args: argparse.Namespace) -> FitOptions:
@@ -186,23 +171,6 @@ def photo_file_problem(
         kind = next((v for f, v in kinds.items() if f(mode)), "not a regular file")
         return f"is {kind}{link}, not a RAW file; give the photo's RAW file"
     return None
-
-
-@dataclass
-class FitOutcome:
-    """Everything a fit produced, for the report and the summary."""
-
-    scene: Scene
-    options: FitOptions
-    table: Any  # imaging.MeasurementTable
-    observations: Any  # fitting.Observations
-    row_info: list[dict[str, Any]]
-    spectral: Any
-    selection: Any
-    posterior: Any | None
-    timings: dict[str, float]
-    notes: list[str]
-    accuracy: Any = None  # _accuracy_check.AccuracyCheck
 
 
 def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
@@ -613,12 +581,3 @@ class _Progress:
 
     def __exit__(self, *exc: object) -> None:
         self.bar.close()
-
-
-def sha256_of(path: Path) -> str:
-    """SHA-256 of a file (for results.json)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
