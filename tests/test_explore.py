@@ -15,12 +15,16 @@ def _results(stderr=(0.1, 2.0), corr=((1.0, -0.8), (-0.8, 1.0))):
         "parameters": [
             {
                 "name": "sigma_deg",
+                "parameter": "sigma_rad",
+                "wedge": None,
                 "unit": "deg",
                 "least_squares": {"value": 5.0, "stderr": stderr[0], "at_bound": False},
                 "posterior": {"median": 5.1, "p16": 5.0, "p84": 5.2, "p2_5": 4.9, "p97_5": 5.3},
             },
             {
                 "name": "scale",
+                "parameter": "scale",
+                "wedge": None,
                 "unit": "radiance units x rad",
                 "least_squares": {"value": 100.0, "stderr": stderr[1], "at_bound": False},
             },
@@ -66,11 +70,13 @@ def test_params_from_results_converts_sigma_to_radians():
 
 def test_params_from_results_per_wedge_sigma():
     res = _results()
-    res["parameters"][0]["name"] = "sigma_deg[1: 20 deg]"
+    res["parameters"][0] |= {"name": "sigma_deg[1: 20 deg]", "wedge": 1}
     res["parameters"].insert(
         0,
         {
             "name": "sigma_deg[0: 10 deg]",
+            "parameter": "sigma_rad",
+            "wedge": 0,
             "unit": "deg",
             "least_squares": {"value": 3.0, "stderr": 0.1, "at_bound": False},
         },
@@ -154,6 +160,31 @@ def test_open_fit_needs_results(tmp_path):
     (tmp_path / "results.json").write_text(json.dumps({"files": {"observations": "o.csv"}}))
     with pytest.raises(FileNotFoundError):
         explore.open_fit(tmp_path)
+
+
+def test_results_without_parameter_records_are_refused(tmp_path):
+    """A results.json from before the parameter records: one line naming the folder and the
+    fix, not a guess at the identity from the display name `sigma_deg[1: 20 deg]`."""
+    res = _results()
+    for rec in res["parameters"]:
+        del rec["parameter"], rec["wedge"]
+    res["files"] = {"observations": "observations.csv"}
+    (tmp_path / "results.json").write_text(json.dumps(res))
+    row = {c: "1" for c in explore.OBSERVATION_COLUMNS}
+    lines = [",".join(row), ",".join(row.values())]
+    (tmp_path / "observations.csv").write_text("\n".join(lines) + "\n")
+    expected = (
+        f"results.json in {tmp_path} was written by an older stairfit (no parameter records): "
+        "re-run `stairfit fit`"
+    )
+    with pytest.raises(explore.OlderResultsError) as err:
+        explore.open_fit(tmp_path)
+    assert str(err.value) == expected
+    with pytest.raises(explore.OlderResultsError, match=r"older stairfit .*'sigma_deg'"):
+        explore.params_from_results(res)
+    res["parameters"][0]["parameter"] = "sigma_rad"  # `wedge` still missing
+    with pytest.raises(explore.OlderResultsError):
+        explore.parameter_key(res["parameters"][0])
 
 
 def test_preset_table_lists_presets():
