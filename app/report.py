@@ -54,12 +54,16 @@ PACKAGES = (
 # --- parameters at the edge ---------------------------------------------------------------
 
 
+def display_param(param: str) -> str:
+    """A parameter's name in files and on screens, without its wedge (`sigma_rad` is shown in
+    degrees, as `sigma_deg`; as in truth.json and `fixed_parameters`)."""
+    return "sigma_deg" if param == "sigma_rad" else param
+
+
 def display_name(p: Any) -> tuple[str, float]:
     """Name and factor for files and screens of a parameter (a `fitting.Estimate` or
     `fitting.Parameter`): widths become degrees (`sigma_deg`, `sigma_deg[2: 30 deg]`)."""
-    if p.param == "sigma_rad":
-        return p.label("sigma_deg"), 1.0 / DEG
-    return p.label(), 1.0
+    return p.label(display_param(p.param)), 1.0 / DEG if p.param == "sigma_rad" else 1.0
 
 
 def display_unit(p: Any) -> str:
