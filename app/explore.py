@@ -533,7 +533,7 @@ def photo_image(m: FitModel, photo: str) -> tuple[np.ndarray, float, dict[str, n
     """
     from stairfit import imaging
 
-    from .commands.fit import photo_specs
+    from .imaging_specs import photo_specs
 
     spec = next(s for s in photo_specs(m.scene) if s.name == photo)
     frame = imaging.decode_raw(spec.path)

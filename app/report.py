@@ -135,7 +135,7 @@ def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
 
 def write_outputs(outcome: FitOutcome, out: Path) -> None:
     """Write every output into `out` (a temporary folder moved into place by the caller)."""
-    from .commands.measure import MARKER_COLUMNS, fit_marker_reports, write_table
+    from .photo_reports import MARKER_COLUMNS, fit_marker_reports, write_table
 
     out.mkdir(parents=True, exist_ok=True)
     outcome.table.write_csv(out / "measurements.csv")
@@ -704,7 +704,7 @@ def _checks_html(po: dict[str, Any] | None) -> str:
 
 def _markers_html(outcome: FitOutcome) -> str:
     """The per-photo marker table (app/commands/measure.py), as in markers.csv."""
-    from .commands.measure import MARKER_COLUMNS, fit_marker_reports, html_table
+    from .photo_reports import MARKER_COLUMNS, fit_marker_reports, html_table
 
     return html_table(fit_marker_reports(outcome.scene, outcome.table), MARKER_COLUMNS)
 

@@ -305,7 +305,7 @@ def test_simulated_photos_and_chain_honour_the_umask(simulated: Path, tmp_path: 
 
 
 def _specs(folder: Path) -> list:
-    from stairfit.commands.fit import photo_specs
+    from stairfit.imaging_specs import photo_specs
     from stairfit.scene import load_scene
 
     return photo_specs(load_scene(folder))
