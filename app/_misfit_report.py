@@ -11,15 +11,13 @@ from __future__ import annotations
 
 import html
 import textwrap
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
 from .figures import fixed_layout
-
-if TYPE_CHECKING:
-    from .fit import FitOutcome
+from .outcome import FitOutcome
 
 
 def _photo_label(outcome: FitOutcome, label: str) -> str:

@@ -16,7 +16,8 @@ from ._signals import Terminated, terminate_by_exception
 from .errors import StairfitWarning, UserError
 
 COMMANDS = ("predict", "simulate", "fit", "measure", "demo", "study")
-"""The subcommands, each the module `stairfit.<name>` with `add_parser(sub)` and `run(args)`."""
+"""The subcommands, each the module `stairfit.commands.<name>` with `add_parser(sub)` and
+`run(args)`."""
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
@@ -33,7 +34,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMANDS if only is None else (only,):
-        importlib.import_module(f"{__package__}.{name}").add_parser(sub)
+        importlib.import_module(f"{__package__}.commands.{name}").add_parser(sub)
     return parser
 
 

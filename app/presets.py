@@ -53,7 +53,7 @@ class Preset:
     * `ladder`: "shared" (one sigma; 8 variants) or "full" (also one sigma per wedge; 16).
     * `rounded_rungs`: "always" fits the rounded-edge variants of the ladder; "when_needed"
       fits them only when the best sharp variant does not describe the data (it needs a
-      model-error term, or its chi^2 tail probability is below 1e-3; `stairfit.fit.
+      model-error term, or its chi^2 tail probability is below 1e-3; `stairfit.fitting.
       rounding_needed`). A rounded fit costs minutes (compilation), a sharp one seconds.
     * `posterior_tau_factor`: the chain must be this many autocorrelation times long;
       `posterior_max_steps`: the step limit (then a warning); `posterior_chunk_steps`: how

@@ -14,7 +14,7 @@ import platform
 import sys
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -31,9 +31,7 @@ from ._misfit_report import (
     summary_lines,
 )
 from .figures import brdf_map, fixed_layout, log_y, reflected_colours, refractive_index, save
-
-if TYPE_CHECKING:
-    from .fit import FitOutcome
+from .outcome import FitOutcome, sha256_of
 
 DEG = np.pi / 180
 PACKAGES = (
@@ -56,12 +54,16 @@ PACKAGES = (
 # --- parameters at the edge ---------------------------------------------------------------
 
 
+def display_param(param: str) -> str:
+    """A parameter's name in files and on screens, without its wedge (`sigma_rad` is shown in
+    degrees, as `sigma_deg`; as in truth.json and `fixed_parameters`)."""
+    return "sigma_deg" if param == "sigma_rad" else param
+
+
 def display_name(p: Any) -> tuple[str, float]:
     """Name and factor for files and screens of a parameter (a `fitting.Estimate` or
     `fitting.Parameter`): widths become degrees (`sigma_deg`, `sigma_deg[2: 30 deg]`)."""
-    if p.param == "sigma_rad":
-        return p.label("sigma_deg"), 1.0 / DEG
-    return p.label(), 1.0
+    return p.label(display_param(p.param)), 1.0 / DEG if p.param == "sigma_rad" else 1.0
 
 
 def display_unit(p: Any) -> str:
@@ -133,7 +135,7 @@ def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
 
 def write_outputs(outcome: FitOutcome, out: Path) -> None:
     """Write every output into `out` (a temporary folder moved into place by the caller)."""
-    from .measure import MARKER_COLUMNS, fit_marker_reports, write_table
+    from .photo_reports import MARKER_COLUMNS, fit_marker_reports, write_table
 
     out.mkdir(parents=True, exist_ok=True)
     outcome.table.write_csv(out / "measurements.csv")
@@ -322,8 +324,6 @@ def package_versions() -> dict[str, str | None]:
 
 def inputs_record(outcome: FitOutcome) -> dict[str, Any]:
     """results.json's `inputs`: SHA-256 of the scene file, every photo and calibration frame."""
-    from .fit import sha256_of
-
     scene = outcome.scene
     return {
         "scene": {"file": scene.path.name, "sha256": sha256_of(scene.path)},
@@ -703,8 +703,8 @@ def _checks_html(po: dict[str, Any] | None) -> str:
 
 
 def _markers_html(outcome: FitOutcome) -> str:
-    """The per-photo marker table (app/measure.py), as in markers.csv."""
-    from .measure import MARKER_COLUMNS, fit_marker_reports, html_table
+    """The per-photo marker table (app/commands/measure.py), as in markers.csv."""
+    from .photo_reports import MARKER_COLUMNS, fit_marker_reports, html_table
 
     return html_table(fit_marker_reports(outcome.scene, outcome.table), MARKER_COLUMNS)
 

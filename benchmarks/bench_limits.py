@@ -4,7 +4,7 @@
   `stairfit predict` process each run, writing to a temporary file), and, side by side in one
   process, writing the rows from the model's JAX array element by element (the code before
   issue 18) against a NumPy copy of it, on a smaller table; this is what `MAX_ROWS`
-  (app/_predict_checks.py) rests on;
+  (app/commands/_predict_checks.py) rests on;
 * ROI erosion (`imaging.roi_mask`) of a square ROI of --roi-px pixels at several radii, the
   basis of `MAX_ERODE_PX` (imaging/_roi.py).
 

@@ -1,6 +1,6 @@
-"""`stairfit fit`'s accuracy check (issue 13, app/_accuracy_check.py): the preset's numerical
-error at the optimum against the accurate preset's knobs; precise data make `balanced` refit the
-chosen variant with those knobs and `fast` warn; ordinary data change nothing."""
+"""`stairfit fit`'s accuracy check (issue 13, app/commands/_accuracy_check.py): the preset's
+numerical error at the optimum against the accurate preset's knobs; precise data make `balanced`
+refit the chosen variant with those knobs and `fast` warn; ordinary data change nothing."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 import zoo
 
 from stairfit import fitting
-from stairfit._accuracy_check import check_accuracy
-from stairfit.fit import fit_setup
+from stairfit.commands._accuracy_check import check_accuracy
+from stairfit.commands.fit import fit_setup
 from stairfit.presets import PRESETS
 
 DEG = np.pi / 180

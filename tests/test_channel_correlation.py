@@ -2,7 +2,8 @@
 
 A multiplicative texture is shared by R, G and B, so the three means of one ROI err together;
 pixel noise is independent per channel. `channel_corr` must tell the two apart, and
-`stairfit.fit.channel_inflation` must turn it into `sqrt(1 + (m - 1) rho)` [docs/fitting.md].
+`stairfit.commands.fit.channel_inflation` must turn it into `sqrt(1 + (m - 1) rho)`
+[docs/fitting.md].
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 
 from stairfit import imaging
-from stairfit.fit import channel_inflation
+from stairfit.commands.fit import channel_inflation
 from stairfit.imaging import synthetic
 
 EXPOSURE = imaging.Exposure(exposure_time_s=1 / 50, f_number=4.0, iso=400)

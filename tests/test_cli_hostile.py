@@ -305,7 +305,7 @@ def test_simulated_photos_and_chain_honour_the_umask(simulated: Path, tmp_path: 
 
 
 def _specs(folder: Path) -> list:
-    from stairfit.fit import photo_specs
+    from stairfit.imaging_specs import photo_specs
     from stairfit.scene import load_scene
 
     return photo_specs(load_scene(folder))
@@ -450,7 +450,7 @@ def test_non_physical_index_is_refused(
 
 
 def test_fit_outside_the_validity_range_warns_and_notes_it(photos: Path) -> None:
-    from stairfit.fit import fit_setup, index_notes
+    from stairfit.commands.fit import fit_setup, index_notes
     from stairfit.presets import get_preset
     from stairfit.scene import load_scene
 
@@ -900,7 +900,7 @@ def test_a_filesystem_without_locks_warns_and_still_runs(
 
 def test_no_failed_previews_are_promised_inside_a_staging_folder(tmp_path: Path) -> None:
     # the demo fits photos inside its own staging folder, which a failed run removes
-    from stairfit._failed_previews import keep_previews
+    from stairfit.commands._failed_previews import keep_previews
 
     with outputs.staged_folder(tmp_path / "demo", force=False) as tmp:
         assert outputs.in_staging(tmp / "photos" / ".stairfit-cache" / "failed-previews")

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from stairfit import imaging
-from stairfit.fit import photo_specs
+from stairfit.imaging_specs import photo_specs
 from stairfit.scene import Camera, load_scene
 
 HERE = Path(__file__).resolve().parent

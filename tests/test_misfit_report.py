@@ -30,7 +30,7 @@ DEG = np.pi / 180
 
 
 def _outcome(sel: fitting.Selection, s: zoo.Scene) -> SimpleNamespace:
-    """The parts of `stairfit.fit.FitOutcome` the summary and the report read."""
+    """The parts of `stairfit.commands.fit.FitOutcome` the summary and the report read."""
     obs = s.obs
     n_photos = int(np.max(obs.photo_index)) + 1
     views = [float(np.rad2deg(obs.theta_o_rad[obs.photo_index == j][0])) for j in range(n_photos)]

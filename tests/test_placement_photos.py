@@ -18,7 +18,7 @@ import tomli_w
 
 from stairfit import imaging
 from stairfit.cli import main
-from stairfit.fit import photo_specs
+from stairfit.imaging_specs import photo_specs
 from stairfit.scene import load_scene
 
 

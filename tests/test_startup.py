@@ -22,9 +22,9 @@ HEAVY = (
     "cv2",
     "rawpy",
     "tqdm",
-    "stairfit.fit",
-    "stairfit.simulate",
-    "stairfit.demo",
+    "stairfit.commands.fit",
+    "stairfit.commands.simulate",
+    "stairfit.commands.demo",
     "stairfit.fitting",
     "stairfit.imaging",
 )

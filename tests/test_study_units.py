@@ -16,19 +16,19 @@ import tomli_w
 from test_scene import GOOD
 
 from stairfit import __version__
-from stairfit._study_task import (
+from stairfit.commands._study_task import (
     FolderTask,
     input_fingerprint,
     replaced_note,
     up_to_date,
     write_ledger,
 )
+from stairfit.commands.study import find_folders, output_name, output_names, prepare_output
+from stairfit.commands.study_report import Z95, csv_text, parameter_cells, study_row
 from stairfit.errors import UserError
-from stairfit.fit import FitOptions
+from stairfit.outcome import FitOptions
 from stairfit.presets import get_preset
 from stairfit.scene import load_scene
-from stairfit.study import find_folders, output_name, output_names, prepare_output
-from stairfit.study_report import Z95, csv_text, parameter_cells, study_row
 
 OPTIONS = FitOptions(get_preset("balanced"), False, "sharp", True, 0, 1, True, False)
 

@@ -1,6 +1,6 @@
 """One folder of a study, as it runs on a Dask worker: skip it if up to date, else fit it.
 
-The worker side of `stairfit study` (app/study.py). A task never raises: every outcome, a
+The worker side of `stairfit study` (app/commands/study.py). A task never raises: every outcome, a
 failure included, comes back as a `FolderReport` (a plain dict, so that the client needs
 nothing of the worker's state). The fit itself is the pipeline of `stairfit fit`
 (`load_scene`, `check_photos`, `fit_scene` into a staged folder), so each folder's result is
@@ -29,8 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from . import __version__
-from .errors import UserError
+from .. import __version__
+from ..errors import UserError
 
 LEDGER_DIR = ".stairfit-study"
 """Folder of OUT holding one ledger file per finished folder (its inputs' fingerprint)."""
@@ -101,7 +101,7 @@ def prepare_worker(task: FolderTask) -> str | None:
         )
     import jax
 
-    from ._jaxcache import ENV_VAR, enable_persistent_cache
+    from .._jaxcache import ENV_VAR, enable_persistent_cache
 
     jax.config.update("jax_enable_x64", True)  # [conventions §10]
     folder = enable_persistent_cache({ENV_VAR: task.jax_cache or "off"})
@@ -110,9 +110,9 @@ def prepare_worker(task: FolderTask) -> str | None:
 
 def fit_or_skip(task: FolderTask) -> FolderReport:
     """The folder's status, scene summary and results (the fit runs only when needed)."""
+    from ..outputs import staged_folder
+    from ..scene import load_scene
     from .fit import check_photos, fit_scene
-    from .outputs import staged_folder
-    from .scene import load_scene
 
     scene = load_scene(task.folder)
     summary = scene_summary(scene)
@@ -161,7 +161,7 @@ def input_fingerprint(scene: Any, options: Any) -> dict[str, Any]:
     Input files are named relative to the photo folder where they lie inside it (so that a
     study folder moved as a whole keeps its fingerprints), else by absolute path.
     """
-    from .fit import sha256_of
+    from ..outcome import sha256_of
 
     files = {}
     for path in scene.input_files():
@@ -214,7 +214,7 @@ def replaced_note(dest: Path, ledger: Path, fingerprint: dict[str, Any], refit: 
 
 def write_ledger(ledger: Path, task: FolderTask, fingerprint: dict[str, Any]) -> None:
     """Record the fingerprint of the inputs `task.name` was fitted from (atomically)."""
-    from .outputs import atomic_text
+    from ..outputs import atomic_text
 
     record = {"folder": str(task.folder), "output": task.name, "fingerprint": fingerprint}
     with atomic_text(ledger) as fh:
@@ -229,7 +229,7 @@ def read_results(dest: Path) -> dict[str, Any] | None:
 
 def describe_error(err: BaseException, task: FolderTask) -> str:
     """The one-line error of a failed folder, as `stairfit fit` would print it."""
-    from .cli import one_line
+    from ..cli import one_line
 
     imaging = sys.modules.get("stairfit.imaging")
     if isinstance(err, UserError) or (imaging and isinstance(err, imaging.ImagingError)):

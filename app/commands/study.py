@@ -5,7 +5,7 @@ Every photo folder (a folder holding scene.toml; a ROOT is searched for them) is
 spawned single-threaded worker processes by default (JAX does not survive fork), or an existing
 cluster (`--scheduler`, `--scheduler-file`). Up-to-date results are skipped, failures recorded
 with their one-line error, and the study table and page are written at the end
-(app/study_report.py). docs/study.md describes every rule.
+(app/commands/study_report.py). docs/study.md describes every rule.
 """
 
 from __future__ import annotations
@@ -23,10 +23,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from . import __version__
+from .. import __version__
+from ..errors import UserError
+from ..scene import SCENE_FILE
 from ._study_task import FAILED, FITTED, INTERRUPTED, LEDGER_DIR, SKIPPED, FolderReport, FolderTask
-from .errors import UserError
-from .scene import SCENE_FILE
 
 CONNECT_TIMEOUT_S = 20
 """How long to wait for an existing scheduler to answer."""
@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     from .study_report import print_summary, write_study
 
     plan = plan_study(args)
-    from .outputs import output_lock
+    from ..outputs import output_lock
 
     reports: list[FolderReport] = []
     try:
@@ -168,7 +168,7 @@ def cpu_cores() -> int:
 
 def jax_cache_folder(option: str | None) -> str | None:
     """The persistent JAX cache every worker uses, as an absolute path (None: off)."""
-    from ._jaxcache import ENV_VAR, cache_dir
+    from .._jaxcache import ENV_VAR, cache_dir
 
     environ = dict(os.environ) if option is None else {ENV_VAR: option}
     folder = cache_dir(environ)
@@ -242,7 +242,7 @@ def output_names(folders: Sequence[Path]) -> dict[Path, str]:
 def check_output(out: Path, inputs: Sequence[Path] = ()) -> None:
     """Refuse an OUT that holds an input, the current or home folder (`outputs.check_output`),
     that is a file, or a non-empty folder that is not a study (never overwrite)."""
-    from . import outputs
+    from .. import outputs
 
     outputs.check_output(out, inputs, option="-o")
     if out.exists() and not out.is_dir():

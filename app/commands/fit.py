@@ -7,26 +7,25 @@ results are written into a temporary folder that is moved into place only when c
 from __future__ import annotations
 
 import argparse
-import hashlib
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from . import _exclusions, _ranges
-from ._compile_watch import watching_compilation
+from .. import _ranges
+from .._compile_watch import watching_compilation
+from ..errors import StairfitWarning, UserError
+from ..imaging_specs import CACHE_DIR, MEASUREMENT_CACHE, extraction_settings, photo_specs
+from ..outcome import FitOptions, FitOutcome
+from ..presets import PRESETS, Preset, get_preset
+from ..scene import Scene, load_scene
+from . import _exclusions
 from ._failed_previews import FAILED_PREVIEWS, forget_previews, keep_previews
-from .errors import StairfitWarning, UserError
-from .presets import PRESETS, Preset, get_preset
-from .scene import Photo, Scene, load_scene, visible
 
 DEG = np.pi / 180
-CACHE_DIR = ".stairfit-cache"
-MEASUREMENT_CACHE = "measurements.csv"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -82,20 +81,6 @@ def add_fit_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
-@dataclass(frozen=True)
-class FitOptions:
-    """What `fit` was asked to do (recorded in results.json)."""
-
-    preset: Preset
-    posterior: bool
-    model: str | None
-    model_error: bool
-    seed: int
-    workers: int
-    cache: bool
-    progress: bool
-
-
 def options_from_args(args: argparse.Namespace) -> FitOptions:
     """Validated options (user mistakes raise UserError)."""
     _ranges.check_workers(args.workers)
@@ -136,8 +121,8 @@ def default_output(folder: Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """`stairfit fit DIR`."""
-    from .outputs import staged_folder
-    from .report import print_summary
+    from ..outputs import staged_folder
+    from ..report import print_summary
 
     options = options_from_args(args)
     scene = load_scene(args.folder)
@@ -188,26 +173,9 @@ def photo_file_problem(
     return None
 
 
-@dataclass
-class FitOutcome:
-    """Everything a fit produced, for the report and the summary."""
-
-    scene: Scene
-    options: FitOptions
-    table: Any  # imaging.MeasurementTable
-    observations: Any  # fitting.Observations
-    row_info: list[dict[str, Any]]
-    spectral: Any
-    selection: Any
-    posterior: Any | None
-    timings: dict[str, float]
-    notes: list[str]
-    accuracy: Any = None  # _accuracy_check.AccuracyCheck
-
-
 def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     """The whole pipeline into the (temporary) folder `out`."""
-    from .report import write_outputs
+    from ..report import write_outputs
 
     timings: dict[str, float] = {}
     notes: list[str] = []
@@ -258,106 +226,6 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
 
 
 # --- stages ---------------------------------------------------------------------------------
-
-
-def photo_specs(scene: Scene) -> list[Any]:
-    """One `imaging.PhotoSpec` per photo: the ROIs of the wedges it can see."""
-    from stairfit import imaging
-
-    from .placement import marker_layout, placement_fields
-
-    layout = marker_layout(scene)
-    calibration = calibration_spec(scene)
-    specs = []
-    for photo in scene.photos:
-        per_photo = dict(photo.roi_px)
-        rois: dict[str, Any] = {}
-        faces: dict[str, Any] = {}
-        for wedge in scene.specimen.wedges:
-            if not visible(scene, photo, wedge):
-                continue
-            if wedge.name in per_photo:
-                rois[wedge.name] = per_photo[wedge.name]
-            elif wedge.roi_px is not None:
-                rois[wedge.name] = wedge.roi_px
-            elif wedge.face_mm is not None:
-                faces[wedge.name] = wedge.face_mm
-        reference = None
-        if scene.reference is not None:
-            reference = scene.reference.name
-            if scene.reference.roi_px is not None:
-                rois[reference] = scene.reference.roi_px
-            else:
-                faces[reference] = scene.reference.face_mm
-        specs.append(
-            imaging.PhotoSpec(
-                path=scene.folder / photo.file,
-                name=photo.file,
-                exposure_time_s=photo.exposure_time_s,
-                f_number=photo.f_number,
-                iso=photo.iso,
-                rois=tuple(rois.items()),
-                faces_mm=tuple(faces.items()),
-                markers=layout if faces else None,
-                reference=reference,
-                **placement_fields(scene, photo, faces),
-                **radiometry_fields(scene, photo, calibration),
-            )
-        )
-    return specs
-
-
-def radiometry_fields(scene: Scene, photo: Photo, calibration: Any) -> dict[str, Any]:
-    """A photo's `imaging.PhotoSpec` fields for its HDR bracket members and the calibration
-    frames (`calibration_spec(scene)`, shared by every photo)."""
-    from stairfit import imaging
-
-    bracket = tuple(
-        imaging.BracketMember(scene.folder / b.file, b.exposure_time_s, b.f_number, b.iso)
-        for b in photo.bracket
-    )
-    return {"bracket": bracket, "calibration": calibration}
-
-
-def calibration_spec(scene: Scene) -> Any:
-    """The scene's `[calibration]` frames as an `imaging.CalibrationSpec` (None without any).
-
-    Reads each file's SHA-256 (the cache key depends on the frames' contents).
-
-    Raises:
-        UserError: a frame cannot be read (one line naming the scene field).
-    """
-    from stairfit import imaging
-
-    c = scene.calibration
-    if c is None:
-        return None
-    folder = scene.folder
-    try:
-        return imaging.calibration_spec(
-            flat_field=[
-                (f"calibration.flat_field[{j}]", folder / f) for j, f in enumerate(c.flat_field)
-            ],
-            dark_frames=[
-                (f"calibration.dark_frames[{j}]", folder / f) for j, f in enumerate(c.dark_frames)
-            ],
-            flat_degree=c.flat_degree,
-        )
-    except imaging.ImagingError as err:  # an unreadable frame: one line, no traceback
-        raise UserError(f"{scene.path}: {err}") from None
-
-
-def extraction_settings(scene: Scene) -> Any:
-    """The scene's [extraction] as `imaging.ExtractionSettings`."""
-    from stairfit import imaging
-
-    e = scene.extraction
-    return imaging.ExtractionSettings(
-        erode_px=e.erode_px,
-        block_px=e.block_px,
-        saturation_level=e.saturation_level,
-        max_saturated_fraction=e.max_saturated_fraction,
-    )
 
 
 def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
@@ -522,7 +390,7 @@ def fit_setup(scene: Scene, preset: Preset) -> tuple[Any, Any]:
 
 def index_notes(scene: Scene, spectral: Any) -> list[str]:
     """A warning (and a note for results.json) when the fit uses the index outside `valid_nm`."""
-    from ._index_checks import extrapolation_warning
+    from .._index_checks import extrapolation_warning
 
     index = scene.specimen.index
     name = index.name if index.model == "named" else f"the scene's {index.model} index"
@@ -576,7 +444,7 @@ def select(observations: Any, spectral: Any, aperture: Any, options: FitOptions)
 
 def refine(scene: Scene, observations: Any, selection: Any, options: FitOptions) -> Any:
     """The preset's numerical error at the optimum, and the chosen fit refined when the data
-    need it (app/_accuracy_check.py; issue 13)."""
+    need it (app/commands/_accuracy_check.py; issue 13)."""
     from ._accuracy_check import check_accuracy
 
     with _Progress(options.progress, "checking numerical accuracy") as tick:
@@ -618,12 +486,3 @@ class _Progress:
 
     def __exit__(self, *exc: object) -> None:
         self.bar.close()
-
-
-def sha256_of(path: Path) -> str:
-    """SHA-256 of a file (for results.json)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()

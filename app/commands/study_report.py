@@ -1,7 +1,7 @@
 """The study table and page: `study.csv` (one row per specimen) and `study.html`.
 
-Built from the folders' reports (app/_study_task.py), each carrying its results.json; columns
-and figures are described in docs/study.md. Degrees in every column and on every axis
+Built from the folders' reports (app/commands/_study_task.py), each carrying its results.json;
+columns and figures are described in docs/study.md. Degrees in every column and on every axis
 [conventions §1]; a parameter's interval is its posterior 95% interval (2.5-97.5%), or, without
 a posterior, the least-squares value +- 1.96 standard errors.
 """
@@ -156,7 +156,7 @@ def _cell(v: Any) -> Any:
 
 def write_study(out: Path, reports: Sequence[FolderReport]) -> None:
     """study.csv, the figures and study.html in OUT (each file replaced only when complete)."""
-    from .outputs import atomic_text, staged_folder
+    from ..outputs import atomic_text, staged_folder
 
     rows = sort_rows(reports)
     with atomic_text(out / "study.csv") as fh:
@@ -190,7 +190,7 @@ def plot_axes(rows: Sequence[dict[str, Any]]) -> list[tuple[str, bool]]:
 
 def write_figures(rows: Sequence[dict[str, Any]], folder: Path) -> list[tuple[str, str]]:
     """Every parameter per specimen, and against each varying x axis; [(title, file)]."""
-    from .figures import save
+    from ..figures import save
 
     done = [r for r in rows if r["status"] in (FITTED, SKIPPED)]
     params = parameters_of(done)
@@ -226,7 +226,7 @@ def parameter_figure(
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from .figures import fixed_layout
+    from ..figures import fixed_layout
 
     ncol = min(3, len(params))
     nrow = math.ceil(len(params) / ncol)

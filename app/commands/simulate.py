@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__, _ranges
+from .. import __version__, _ranges
+from ..errors import UserError
+from ..outputs import staged_folder as staged_folder
+from ..scene import SCENE_FILE, SCENE_VERSION
 from ._layout import SpecimenLayout, camera_for
-from .errors import UserError
-from .outputs import staged_folder as staged_folder
-from .scene import SCENE_FILE, SCENE_VERSION
 
 DEG = np.pi / 180
 TRUTH_FILE = "truth.json"

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import UserError
+from ..outputs import staged_folder
 from . import fit, simulate
-from .errors import UserError
-from .outputs import staged_folder
 
 DEG = np.pi / 180
 
@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
         t_sim = time.perf_counter() - t0
         scene = fit.load_scene(photos)
         outcome = fit.fit_scene(scene, tmp / "fit", options)
-    from .report import print_summary
+    from ..report import print_summary
 
     print_summary(outcome, out / "fit", source=out / "photos")
     truth = json.loads((out / "photos" / simulate.TRUTH_FILE).read_text())["parameters"]
@@ -80,17 +80,18 @@ def compare_table(outcome: fit.FitOutcome, truth: dict[str, float]) -> str:
     A truth outside its 95% interval happens for about 1 parameter in 20 by chance; the last
     column says how far off it is (|pull| > 3 would point to a bias, not to chance).
     """
-    from .report import parameter_records
+    from ..report import display_param, parameter_records
 
     lines = [
         f"  {'parameter':<16} {'true':>12} {'recovered':>12} {'95% interval':>26}  "
         f"{'inside?':>7}  {'(rec - true) / sd':>17}"
     ]
-    for rec in parameter_records(outcome):
-        name = rec["name"]
-        if name not in truth:
+    records = parameter_records(outcome)
+    for rec in records:  # matched by identity: each wedge's own width against the one truth
+        name, key = rec["name"], display_param(rec["parameter"])
+        if key not in truth:
             continue
-        true = truth[name]
+        true = truth[key]
         po, ls = rec.get("posterior"), rec["least_squares"]
         if po is not None:
             val, lo, hi = po["median"], po["p2_5"], po["p97_5"]
@@ -109,7 +110,8 @@ def compare_table(outcome: fit.FitOutcome, truth: dict[str, float]) -> str:
         lines.append(
             f"  {name:<16} {true:>12.6g} {val:>12.6g} {interval:>26}  {inside:>7}  {pull:>17}"
         )
-    fixed = [k for k in truth if k not in {r["name"] for r in parameter_records(outcome)}]
+    fitted = {display_param(r["parameter"]) for r in records}
+    fixed = [k for k in truth if k not in fitted]
     for k in fixed:
         lines.append(f"  {k:<16} {truth[k]:>12.5g} {'(not fitted: the chosen model fixes it)':>40}")
     return "\n".join(lines)

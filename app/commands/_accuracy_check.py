@@ -12,7 +12,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .presets import PRESETS, Preset
+from ..presets import PRESETS, Preset
 
 DEG = np.pi / 180
 REFERENCE = "accurate"

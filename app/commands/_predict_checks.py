@@ -14,7 +14,7 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from .errors import UserError
+from ..errors import UserError
 
 MAX_ROWS = 1_000_000
 """The largest CSV table `predict` writes: a million rows of the density took 35 s (14 s of it

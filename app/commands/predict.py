@@ -15,11 +15,11 @@ from typing import Any, Protocol, TextIO
 
 import numpy as np
 
-from . import _ranges
-from ._index_checks import extrapolation_warning
+from .. import _ranges
+from .._index_checks import extrapolation_warning
+from ..errors import UserError
+from ..outputs import staged_file
 from ._predict_checks import Given, check_combination, check_scalars, check_size, parse_index
-from .errors import UserError
-from .outputs import staged_file
 
 
 class _RowWriter(Protocol):

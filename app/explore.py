@@ -1,4 +1,4 @@
-"""Reading a fit output folder back, for notebooks: tables, chains, residuals on the photos,
+"""Exploring a fit output folder, for notebooks: tables, chains, residuals on the photos,
 and which further photos would teach the most.
 
 A fit folder (written by `stairfit fit` or `stairfit demo`, see `stairfit.report`) holds
@@ -16,7 +16,6 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,26 +42,35 @@ OBSERVATION_COLUMNS: dict[str, type] = {
 }
 """The columns of observations.csv (`stairfit.report.write_observations`) and their types."""
 
-_LEGACY_SIGMA = re.compile(r"^sigma_deg\[(\d+)")
-"""Only for `_legacy_key`: a per-wedge width's display name in folders written before
-results.json recorded each parameter's `parameter` and `wedge`."""
+OLDER_RESULTS = "was written by an older stairfit (no parameter records): re-run `stairfit fit`"
+"""Why a results.json without the `parameter` and `wedge` fields is refused: a parameter's
+identity is never parsed back from its display name."""
+
+
+class OlderResultsError(ValueError):
+    """A results.json written before its parameter records had `parameter` and `wedge`."""
 
 
 def parameter_key(rec: dict[str, Any]) -> tuple[str, int | None]:
     """`(param, wedge)` of a results.json parameter record: the fitting layer's identity of the
-    parameter (`("sigma_rad", 2)` for wedge 2's own width, shown as `sigma_deg[2: ...]`)."""
-    if "parameter" in rec:
-        return str(rec["parameter"]), None if rec["wedge"] is None else int(rec["wedge"])
-    return _legacy_key(str(rec["name"]))
+    parameter (`("sigma_rad", 2)` for wedge 2's own width, shown as `sigma_deg[2: ...]`).
+
+    Raises:
+        OlderResultsError: the record has no `parameter` or `wedge` field.
+    """
+    if "parameter" not in rec or "wedge" not in rec:
+        raise OlderResultsError(f"results.json {OLDER_RESULTS} (record {rec.get('name')!r})")
+    return str(rec["parameter"]), None if rec["wedge"] is None else int(rec["wedge"])
 
 
-def _legacy_key(name: str) -> tuple[str, int | None]:
-    """`(param, wedge)` from a display name, for results.json files that predate the
-    `parameter` and `wedge` fields (kept so that older fit folders still open)."""
-    m = _LEGACY_SIGMA.match(name)
-    if m:
-        return "sigma_rad", int(m.group(1))
-    return ("sigma_rad", None) if name == "sigma_deg" else (name, None)
+def check_parameter_records(results: dict[str, Any], fit_dir: str | Path) -> None:
+    """Every parameter record of results.json names its `parameter` and `wedge`.
+
+    Raises:
+        OlderResultsError: one line naming the folder and the fix (re-run `stairfit fit`).
+    """
+    if any("parameter" not in r or "wedge" not in r for r in results.get("parameters", [])):
+        raise OlderResultsError(f"results.json in {fit_dir} {OLDER_RESULTS}")
 
 
 # --- the folder -----------------------------------------------------------------------------
@@ -141,6 +149,7 @@ def open_fit(fit_dir: str | Path, photo_folder: str | Path | None = None) -> Fit
         raise FileNotFoundError(f"{fit_dir}: no results.json; is this a `stairfit fit` folder?")
     results = json.loads(results_path.read_text())
     obs = read_observations(fit_dir / results["files"]["observations"])
+    check_parameter_records(results, fit_dir)
     photos = Path(photo_folder) if photo_folder is not None else None
     if photos is None:
         photos = find_photo_folder(fit_dir, results)
@@ -327,7 +336,7 @@ def fit_model(fit: FitFolder) -> FitModel:
     """Rebuild the fitted model from the folder and its photo folder (needs scene.toml)."""
     from stairfit import imaging
 
-    from .fit import fit_setup, to_observations
+    from .commands.fit import fit_setup, to_observations
     from .presets import get_preset
     from .scene import load_scene
 
@@ -524,7 +533,7 @@ def photo_image(m: FitModel, photo: str) -> tuple[np.ndarray, float, dict[str, n
     """
     from stairfit import imaging
 
-    from .fit import photo_specs
+    from .imaging_specs import photo_specs
 
     spec = next(s for s in photo_specs(m.scene) if s.name == photo)
     frame = imaging.decode_raw(spec.path)
