@@ -30,7 +30,7 @@ DEG = math.pi / 180
 # --- the whitening against the explicit quadratic form ----------------------------------------
 
 
-def _random_groups(rng: np.random.Generator, n_groups: int, corr_of) -> dict:  # noqa: ANN001
+def _random_groups(rng: np.random.Generator, n_groups: int, corr_of) -> dict:
     """Rows of `n_groups` ROIs with 1-3 used channels each, random stderrs, extra variances,
     residuals and each ROI's correlations from `corr_of(rng)` (three numbers)."""
     cols: dict[str, list] = {k: [] for k in ("use", "roi", "ch", "corr", "se", "extra", "r")}
@@ -48,7 +48,7 @@ def _random_groups(rng: np.random.Generator, n_groups: int, corr_of) -> dict:  #
     return {k: np.asarray(v) for k, v in cols.items()}
 
 
-def _explicit(t: dict, clip) -> tuple[float, float]:  # noqa: ANN001
+def _explicit(t: dict, clip) -> tuple[float, float]:
     """(sum r^T C^-1 r, sum log det C) over the groups with numpy's solve and slogdet; `clip`
     maps the correlation matrix of a group's used channels to the one the fit should use."""
     quad = logdet = 0.0
@@ -300,7 +300,7 @@ def _rows(**override: object) -> list[dict]:
         ({"channel_index_2": 3}, ("row 2", "channel_index", "above 2")),
     ],
 )
-def test_bad_groups_are_refused_with_the_row_field_and_fix(override: dict, fragments) -> None:  # noqa: ANN001
+def test_bad_groups_are_refused_with_the_row_field_and_fix(override: dict, fragments) -> None:
     with pytest.raises(fitting.FitInputError) as err:
         fitting.Observations.from_rows(_rows(**override))
     msg = str(err.value)
