@@ -3,8 +3,8 @@
 The chosen fit's reduced chi^2 must lie in [0.8, 1.25] (with each ROI's channels whitened by
 their 3 x 3 covariance, docs/fitting.md §Correlated channels; 0.26 when the stderrs were
 inflated instead), results.json must report split R-hat and bulk/tail ESS per parameter, and
-every true parameter must lie in its 95% interval. One demo run (about 4 minutes on 2 idle
-cores) serves the tests of this module.
+every true parameter must lie in its 95% interval. One demo run (ladder, rounded rungs and
+posterior: a few minutes) serves the tests of this module.
 """
 
 from __future__ import annotations
