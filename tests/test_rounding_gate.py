@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -10,16 +11,29 @@ import pytest
 import zoo
 
 from stairfit import fitting
+from stairfit.fitting._misfit import MODEL_ERROR_LIMIT, MODEL_ERROR_NOISE_FACTOR, P_VALUE_LIMIT
 
 DEG = np.pi / 180
 
 
-def _selection(chi2: float, dof: int, model_error: float | None = None) -> SimpleNamespace:
-    free = {"sigma_rad", "scale"} | ({"model_error_frac"} if model_error is not None else set())
-    est = {"model_error_frac": SimpleNamespace(value=model_error)}
-    fit = SimpleNamespace(chi2=chi2, dof=dof, variant=SimpleNamespace(free=free),
-                          estimate=lambda n: est[n])  # fmt: skip
-    return SimpleNamespace(fit=fit, chosen="sharp")
+def _selection(
+    chi2: float, dof: int, model_error: float | None = None, median_rel: float = 0.01
+) -> SimpleNamespace:
+    """A chosen sharp fit and its misfit assessment by `describe_fit`'s rule (a model-error
+    term above the smaller of 1% and twice the median relative error, or P(chi^2) < 1e-3)."""
+    limit = min(MODEL_ERROR_LIMIT, MODEL_ERROR_NOISE_FACTOR * median_rel)
+    reasons = []
+    if model_error is not None and model_error > limit:
+        reasons.append(f"needs a model-error term of {100 * model_error:.3g}%")
+    p = fitting.chi2_p_value(chi2, dof)
+    if p < P_VALUE_LIMIT:
+        reasons.append(f"chi^2 = {chi2:g} for {dof} dof")
+    a = fitting.Assessment(
+        fitting.Status.MISFITS if reasons else fitting.Status.OK, tuple(reasons), chi2, dof, p,
+        chi2, model_error, limit, median_rel, (), (), "",
+    )  # fmt: skip
+    fit = SimpleNamespace(chi2=chi2, dof=dof)
+    return SimpleNamespace(fit=fit, chosen="sharp", assessment=a)
 
 
 def test_a_good_sharp_fit_skips_the_rounded_rungs() -> None:
@@ -29,7 +43,18 @@ def test_a_good_sharp_fit_skips_the_rounded_rungs() -> None:
 
 def test_a_needed_model_error_term_triggers_them() -> None:
     needed, why = fitting.rounding_needed(_selection(chi2=100.0, dof=100, model_error=0.03))
-    assert needed and "model-error" in why and "3" in why
+    assert needed and "misfits" in why and "model-error term of 3%" in why
+
+
+def test_a_model_error_term_below_the_misfit_limit_does_not() -> None:
+    # precise data (median relative error 1e-4: limit 2e-4) with a significant 1.2e-4 term, as
+    # on the sharp demo after per-ROI whitening: reported, no minutes of rounded compilation
+    sel = _selection(chi2=100.0, dof=100, model_error=1.2e-4, median_rel=1e-4)
+    needed, why = fitting.rounding_needed(sel)
+    assert not needed and "within the limit 0.02%" in why and "0.012%" in why
+    # a term above that limit triggers them
+    needed, why = fitting.rounding_needed(_selection(100.0, 100, model_error=3e-4, median_rel=1e-4))
+    assert needed and "misfits" in why
 
 
 @pytest.mark.parametrize(("chi2", "expect"), [(130.0, False), (160.0, True)])
@@ -37,6 +62,14 @@ def test_the_chi2_tail_probability_decides_without_model_error(chi2, expect) -> 
     # chi^2 with 100 dof: P(> 130) = 0.023, P(> 160) = 1.1e-4 (tables); the gate is 1e-3
     needed, _ = fitting.rounding_needed(_selection(chi2=chi2, dof=100))
     assert needed == expect
+
+
+def test_a_selection_without_an_assessment_gets_one_from_describe_fit() -> None:
+    obs, spec, _ = zoo.standard(fitting.Params(sigma_rad=6 * DEG, scale=1.0), seed=1)
+    sel = fitting.select_model(obs, spec, zoo.SHARP_LADDER)
+    needed, why = fitting.rounding_needed(dataclasses.replace(sel, assessment=None))
+    assert (needed, why) == fitting.rounding_needed(sel)
+    assert not needed and "describes the data" in why
 
 
 def test_not_fitted_rungs_are_listed_with_the_reason() -> None:
