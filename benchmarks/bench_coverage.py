@@ -274,16 +274,21 @@ def one_dataset(obs: Any, spec: Any, posterior_seed: int | None) -> dict[str, An
 
 
 def observations_level(
-    n_datasets: int, n_posterior: int, log: Callable[[str], None]
+    n_datasets: int,
+    n_posterior: int,
+    log: Callable[[str], None],
+    design_names: Sequence[str] = ("standard", "custom"),
+    noise_levels: Sequence[float] = NOISE_LEVELS,
 ) -> dict[str, dict[str, list[dict[str, Any]]]]:
     """Every dataset's record, by design and noise level (keys `f"{rel:g}"`)."""
     from stairfit import fitting
 
     spec = fitting.spectral_setup(MATERIAL, sampling="effective")
     out: dict[str, dict[str, list[dict[str, Any]]]] = {}
-    for name, design in designs().items():
+    for name in design_names:
+        design = designs()[name]
         out[name] = {}
-        for rel in NOISE_LEVELS:
+        for rel in noise_levels:
             recs = []
             t0 = time.perf_counter()
             for s in range(n_datasets):
@@ -607,10 +612,14 @@ def markdown(summary: dict[str, Any]) -> str:
 
 @dataclass(frozen=True)
 class Settings:
+    """What a run measures (`--quick`, or the full run, or what the options say)."""
+
     quick: bool
     datasets: int
     posterior: int
     photos: int
+    designs: tuple[str, ...] = ("standard", "custom")
+    noise_levels: tuple[float, ...] = NOISE_LEVELS
 
 
 def settings_from(args: argparse.Namespace) -> Settings:
@@ -620,7 +629,12 @@ def settings_from(args: argparse.Namespace) -> Settings:
         return x if x is not None else (short if quick else full)
 
     return Settings(
-        quick, pick(args.datasets, 200, 8), pick(args.posterior, 50, 2), pick(args.photos, 20, 1)
+        quick,
+        pick(args.datasets, 200, 8),
+        pick(args.posterior, 50, 2),
+        pick(args.photos, 20, 1),
+        tuple(args.designs or ("standard", "custom")),
+        tuple(args.noise or NOISE_LEVELS),
     )
 
 
@@ -644,7 +658,11 @@ def run(st: Settings, out_dir: Path, command: str) -> dict[str, Any]:
         print(f"[{time.perf_counter() - t0:6.0f} s] {msg}", flush=True)
 
     load = os.getloadavg()[0]
-    raw_obs = observations_level(st.datasets, st.posterior, log) if st.datasets else {}
+    raw_obs = (
+        observations_level(st.datasets, st.posterior, log, st.designs, st.noise_levels)
+        if st.datasets
+        else {}
+    )
     raw_photos = photo_level(st.photos, log) if st.photos else {}
     summary: dict[str, Any] = {
         "observations": summarise_observations(raw_obs),
@@ -677,6 +695,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--datasets", type=int, help="Observations datasets per cell (200)")
     ap.add_argument("--posterior", type=int, help="posteriors per noise level (50)")
     ap.add_argument("--photos", type=int, help="photo-level folders per light (20)")
+    ap.add_argument("--designs", nargs="+", choices=("standard", "custom"), help="(both)")
+    ap.add_argument(
+        "--noise", nargs="+", type=float, help="relative noise levels (0.02 0.005 0.0005)"
+    )
     ap.add_argument("--out-dir", type=Path, default=None, help="where to write the results")
     args = ap.parse_args(argv)
     import jax
