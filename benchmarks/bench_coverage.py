@@ -273,6 +273,13 @@ def one_dataset(obs: Any, spec: Any, posterior_seed: int | None) -> dict[str, An
     return rec
 
 
+def dataset_seed(design: str, rel: float) -> int:
+    """The first seed of a cell: every design and noise level draws its own noise (the same
+    draws scaled to another level would repeat one cell's pulls three times)."""
+    offset = 10_000_000 * ("standard", "custom").index(design)
+    return 10_000 + offset + round(rel * 1e7)  # 200000, 50000, 5000: far apart for n < 4000
+
+
 def observations_level(
     n_datasets: int,
     n_posterior: int,
@@ -289,11 +296,12 @@ def observations_level(
         design = designs()[name]
         out[name] = {}
         for rel in noise_levels:
+            seed = dataset_seed(name, rel)
             recs = []
             t0 = time.perf_counter()
             for s in range(n_datasets):
                 post_seed = s if (name == "standard" and s < n_posterior) else None
-                recs.append(one_dataset(simulate(design, spec, rel, 10_000 + s), spec, post_seed))
+                recs.append(one_dataset(simulate(design, spec, rel, seed + s), spec, post_seed))
             out[name][f"{rel:g}"] = recs
             log(
                 f"observations {name} {100 * rel:g}%: {n_datasets} datasets "

@@ -140,3 +140,16 @@ def test_least_squares_coverage_on_a_design_we_did_not_tune_to() -> None:
         if not c[lev]["ok"]
     ]
     assert not bad, bad
+
+
+@pytest.fixture(scope="module")
+def photo_cells() -> dict:
+    """10 folders of the independent renderer (its default round 0.6-deg light; seeds 200-209,
+    not the benchmark's), each measured and fitted through the stages of `stairfit fit`; the
+    coverage cells of sigma, scale and floor."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    recs = [{"ls": bc.photo_dataset(200 + k, bc.PHOTO_LIGHTS["disk 0.6 deg"])} for k in range(10)]
+    assert all(r["ls"]["flagged"] == 0 for r in recs)  # ROIs large enough: nothing few_blocks
+    return bc.summarise_cells(recs, "ls", {k: v[1] for k, v in bc.LEVELS.items()})
