@@ -153,3 +153,29 @@ def photo_cells() -> dict:
     recs = [{"ls": bc.photo_dataset(200 + k, bc.PHOTO_LIGHTS["disk 0.6 deg"])} for k in range(10)]
     assert all(r["ls"]["flagged"] == 0 for r in recs)  # ROIs large enough: nothing few_blocks
     return bc.summarise_cells(recs, "ls", {k: v[1] for k, v in bc.LEVELS.items()})
+
+
+@pytest.mark.slow
+def test_photo_level_coverage_of_scale_and_floor(photo_cells: dict) -> None:
+    """Scale and floor from 10 independent photo sets: 68% and 95% intervals within the 99%
+    Clopper-Pearson limits of 10 datasets (benchmark, 20 sets: scale 70% / 90%, floor 55% /
+    95%)."""
+    for p in ("scale", "floor"):
+        for lev in bc.LEVELS:
+            assert photo_cells[p][lev]["ok"], (p, lev, photo_cells[p][lev])
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="sigma is biased low by 2-3 standard errors on the independent photos (benchmark, 20 "
+    "sets: pull mean -3.3 with the round 0.6-deg light, -2.4 with a point light; 95% coverage "
+    "15% / 30%). The scene's camera.angular_extent_deg is the whole face's spread of viewing "
+    "angles, but the ROI is eroded by 8 px (80-90% of the face's width here): with the extent "
+    "scaled by 0.7 the pull of two sets went from -2.7 / -1.6 to +1.9 / +2.8, with 0 to +6 / +7",
+)
+def test_photo_level_coverage_of_sigma(photo_cells: dict) -> None:
+    """sigma from 10 independent photo sets: 68% and 95% intervals within the 99%
+    Clopper-Pearson limits of 10 datasets."""
+    for lev in bc.LEVELS:
+        assert photo_cells["sigma_rad"][lev]["ok"], (lev, photo_cells["sigma_rad"][lev])
