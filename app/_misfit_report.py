@@ -153,7 +153,7 @@ def residual_pattern_figure(outcome: FitOutcome) -> Figure:
     im = a1.imshow(cells, cmap="RdBu_r", vmin=-lim, vmax=lim, aspect="auto")
     a1.set_yticks(range(len(wedges)), [f"{w.name} ({w.angle_deg:g} deg)" for w in wedges])
     a1.set_xticks(range(len(photos)), [f"{p.view_deg:g}" for p in photos], fontsize="small")
-    a1.set(xlabel="photo: view (deg)", title="mean (measured - model) / stderr")
+    a1.set(xlabel="photo: view (deg)", title="mean whitened residual (measurement errors)")
     fig.colorbar(im, ax=a1, shrink=0.8)
     theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
     with np.errstate(divide="ignore", invalid="ignore"):

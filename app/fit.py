@@ -397,7 +397,9 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
     """The fit's observation table from the measurement table and the scene geometry.
 
     Rows that imaging flagged, or in which any pixel saturated (their mean is biased low), are
-    kept but excluded from the fit (`use = False`) and counted in the notes.
+    kept but excluded from the fit (`use = False`) and counted in the notes. The channels of
+    one photo x wedge share an `roi_index` and carry the ROI's error correlations, which the
+    fit whitens (`roi_correlations`; docs/fitting.md §Correlated channels).
     """
     from stairfit import fitting
 
@@ -407,7 +409,7 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
     rows, info = [], []
     n_flagged = n_saturated = 0
     reference = scene.reference.name if scene.reference is not None else None
-    inflation = channel_inflation(table)
+    rois: dict[tuple[str, str], int] = {}
     for r in table:
         if r.wedge == reference:
             continue
@@ -431,10 +433,12 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
                 "wedge_index": k,
                 "channel_index": channels[r.channel],
                 "value": r.value if finite else 0.0,
-                "stderr": r.stderr * inflation[(r.photo, r.wedge)] if finite else 1.0,
+                "stderr": r.stderr if finite else 1.0,
                 "use": use,
                 "photo_index": p,
                 "saturated": saturated,
+                "roi_index": rois.setdefault((r.photo, r.wedge), len(rois)),
+                **roi_correlations(r),
             }
         )
         info.append(
@@ -447,7 +451,6 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
                 "theta_i_deg": ti,
                 "theta_o_deg": to,
                 "use": use,
-                "stderr_inflation": inflation[(r.photo, r.wedge)],
             }
         )
     fitted_rows = [r for r in table if r.wedge != reference]
@@ -470,29 +473,14 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
     return obs, info, notes
 
 
-def channel_inflation(table: Any) -> dict[tuple[str, str], float]:
-    """Per ROI, the factor `sqrt(1 + (m - 1) rho)` applied to its channels' standard errors.
-
-    The R, G and B means of one ROI share its texture, so their errors are correlated (imaging
-    measures the mean correlation `rho` as `channel_corr`). The fit treats each row as
-    independent; for the `m` usable channels of an ROI with equicorrelated errors, inflating
-    each standard error by this factor gives the channel-common component (which carries
-    sigma, scale and floor) exactly its true weight, and is conservative for the differences
-    between channels (which carry delta_n). docs/fitting.md §Correlated channels.
-    """
-    groups: dict[tuple[str, str], list[Any]] = {}
-    for r in table:
-        groups.setdefault((r.photo, r.wedge), []).append(r)
+def roi_correlations(row: Any) -> dict[str, float]:
+    """The fit's `corr_01`, `corr_02`, `corr_12` (channels R = 0, G = 1, B = 2) from a
+    measurement row's `corr_rg`, `corr_rb`, `corr_gb`; an unknown (NaN) correlation is 0."""
+    pairs = (("corr_01", "corr_rg"), ("corr_02", "corr_rb"), ("corr_12", "corr_gb"))
     out = {}
-    for key, rows in groups.items():
-        usable = [
-            r for r in rows
-            if not r.flag and np.isfinite(r.value) and np.isfinite(r.stderr) and r.stderr > 0
-        ]  # fmt: skip
-        rho = rows[0].channel_corr
-        m = len(usable)
-        ok = m > 1 and np.isfinite(rho)
-        out[key] = float(np.sqrt(1.0 + (m - 1) * min(max(rho, 0.0), 1.0))) if ok else 1.0
+    for key, name in pairs:
+        c = float(getattr(row, name, np.nan))
+        out[key] = min(max(c, -1.0), 1.0) if np.isfinite(c) else 0.0
     return out
 
 

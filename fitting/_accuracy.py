@@ -16,6 +16,7 @@ import numpy as np
 
 from stairfit import model
 
+from ._forward import measurement_whitened
 from ._observations import Spectral
 from ._result import FitResult
 from ._simulate import model_radiance
@@ -28,7 +29,9 @@ ACCURACY_LIMIT = 0.2
 
 class NumericalError(NamedTuple):
     """The fitted model against a reference evaluation at the same parameters, over the used
-    rows: `rms` and `max` of `(model - reference) / stderr`, `of_peak`: the largest
+    rows: `rms` and `max` of `(model - reference) / stderr` (whitened with the ROI's
+    measurement covariance for correlated rows, so that `rms^2 x rows` is the chi^2 the
+    difference alone would add), `of_peak`: the largest
     `|model - reference|` over the largest reference value, the `limit` that `rms` is compared
     with, and `elapsed_s` of the reference evaluation."""
 
@@ -72,8 +75,9 @@ def numerical_error(
     ref = model_radiance(fit.params, obs, reference, aperture=aperture, resolution=resolution)
     elapsed = time.perf_counter() - t0
     use = np.asarray(obs.use, bool)
-    diff = (np.asarray(fit.model, float) - ref)[use]
-    z = diff / np.asarray(obs.stderr, float)[use]
+    full = np.asarray(fit.model, float) - ref
+    diff = full[use]
+    z = np.asarray(measurement_whitened(full, fit.problem.data, fit.problem.correlated))[use]
     peak = float(np.max(np.abs(ref[use])))
     return NumericalError(
         rms=float(np.sqrt(np.mean(z**2))),

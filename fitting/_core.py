@@ -19,10 +19,22 @@ import optimistix as optx
 from jaxtyping import Array
 
 from ._errors import FitError, FitInputError
-from ._forward import Data, Static, mean_and_log_variance, model_values, physical, residuals
+from ._forward import (
+    Data,
+    Static,
+    cholesky,
+    correlated_log_likelihood,
+    mean_and_log_variance,
+    model_error_variance,
+    model_values,
+    physical,
+    residuals,
+    whitened,
+)
 from ._forward import variance as row_variance
 from ._params import from_physical
 from ._problem import FreeSpec, Problem
+from ._whiten import grouped_fisher, scatter
 
 SOLVERS: tuple[str, ...] = ("lm", "dogleg", "gauss_newton")
 """Least-squares solvers: optimistix LevenbergMarquardt (default), Dogleg, GaussNewton."""
@@ -72,8 +84,12 @@ def evaluate(z: Array, static: Static, data: Data) -> Evaluation:
 
     Fisher information of independent Gaussian rows with mean `m(z)` and variance `v(z)`:
     `I = sum_rows [grad m grad m^T / v + (1/2) grad ln v grad ln v^T]` (the second term only
-    with the model-error term). Forward-mode derivatives (`jax.jacfwd`).
+    with the model-error term); of correlated groups, `_whiten.grouped_fisher`. Forward-mode
+    derivatives (`jax.jacfwd`). With correlated rows, `resid` is each row's component of
+    `L^-1 (value - model)` and `sd` the marginal `sqrt(C_ii)`.
     """
+    if static.correlated:
+        return _evaluate_correlated(z, static, data)
     m, p = model_values(z, static, data)
     var = row_variance(m, p, static, data)
     sd = jnp.sqrt(var)
@@ -86,21 +102,41 @@ def evaluate(z: Array, static: Static, data: Data) -> Evaluation:
     return Evaluation(m, x, r, sd, jnp.sum(r * r), loglik, fisher)
 
 
+def _evaluate_correlated(z: Array, static: Static, data: Data) -> Evaluation:
+    """`evaluate` with rows whitened per group (docs/fitting.md §Correlated channels)."""
+    m, p = model_values(z, static, data)
+    var = row_variance(m, p, static, data)
+    chol = cholesky(model_error_variance(m, p, static), data)
+    w = whitened(data.value - m, chol, data)
+    jm, jlv = jax.jacfwd(lambda zz: mean_and_log_variance(zz, static, data))(z)
+    fisher = grouped_fisher(chol, jm, jlv * var[:, None], data.grp_rows, data.grp_mask)
+    r = scatter(w, data.grp_rows, data.value.shape[0])
+    loglik = correlated_log_likelihood(w, chol, data)
+    x = physical(z, static, data)
+    return Evaluation(m, x, r, jnp.sqrt(var), jnp.sum(w * w), loglik, fisher)
+
+
 def _linear_scale(z0: Array, static: Static, data: Data) -> Array:
     """`z0` with the log-scale slot set to the best scale for the other start values.
 
     The model is linear in `scale`: `model = scale * A + floor * cos(theta_i)`, so the weighted
-    least-squares scale is `sum(w A (v - floor cos)) / sum(w A^2)`, `w = use / stderr^2`. Only
-    applied when the scale is free.
+    least-squares scale is `sum(w A (v - floor cos)) / sum(w A^2)`, `w = use / stderr^2`
+    (correlated rows: the same sums of the whitened `A` and `v - floor cos`, with the
+    measurement covariance alone). Only applied when the scale is free.
     """
     k = static.layout.slot("scale")
     d1 = data._replace(free=data.free.at[k].set(False), x_fixed=data.x_fixed.at[k].set(1.0))
     m1, p = model_values(z0, static, d1)
     base = p.floor * jnp.cos(data.theta_i)
     a = m1 - base
-    w = data.use / data.stderr**2
-    num = jnp.sum(w * a * (data.value - base))
-    den = jnp.sum(w * a * a)
+    if static.correlated:
+        chol = cholesky(None, data)
+        wa, wb = whitened(a, chol, data), whitened(data.value - base, chol, data)
+        num, den = jnp.sum(wa * wb), jnp.sum(wa * wa)
+    else:
+        w = data.use / data.stderr**2
+        num = jnp.sum(w * a * (data.value - base))
+        den = jnp.sum(w * a * a)
     ok = (den > 0) & (num > 0)
     scale = jnp.where(ok, num / jnp.where(ok, den, 1.0), 1.0)
     return jnp.where(data.free[k], z0.at[k].set(jnp.log(scale)), z0)

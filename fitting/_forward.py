@@ -24,6 +24,7 @@ from jaxtyping import Array, Bool, Float, Int
 from stairfit import model
 
 from ._params import Layout, Params, clamp_index, to_physical
+from ._whiten import group_cholesky, log_diag, scatter, whiten
 
 
 class Static(NamedTuple):
@@ -32,13 +33,16 @@ class Static(NamedTuple):
     `layout`: the slots of `z` (their parameters and transforms). `rounded`: use the
     rounded-edge model (needed when the edge radius is free or non-zero). `model_error`: the
     per-row variance includes `(model_error_frac * model)^2` and the residuals carry its
-    log-determinant. `aperture`: finite light/patch sizes [conventions §9]. `resolution`: the
-    rounded model's resolution setting (`None` = its default).
+    log-determinant. `correlated`: some rows share a group (an ROI's channels) with correlated
+    errors, and residuals are whitened per group (`_whiten`); False: every row is independent
+    (the plain `(value - model) / sd`). `aperture`: finite light/patch sizes [conventions §9].
+    `resolution`: the rounded model's resolution setting (`None` = its default).
     """
 
     layout: Layout
     rounded: bool = False
     model_error: bool = False
+    correlated: bool = False
     aperture: model.Aperture = model.Aperture()
     resolution: int | None = None
 
@@ -55,7 +59,8 @@ class Data(NamedTuple):
     `[r_key, r_t, r_c]`. Distinct (theta_i at each aperture node, beta2, layer_um) (G): `g_ti`,
     `g_b2`, `g_layer`, indexed by `r_geo` (key, node). Per slot of `z` (P): `free`, `x_fixed`
     (physical values of fixed slots). Per wedge (W): `sigma_source` (slot holding that wedge's
-    width). `r_max_um`: upper bound of the edge radius.
+    width). `r_max_um`: upper bound of the edge radius. Per group of correlated rows (Gr, padded
+    to 3 slots; `_whiten.GroupArrays`): `grp_rows`, `grp_mask`, `grp_corr`.
     """
 
     theta_i: Float[Array, " N"]
@@ -82,6 +87,9 @@ class Data(NamedTuple):
     x_fixed: Float[Array, " P"]
     sigma_source: Int[Array, " W"]
     r_max_um: Float[Array, ""]
+    grp_rows: Int[Array, "Gr 3"]
+    grp_mask: Float[Array, "Gr 3"]
+    grp_corr: Float[Array, "Gr 3 3"]
 
 
 def physical(z: Array, static: Static, data: Data) -> Array:
@@ -271,40 +279,94 @@ def model_values(z: Array, static: Static, data: Data) -> tuple[Array, Params]:
 
 
 def variance(m: Array, p: Params, static: Static, data: Data) -> Array:
-    """Per-row variance `stderr^2 + (model_error_frac * model)^2` (or `stderr^2`)."""
-    if not static.model_error:
-        return data.stderr**2
-    return data.stderr**2 + (p.model_error_frac * m) ** 2
+    """Per-row variance `stderr^2 + (model_error_frac * model)^2` (or `stderr^2`): the
+    diagonal of the covariance."""
+    extra = model_error_variance(m, p, static)
+    return data.stderr**2 if extra is None else data.stderr**2 + extra
+
+
+def model_error_variance(m: Array, p: Params, static: Static) -> Array | None:
+    """Per-row `(model_error_frac * model)^2`, or None without the model-error term."""
+    return (p.model_error_frac * m) ** 2 if static.model_error else None
+
+
+def cholesky(extra_var: Array | None, data: Data) -> Array:
+    """Per group, the Cholesky factor of `S R S + diag(extra_var)` (`_whiten.group_cholesky`)."""
+    return group_cholesky(data.stderr, extra_var, data.grp_rows, data.grp_mask, data.grp_corr)
+
+
+def whitened(resid: Array, chol: Array, data: Data) -> Array:
+    """`L^-1 (value - model)` per group, `(Gr, 3)` (`_whiten.whiten`)."""
+    return whiten(chol, resid, data.grp_rows, data.grp_mask)
+
+
+def _log_det_excess(chol: Array, data: Data) -> Array:
+    """Per group, `log det C - log det (S R S) >= 0`: what the model-error term adds."""
+    chol0 = cholesky(None, data)
+    return 2.0 * jnp.sum(log_diag(chol, data.grp_mask) - log_diag(chol0, data.grp_mask), axis=1)
+
+
+def _sqrt_pos(a: Array) -> Array:
+    """`sqrt(a)` for `a > 0`, else 0, with finite derivatives at 0 (double where)."""
+    pos = a > 0.0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, a, 1.0)), 0.0)
 
 
 def residuals(z: Array, args: tuple[Static, Data]) -> Array:
     """Whitened residuals for optimistix: the module-level function every fit shares.
 
-    `use * (value - model) / sqrt(variance)`; with the model-error term, a second block
-    `use * sqrt(log(variance / stderr^2))` makes the sum of squares equal to
+    Independent rows: `use * (value - model) / sqrt(variance)`; with the model-error term, a
+    second block `use * sqrt(log(variance / stderr^2))` makes the sum of squares equal to
     `-2 log L + const`, so that least squares is maximum likelihood (docs/fitting.md).
+    Correlated rows (`static.correlated`): `L^-1 (value - model)` per group, and with the
+    model-error term one entry per group, `sqrt(log det C - log det S R S)`.
     """
     static, data = args
     m, p = model_values(z, static, data)
+    if static.correlated:
+        chol = cholesky(model_error_variance(m, p, static), data)
+        w = whitened(data.value - m, chol, data).ravel()
+        if not static.model_error:
+            return w
+        return jnp.concatenate([w, _sqrt_pos(_log_det_excess(chol, data))])
     var = variance(m, p, static, data)
     r = data.use * (data.value - m) / jnp.sqrt(var)
     if not static.model_error:
         return r
-    a = jnp.log(var / data.stderr**2)
-    pos = a > 0.0
-    extra = jnp.where(pos, jnp.sqrt(jnp.where(pos, a, 1.0)), 0.0)  # safe sqrt at 0
+    extra = _sqrt_pos(jnp.log(var / data.stderr**2))
     return jnp.concatenate([r, data.use * extra])
 
 
 def log_likelihood_z(z: Array, static: Static, data: Data) -> Array:
     """Gaussian log-likelihood of the used rows at `z` (full normalisation)."""
     m, p = model_values(z, static, data)
+    if static.correlated:
+        chol = cholesky(model_error_variance(m, p, static), data)
+        return correlated_log_likelihood(whitened(data.value - m, chol, data), chol, data)
     var = variance(m, p, static, data)
     terms = (data.value - m) ** 2 / var + jnp.log(2.0 * jnp.pi * var)
     return -0.5 * jnp.sum(data.use * terms)
+
+
+def correlated_log_likelihood(w: Array, chol: Array, data: Data) -> Array:
+    """`-(1/2) [sum w^2 + log det C + n log 2 pi]` from the whitened residuals `w` and the
+    groups' Cholesky factors (`n` the used rows)."""
+    n = jnp.sum(data.grp_mask)
+    logdet = 2.0 * jnp.sum(log_diag(chol, data.grp_mask))
+    return -0.5 * (jnp.sum(w * w) + logdet + n * jnp.log(2.0 * jnp.pi))
 
 
 def mean_and_log_variance(z: Array, static: Static, data: Data) -> tuple[Array, Array]:
     """(model, log variance) per row: what the Fisher information is built from."""
     m, p = model_values(z, static, data)
     return m, jnp.log(variance(m, p, static, data))
+
+
+def measurement_whitened(resid: Array, data: Data, correlated: bool) -> Array:
+    """Per row, `resid` (e.g. value - model) whitened with the measurement covariance alone
+    (no model-error term): `resid / stderr` for independent rows, each row's component of
+    `L0^-1 resid` (`S R S = L0 L0^T` per group) for correlated ones; 0 for unused rows."""
+    if not correlated:
+        return jnp.where(data.use > 0, resid / data.stderr, 0.0)
+    w = whitened(resid, cholesky(None, data), data)
+    return scatter(w, data.grp_rows, resid.shape[0])

@@ -15,6 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ._forward import measurement_whitened
 from ._result import FitResult
 
 P_VALUE_LIMIT = 1e-3
@@ -159,15 +160,15 @@ def _pattern(by_wedge: tuple[ResidualGroup, ...], ratio: np.ndarray) -> str:
 
 
 def measurement_residuals(fit: FitResult) -> np.ndarray:
-    """Per row of the fit's observations, `(value - model) / stderr`: the residual with the
-    measurement errors alone (the model-error term left out); 0 for rows not fitted."""
-    obs = fit.problem.observations if fit.problem is not None else None
-    if obs is None:
+    """Per row of the fit's observations, the residual with the measurement errors alone (the
+    model-error term left out): `(value - model) / stderr` for independent rows, the row's
+    component of `L0^-1 (value - model)` with the ROI's measurement covariance `S R S = L0 L0^T`
+    for correlated ones (docs/fitting.md §Correlated channels); 0 for rows not fitted."""
+    problem = fit.problem
+    if problem is None:
         return np.zeros(0)
-    use = np.asarray(obs.use, bool)
-    value, stderr = np.asarray(obs.value, float), np.asarray(obs.stderr, float)
-    z = (value - np.asarray(fit.model, float)) / np.where(use, stderr, 1.0)
-    return np.where(use, z, 0.0)
+    resid = np.asarray(problem.observations.value, float) - np.asarray(fit.model, float)
+    return np.asarray(measurement_whitened(resid, problem.data, problem.correlated))
 
 
 def describe_fit(fit: FitResult) -> Assessment:

@@ -22,7 +22,11 @@ ANGLE_TOL_RAD = 1e-9
 """Angles may exceed +-90 deg by this much (rounding of a degree value) and are then clipped."""
 
 _FLOAT_FIELDS = ("theta_i_rad", "theta_o_rad", "beta2_rad", "layer_um", "value", "stderr")
-_INT_FIELDS = ("wedge_index", "channel_index", "photo_index")
+_INT_FIELDS = ("wedge_index", "channel_index", "photo_index", "roi_index")
+CORR_FIELDS = ("corr_01", "corr_02", "corr_12")
+"""The pairwise error correlations of a group's channels (0, 1), (0, 2), (1, 2)."""
+CORR_TOL = 1e-9
+"""Rows of one group must agree on their correlations to this much."""
 _BOOL_FIELDS = ("use", "saturated")
 
 
@@ -38,6 +42,11 @@ class Observations(NamedTuple):
     * `value`: relative radiance [conventions §9]; `stderr`: its standard error (> 0).
     * `use`: False excludes the row from every fit; `saturated` records why (True = the camera
       clipped). Saturated rows are *excluded*, not treated as censored (docs/fitting.md).
+    * `roi_index`: rows with the same `roi_index >= 0` (one photo x wedge: its channels) have
+      correlated errors; -1 (the default) = independent. `corr_01`, `corr_02`, `corr_12`: the
+      correlations of the errors of the group's channel 0 and 1, 0 and 2, 1 and 2 rows (the
+      same on every row of the group; default 0). The fit whitens each group with
+      `C = S R S (+ model error)` (docs/fitting.md §Correlated channels).
 
     Build it with `Observations.from_arrays` or `Observations.from_rows`, which validate.
     """
@@ -53,6 +62,10 @@ class Observations(NamedTuple):
     use: NDArray
     photo_index: NDArray
     saturated: NDArray
+    roi_index: NDArray
+    corr_01: NDArray
+    corr_02: NDArray
+    corr_12: NDArray
 
     @property
     def n_rows(self) -> int:
@@ -103,14 +116,21 @@ class Observations(NamedTuple):
         use: ArrayLike | None = None,
         photo_index: ArrayLike | None = None,
         saturated: ArrayLike | None = None,
+        roi_index: ArrayLike | None = None,
+        corr_01: ArrayLike | None = None,
+        corr_02: ArrayLike | None = None,
+        corr_12: ArrayLike | None = None,
     ) -> Observations:
         """Validated observations from equal-length 1-D arrays (scalars broadcast).
 
-        `use` defaults to all True; `saturated` rows are always excluded (`use` set False).
+        `use` defaults to all True; `saturated` rows are always excluded (`use` set False);
+        `roi_index` defaults to -1 (independent rows), the correlations to 0.
         Raises `FitInputError` naming the row, the field and the fix for: an empty table,
         mismatched lengths, non-finite or out-of-range angles, a wedge angle outside (0, 90)
         deg, a non-positive layer, NaN values or non-positive/NaN standard errors in used rows,
-        inconsistent wedge geometry, and a table in which every row is excluded.
+        inconsistent wedge geometry, a table in which every row is excluded, and groups
+        (`roi_index`) with a channel outside 0-2 or twice, or with correlations that are not
+        finite, outside [-1, 1] or differ between the group's rows.
         """
         fields: dict[str, ArrayLike | None] = {
             "theta_i_rad": theta_i_rad,
@@ -124,6 +144,10 @@ class Observations(NamedTuple):
             "use": use,
             "photo_index": photo_index,
             "saturated": saturated,
+            "roi_index": roi_index,
+            "corr_01": corr_01,
+            "corr_02": corr_02,
+            "corr_12": corr_12,
         }
         return _validate(cls(**_columns(fields)))
 
@@ -133,8 +157,9 @@ class Observations(NamedTuple):
 
         Each row needs `theta_i_rad` or `theta_i_deg`, `theta_o_rad` or `theta_o_deg`,
         `beta2_rad` or `beta2_deg` (or `wedge_deg`), `layer_um`, `wedge_index`,
-        `channel_index`, `value`, `stderr`; optional `use`, `photo_index`, `saturated`.
-        Other keys are ignored. Degrees are converted to radians here [conventions §1].
+        `channel_index`, `value`, `stderr`; optional `use`, `photo_index`, `saturated`,
+        `roi_index`, `corr_01`, `corr_02`, `corr_12`. Other keys are ignored. Degrees are
+        converted to radians here [conventions §1].
         """
         if len(rows) == 0:
             raise FitInputError(_EMPTY)
@@ -166,10 +191,19 @@ class Observations(NamedTuple):
                         "measurement table"
                     )
                 cols.setdefault(key, []).append(row[key])
-            for key, default in (("use", True), ("photo_index", 0), ("saturated", False)):
+            for key, default in _OPTIONAL_DEFAULTS:
                 cols.setdefault(key, []).append(row.get(key, default))
         return cls.from_arrays(**{k: np.asarray(v, dtype=object) for k, v in cols.items()})
 
+
+_OPTIONAL_DEFAULTS: tuple[tuple[str, object], ...] = (
+    ("use", True),
+    ("photo_index", 0),
+    ("saturated", False),
+    ("roi_index", -1),
+    *((k, 0.0) for k in CORR_FIELDS),
+)
+"""Optional columns of `from_rows` and their defaults."""
 
 _EMPTY = (
     "the observation table is empty: give at least one row (photo x wedge x channel) with "
@@ -197,13 +231,15 @@ def _row_count(fields: Mapping[str, ArrayLike | None]) -> int:
 
 def _columns(fields: Mapping[str, ArrayLike | None]) -> dict[str, NDArray]:
     """Every column as a typed 1-D array of the common length; defaults for the optional ones
-    (`use` True, `photo_index` 0, `saturated` False); saturated rows are not used."""
+    (`use` True, `photo_index` 0, `saturated` False, `roi_index` -1, correlations 0);
+    saturated rows are not used."""
     n = _row_count(fields)
     arrays: dict[str, NDArray] = {}
-    for k in _FLOAT_FIELDS:
-        arrays[k] = _column(k, fields[k], n, float)
+    for k in (*_FLOAT_FIELDS, *CORR_FIELDS):
+        data = fields[k] if fields[k] is not None or k not in CORR_FIELDS else 0.0
+        arrays[k] = _column(k, data, n, float)
     for k in _INT_FIELDS:
-        default = 0 if k == "photo_index" else None
+        default = {"photo_index": 0, "roi_index": -1}.get(k)
         arrays[k] = _column(k, fields[k] if fields[k] is not None else default, n, int)
     use, saturated = fields["use"], fields["saturated"]
     arrays["use"] = _column("use", True if use is None else use, n, bool)
@@ -324,14 +360,58 @@ def _check_wedges(obs: Observations, used: NDArray) -> None:
                       "each wedge_index must describe one wedge")  # fmt: skip
 
 
+def _check_groups(obs: Observations, used: NDArray) -> None:
+    """Rows of one group (`roi_index >= 0`, used): channels 0-2 at most once each; in groups of
+    more than one used row, the same finite correlations in [-1, 1] on every row."""
+    grouped = used[obs.roi_index[used] >= 0]
+    if grouped.size == 0:
+        return
+    fix = "rows with the same roi_index are the channels (0, 1, 2) of one ROI; fix roi_index"
+    bad = grouped[obs.channel_index[grouped] > 2]
+    if bad.size:
+        _fail(obs, "channel_index", bad, "is above 2 in a group of correlated rows", fix)
+    order = np.lexsort((obs.channel_index[grouped], obs.roi_index[grouped]))
+    g = grouped[order]
+    same = (obs.roi_index[g][1:] == obs.roi_index[g][:-1]) & (
+        obs.channel_index[g][1:] == obs.channel_index[g][:-1]
+    )
+    if np.any(same):
+        _fail(obs, "channel_index", g[1:][same], "appears twice in its roi_index group", fix)
+    ids, counts = np.unique(obs.roi_index[g], return_counts=True)
+    multi = g[np.isin(obs.roi_index[g], ids[counts > 1])]  # groups of more than one used row
+    for field in CORR_FIELDS:
+        col = getattr(obs, field)
+        bad = multi[~np.isfinite(col[multi]) | (np.abs(col[multi]) > 1.0)]
+        if bad.size:
+            _fail(obs, field, bad, "is not a correlation in [-1, 1]",
+                  "give the ROI's measured channel correlation, or 0 if it is unknown")  # fmt: skip
+        first: dict[int, float] = {}
+        for i in multi:
+            first.setdefault(int(obs.roi_index[i]), float(col[i]))
+        ref = np.array([first[int(obs.roi_index[i])] for i in multi])
+        bad = multi[np.abs(col[multi] - ref) > CORR_TOL]
+        if bad.size:
+            _fail(obs, field, bad, "differs from the other rows of its roi_index group",
+                  "every row of one ROI carries the same correlations")  # fmt: skip
+
+
+def _loose_zero(col: NDArray, loose: NDArray) -> NDArray:
+    """A correlation column with 0 where no group reads it (`loose`) or it is not finite."""
+    return np.where(loose | ~np.isfinite(col), 0.0, col)
+
+
 def _sanitised(obs: Observations) -> Observations:
     """Angles clipped to the hemisphere; unused rows given finite, harmless values (their
-    wedge's geometry, value 0, stderr 1) so that no NaN can reach a derivative through a masked
-    branch; the original values are not needed by any fit."""
+    wedge's geometry, value 0, stderr 1, no group) so that no NaN can reach a derivative
+    through a masked branch; the original values are not needed by any fit. Correlations that
+    no group reads (ungrouped or unused rows) are set to 0."""
     unused = ~obs.use
+    loose = unused | (obs.roi_index < 0)
     clipped = obs._replace(
         theta_i_rad=np.clip(obs.theta_i_rad, -HALF_PI, HALF_PI),
         theta_o_rad=np.clip(obs.theta_o_rad, -HALF_PI, HALF_PI),
+        roi_index=np.where(unused, -1, obs.roi_index),
+        **{k: _loose_zero(getattr(obs, k), loose) for k in CORR_FIELDS},
     )
     if not np.any(unused):
         return clipped
@@ -363,6 +443,7 @@ def _validate(obs: Observations) -> Observations:
         )
     _check_rows(obs, used)
     _check_wedges(obs, used)
+    _check_groups(obs, used)
     return _sanitised(obs)
 
 

@@ -296,6 +296,9 @@ def _fingerprint(fit: FitResult, data: Data) -> str:
     for name in ("theta_i", "theta_o", "beta2", "layer_um", "value", "stderr", "use", "r_n",
                  "r_w", "free", "x_fixed", "sigma_source"):  # fmt: skip
         h.update(np.ascontiguousarray(np.asarray(getattr(data, name))).tobytes())
+    if fit.problem.correlated:  # independent rows keep the fingerprint they always had
+        for name in ("grp_rows", "grp_mask", "grp_corr"):
+            h.update(np.ascontiguousarray(np.asarray(getattr(data, name))).tobytes())
     h.update(repr((fit.names, fit.problem.priors, fit.problem.aperture)).encode())
     return h.hexdigest()[:32]
 

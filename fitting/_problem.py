@@ -17,6 +17,7 @@ from ._errors import FitInputError
 from ._forward import Data, Static
 from ._observations import Observations, Spectral, check_compatible
 from ._params import DEFAULTS, PARAM_NAMES, Layout, Parameter, Params, Priors, Variant
+from ._whiten import group_arrays
 
 
 def max_edge_radius_um(obs: Observations) -> float:
@@ -72,9 +73,15 @@ class Problem(NamedTuple):
             layout=self.layout,
             rounded=rounded,
             model_error=model_error,
+            correlated=self.correlated,
             aperture=self.aperture,
             resolution=self.resolution,
         )
+
+    @property
+    def correlated(self) -> bool:
+        """True when some rows share a group with correlated errors (`Observations.roi_index`)."""
+        return bool(np.any(np.asarray(self.data.grp_mask).sum(axis=1) > 1))
 
     def arrays_for(self, spec: FreeSpec) -> Data:
         """The traced arrays for a variant: free mask, fixed values, width tying."""
@@ -210,6 +217,8 @@ def _data(
     replaced by `Problem.arrays_for`), moved to the device in one batched transfer."""
     grid = evaluation_grid(obs, np.asarray(spectral.n_base), np.asarray(spectral.weights, float),
                            aperture)  # fmt: skip
+    corr = np.stack([obs.corr_01, obs.corr_02, obs.corr_12], axis=1)
+    groups = group_arrays(obs.use, obs.roi_index, obs.channel_index, corr)
     data = Data(
         theta_i=np.asarray(obs.theta_i_rad, float),
         theta_o=np.asarray(obs.theta_o_rad, float),
@@ -223,6 +232,9 @@ def _data(
         x_fixed=np.zeros(lay.size),
         sigma_source=np.zeros(lay.n_wedges, dtype=int),
         r_max_um=np.asarray(r_max if r_max > 0 else 1.0),
+        grp_rows=groups.rows,
+        grp_mask=groups.mask,
+        grp_corr=groups.corr,
     )
     return jax.device_put(data)
 

@@ -1,8 +1,9 @@
-"""Correlated colour channels: imaging measures it, the fit inflates the errors for it.
+"""Correlated colour channels: imaging measures it, the fit whitens each ROI with it.
 
 A multiplicative texture is shared by R, G and B, so the three means of one ROI err together;
 pixel noise is independent per channel. `channel_corr` must tell the two apart, and
-`stairfit.fit.channel_inflation` must turn it into `sqrt(1 + (m - 1) rho)` [docs/fitting.md].
+`stairfit.fit.roi_correlations` must hand the ROI's `corr_*` to the fit (docs/fitting.md
+§Correlated channels; the whitening itself: tests/test_fitting_whiten.py).
 """
 
 from __future__ import annotations
@@ -10,10 +11,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from stairfit import imaging
-from stairfit.fit import channel_inflation
+from stairfit.fit import roi_correlations
 from stairfit.imaging import synthetic
 
 EXPOSURE = imaging.Exposure(exposure_time_s=1 / 50, f_number=4.0, iso=400)
@@ -54,20 +54,16 @@ def test_pixel_noise_alone_leaves_channels_independent(tmp_path: Path) -> None:
 
 
 class _Row:
-    def __init__(self, photo: str, wedge: str, rho: float, flag: str = "") -> None:
-        self.photo, self.wedge, self.channel_corr, self.flag = photo, wedge, rho, flag
-        self.value, self.stderr = 1.0, 0.1
+    def __init__(self, rg: float, rb: float, gb: float) -> None:
+        self.corr_rg, self.corr_rb, self.corr_gb = rg, rb, gb
 
 
-def test_inflation_is_exact_for_equicorrelated_channels() -> None:
-    """sqrt(1 + (m - 1) rho): the variance of the channel mean of m equicorrelated values."""
-    rows = [_Row("p", "w", 0.5) for _ in range(3)] + [_Row("p", "v", float("nan"))] * 3
-    rows += [_Row("q", "w", 0.9), _Row("q", "w", 0.9, flag="saturated"), _Row("q", "w", 0.9)]
-    f = channel_inflation(rows)
-    assert f[("p", "w")] == pytest.approx(np.sqrt(2.0))
-    assert f[("p", "v")] == 1.0  # unknown correlation: no inflation
-    assert f[("q", "w")] == pytest.approx(np.sqrt(1.9))  # two usable channels
-    # the same number from the covariance matrix directly
-    cov = 0.5 * np.ones((3, 3)) + 0.5 * np.eye(3)
-    var_mean = np.ones(3) @ cov @ np.ones(3) / 9
-    assert f[("p", "w")] ** 2 / 3 == pytest.approx(var_mean)
+def test_roi_correlations_map_rgb_pairs_to_channel_indices() -> None:
+    """R, G, B are channels 0, 1, 2: (R, G) -> corr_01, (R, B) -> corr_02, (G, B) -> corr_12;
+    an unknown (NaN) correlation is 0 (independent), values are kept within [-1, 1]."""
+    assert roi_correlations(_Row(0.9, 0.8, -0.7)) == {
+        "corr_01": 0.9, "corr_02": 0.8, "corr_12": -0.7,
+    }  # fmt: skip
+    assert roi_correlations(_Row(float("nan"), 1.0 + 1e-12, -0.2)) == {
+        "corr_01": 0.0, "corr_02": 1.0, "corr_12": -0.2,
+    }  # fmt: skip
