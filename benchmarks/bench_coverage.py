@@ -418,6 +418,8 @@ def photo_dataset(seed: int, light: dict[str, float]) -> dict[str, Any]:
     """Render one folder (renderer defaults but for `light`), fit it, return its record."""
     from dataclasses import replace
 
+    from stairfit.errors import UserError
+
     sys.path.insert(0, str(TESTS))
     import independent_photos as ip
 
@@ -431,8 +433,12 @@ def photo_dataset(seed: int, light: dict[str, float]) -> dict[str, Any]:
             views=PHOTO_VIEWS_DEG,
             setup=replace(ip.Setup(), **light),
         )
-        fit, info = fit_photo_folder(folder, Path(name) / "fit")
+        try:
+            fit, info = fit_photo_folder(folder, Path(name) / "fit")
+        except UserError as err:  # what `stairfit fit` would print; the set counts as failed
+            return {"seed": seed, "failed": str(err), "seconds": time.perf_counter() - t0}
     rec = photo_record(fit, truth["parameters"], info)
+    rec["seed"] = seed
     rec["seconds"] = time.perf_counter() - t0
     return rec
 
@@ -448,19 +454,26 @@ def photo_level(
         for k in range(n_photos):
             rec = photo_dataset(100 + k, PHOTO_LIGHTS[light])
             out[light].append(rec)
-            log(
-                f"photos ({light}) {k + 1}/{n_photos}: {rec['seconds']:.0f} s, chi2/dof "
-                f"{rec['chi2']:.1f}/{rec['dof']}, flagged {rec['flagged']}"
+            what = (
+                f"FAILED: {rec['failed']}"
+                if "failed" in rec
+                else f"chi2/dof {rec['chi2']:.1f}/{rec['dof']}, flagged {rec['flagged']}"
             )
+            log(f"photos ({light}) {k + 1}/{n_photos}: {rec['seconds']:.0f} s, {what}")
     return out
 
 
-def summarise_photos(recs: list[dict[str, Any]]) -> dict[str, Any]:
+def summarise_photos(all_recs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Coverage, chi^2, model-error term and flags of the photo sets that were fitted; the
+    failed ones (seed and message) apart."""
+    recs = [r for r in all_recs if "failed" not in r]
     if not recs:
         return {}
+    failed = [{"seed": r["seed"], "message": r["failed"]} for r in all_recs if "failed" in r]
     mef = np.array([r["model_error_frac"] for r in recs])
     return {
-        "n_datasets": len(recs),
+        "n_datasets": len(all_recs),
+        "failed": failed,
         "ls": summarise_cells(
             [{"ls": r} for r in recs], "ls", {k: v[1] for k, v in LEVELS.items()}
         ),
@@ -548,9 +561,11 @@ def photo_section(light: str, ph: dict[str, Any]) -> list[str]:
         chi2_line(f"{light}: reduced chi^2", ph["reduced_chi2"]),
         "",
         f"Model-error term: median {mef['median']:.2g}, max {mef['max']:.2g}, non-zero in "
-        f"{mef['n_nonzero']} of {ph['n_datasets']}; rows flagged by imaging: "
-        f"{ph['flagged_rows']}; median {ph['seconds_median']:.0f} s per set (render, measure, "
-        "fit; under load).",
+        f"{mef['n_nonzero']} of {ph['n_datasets'] - len(ph['failed'])} fitted; rows flagged by "
+        f"imaging: {ph['flagged_rows']}; median {ph['seconds_median']:.0f} s per set (render, "
+        "measure, fit; under load).",
+        "",
+        *[f"* Set of seed {f['seed']} failed: {f['message']}" for f in ph["failed"]],
         "",
     ]
 
