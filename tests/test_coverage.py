@@ -163,8 +163,8 @@ def photo_cells() -> dict:
 @pytest.mark.slow
 def test_photo_level_coverage_of_scale_and_floor(photo_cells: dict) -> None:
     """Scale and floor from 10 independent photo sets: 68% and 95% intervals within the 99%
-    Clopper-Pearson limits of 10 datasets (benchmark, 20 sets: scale 70% / 90%, floor 55% /
-    95%)."""
+    Clopper-Pearson limits of 10 datasets (benchmark, 20 sets with the round light: scale 75% /
+    90%, floor 60% / 90%)."""
     for p in ("scale", "floor"):
         for lev in bc.LEVELS:
             assert photo_cells[p][lev]["ok"], (p, lev, photo_cells[p][lev])
@@ -174,8 +174,9 @@ def test_photo_level_coverage_of_scale_and_floor(photo_cells: dict) -> None:
 @pytest.mark.xfail(
     strict=True,
     reason="sigma is biased low by 2-3 standard errors on the independent photos (benchmark, 20 "
-    "sets: pull mean -3.3 with the round 0.6-deg light, -2.4 with a point light; 95% coverage "
-    "15% / 30%). The scene's camera.angular_extent_deg is the whole face's spread of viewing "
+    "sets, errors whitened per ROI: pull mean -3.4 with the round 0.6-deg light, -2.5 with a "
+    "point light; 95% coverage 10% / 32%; the same with channel_inflation). The scene's "
+    "camera.angular_extent_deg is the whole face's spread of viewing "
     "angles, but the ROI is eroded by 8 px (80-90% of the face's width here): with the extent "
     "scaled by 0.7 the pull of two sets went from -2.7 / -1.6 to +1.9 / +2.8, with 0 to +6 / +7",
 )
