@@ -15,7 +15,16 @@ integral's nodes (`model.diffuse_broadened(n_nodes=)`), the rounded-edge resolut
 (`model.brdf_rounded(resolution=)`, model error only), the number of least-squares starts, and
 the posterior chain length (`sample_posterior(tau_factor=)`). Side by side: the NumPy +
 `scipy.optimize.least_squares` baseline of the sharp fit (`bench_fit.scipy_fit`) and the ratio.
-Finally every preset of `stairfit.presets.PRESETS` is measured as a whole.
+Finally every preset of `stairfit.presets.PRESETS` is measured as a whole, and at three noise
+levels (`NOISE_LEVELS`: 2%, 0.5%, 0.05% relative; the absolute part scaled with it, 0.05 x the
+level x the peak, which is `fitting.Noise`'s default 1e-3 x the peak at 2%): the preset's
+numerical error at its optimum against the converged reference (5 nm, 12 aperture nodes) as
+`fitting.numerical_error` computes it (rms over the rows of `(model - reference) / stderr`, the
+figure the accuracy refine of app/_accuracy_check.py compares with `fitting.ACCURACY_LIMIT`),
+its largest difference over the median standard error, the fit's bias in standard errors on
+noiseless data with that noise level's errors, and whether `stairfit fit`'s check (against
+the accurate preset's knobs) would refit (`balanced`), warn (`fast`) or do nothing.
+`--noise-only` measures only these rows and merges them into an existing tradeoff.csv.
 
 Cases. Material `pla-bodurov2016` (dispersive, so the spectral knob matters), ideal RGB camera,
 D65. Aperture: a light of 5 deg angular diameter and a face spanning 3 deg (half-widths 2.5 and
@@ -32,6 +41,7 @@ Outputs (`--out-dir`, default benchmarks/results, or benchmarks/results/quick wi
 (tables) and `tradeoff_pareto.png` (error against time, Pareto front, presets marked).
 
     python benchmarks/bench_tradeoff.py [--quick] [--seeds 5] [--repeats 5] [--out-dir DIR]
+    python benchmarks/bench_tradeoff.py --noise-only     # the noise-level axis only
 
 `--quick` (fewer settings, seeds and repeats, no rounded model) finishes in under 3 minutes on
 an idle 2-core machine.
@@ -63,6 +73,10 @@ HALF_WIDTHS_DEG = (2.5, 1.5)  # light (5 deg diameter), viewed face (3 deg)
 TRUTH = {"sigma_rad": 6 * DEG, "delta_n": 0.05, "scale": 2.0}
 VARIANT = "sharp+delta_n"
 NOISE = 0.02
+NOISE_LEVELS: tuple[float, ...] = (0.02, 0.005, 0.0005)
+"""Relative noise levels of the noise axis (issue 13)."""
+ABSOLUTE_PER_RELATIVE = 0.05
+"""The noise axis's absolute part: this x the relative level x the peak (1e-3 x peak at 2%)."""
 REF_APERTURE_NODES, CHECK_APERTURE_NODES = 12, 16
 REF_DIFFUSE_NODES, CHECK_DIFFUSE_NODES = 24, 32
 REF_RESOLUTION, CHECK_RESOLUTION = 12, 16
@@ -91,6 +105,10 @@ COLUMNS: dict[str, str] = {
     "time_s": "median wall time of the timed operation after compilation (s)",
     "post_s": "preset rows: wall time of the posterior after compilation (s)",
     "compile_s": "first call minus median: tracing + compilation (s)",
+    "noise": "noise axis: relative noise level of the data (absolute part scaled with it)",
+    "num_err_rms": "noise axis: fitting.numerical_error rms of (model - reference) / stderr",
+    "num_err_max_median_se": "noise axis: max |model - reference| / median stderr",
+    "refine": "noise axis: what stairfit fit's accuracy check does (none, refit, warn)",
     "timed": "what time_s measures",
     "note": "remarks",
 }
@@ -120,6 +138,10 @@ class Row:
     time_s: float | None = None
     post_s: float | None = None
     compile_s: float | None = None
+    noise: float | None = None
+    num_err_rms: float | None = None
+    num_err_max_median_se: float | None = None
+    refine: str | None = None
     timed: str = ""
     note: str = field(default="")
 
@@ -669,6 +691,83 @@ def preset_rows(st: Settings, case: FitCase, table: list[Row]) -> list[Row]:
 
 
 # --------------------------------------------------------------------------------------------
+# Noise axis: the presets' numerical error at 2%, 0.5% and 0.05% noise (issue 13)
+# --------------------------------------------------------------------------------------------
+
+
+def noise_observations(rel: float, seed: int = 2000) -> tuple[Any, Any]:
+    """(noisy, noiseless) standard-scene data at relative noise `rel`, simulated with the
+    reference knobs; the noiseless copy keeps the noisy one's standard errors."""
+    from stairfit import fitting
+
+    spec, ap = spectral("full"), aperture(REF_APERTURE_NODES)
+    truth, design = fitting.Params(**TRUTH), fitting.standard_design()
+    skeleton = fitting.simulate_observations(
+        truth, design, spec, fitting.Noise(rel, 0.0), seed, aperture=ap
+    )
+    clean = fitting.model_radiance(truth, skeleton, spec, aperture=ap)
+    noise = fitting.Noise(rel, absolute=ABSOLUTE_PER_RELATIVE * rel * float(np.max(clean)))
+    noisy = fitting.simulate_observations(truth, design, spec, noise, seed, aperture=ap)
+    return noisy, noisy._replace(value=clean)
+
+
+def refine_action(preset: str, exceeds: bool) -> str:
+    """What app/_accuracy_check.py does with a numerical error beyond the limit."""
+    if preset == "accurate":
+        return "none (reference)"
+    if not exceeds:
+        return "none"
+    return "warn" if preset == "fast" else "refit"
+
+
+def noise_row(p: Any, rel: float, data: tuple[Any, Any]) -> Row:
+    """One preset at one noise level: numerical error at the optimum of the noisy fit, bias on
+    the noiseless copy, and the accuracy check's decision."""
+    from stairfit import fitting
+
+    noisy, clean = data
+    spec, ap = spectral(p.spectral), aperture(p.aperture_nodes)
+    kw = {
+        "aperture": ap,
+        "sigma_starts_rad": tuple(s * DEG for s in p.sigma_starts_deg),
+        "emit_warnings": False,
+    }
+    fit = fitting.fit_least_squares(noisy, spec, sharp_variant(), **kw)
+    ref_spec = spectral("full")
+    converged = fitting.numerical_error(fit, ref_spec, aperture=aperture(REF_APERTURE_NODES))
+    check = fitting.numerical_error(fit, ref_spec, aperture=aperture(3))  # the app's reference
+    ref = fitting.model_radiance(fit.params, noisy, ref_spec, aperture=aperture(REF_APERTURE_NODES))
+    diff = np.abs(np.asarray(fit.model) - ref)
+    bias = np.abs(z_scores(fitting.fit_least_squares(clean, spec, sharp_variant(), **kw)))
+    return Row(
+        "noise",
+        f"{p.name} at {100 * rel:g}%",
+        p.spectral,
+        p.aperture_nodes,
+        "float64",
+        n_starts=len(p.sigma_starts_deg),
+        noise=rel,
+        model_err_rel=converged.of_peak,
+        num_err_rms=converged.rms,
+        num_err_max_median_se=float(diff.max() / np.median(noisy.stderr)),
+        fit_bias_z=float(bias.max()),
+        refine=refine_action(p.name, check.exceeds),
+        note=f"check against the accurate knobs: rms {check.rms:.3g} (limit {check.limit:g})",
+    )
+
+
+def noise_rows() -> list[Row]:
+    """Every preset at every level of NOISE_LEVELS (no timing: errors only)."""
+    from stairfit.presets import PRESETS
+
+    rows = []
+    for rel in NOISE_LEVELS:
+        data = noise_observations(rel)
+        rows += [noise_row(p, rel, data) for p in PRESETS.values()]
+    return rows
+
+
+# --------------------------------------------------------------------------------------------
 # Output
 # --------------------------------------------------------------------------------------------
 
@@ -731,6 +830,8 @@ def markdown(rows: list[Row], st: Settings, ref_note: str, elapsed: float) -> st
                 f"({r.post_steps} steps) | {_g(r.post_mc_err)} | {r.note} |"
             )
         out.append("")
+    if "noise" in by:
+        out += noise_table(by["noise"])
     titles = {
         "model": "## Model evaluation: spectral sampling x aperture nodes x dtype",
         "fit": "## Least-squares fit (sharp+delta_n): spectral sampling x aperture nodes",
@@ -780,6 +881,31 @@ def markdown(rows: list[Row], st: Settings, ref_note: str, elapsed: float) -> st
         out.append("")
     out += ["## Columns", ""] + [f"* `{k}`: {v}" for k, v in COLUMNS.items()] + [""]
     return "\n".join(out)
+
+
+def noise_table(rows: list[Row]) -> list[str]:
+    """The presets at three noise levels (errors only, no times)."""
+    out = [
+        "## Presets x noise level (numerical error at the optimum; no timing)",
+        "",
+        "Standard scene, `sharp+delta_n`, data simulated with the reference knobs. `rms / se`: "
+        "`fitting.numerical_error` against the converged reference (5 nm, "
+        f"{REF_APERTURE_NODES} nodes), what the accuracy check compares with "
+        "`fitting.ACCURACY_LIMIT` = 0.2; `max / median se`: the largest difference over the "
+        "median standard error; `bias`: max |fit - truth| / stderr on noiseless data with that "
+        "noise level's errors; `check`: what `stairfit fit` does (its reference is the accurate "
+        "preset's knobs).",
+        "",
+        "| preset | noise | of peak | rms / se | max / median se | bias (se) | check | note |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        out.append(
+            f"| {r.config.split(' at ')[0]} | {100 * (r.noise or 0):g}% | {_g(r.model_err_rel)} "
+            f"| {_g(r.num_err_rms)} | {_g(r.num_err_max_median_se)} | {_g(r.fit_bias_z)} "
+            f"| {r.refine} | {r.note} |"
+        )
+    return [*out, ""]
 
 
 PRESET_COLOURS = {"fast": "tab:green", "balanced": "tab:orange", "accurate": "tab:red"}
@@ -881,6 +1007,28 @@ def plot(rows: list[Row], path: Path) -> None:
     plt.close(fig)
 
 
+def merge_noise_rows(out_dir: Path, st: Settings, elapsed: float) -> None:
+    """`--noise-only`: the noise axis measured now, every other row kept from tradeoff.csv
+    (whose tables keep the full run's header; a line says which rows are new)."""
+    import datetime
+
+    t0 = time.perf_counter()
+    old = [r for r in read_csv(out_dir / "tradeoff.csv") if r.group != "noise"]
+    rows = old + noise_rows()
+    write_csv(rows, out_dir / "tradeoff.csv")
+    md = out_dir / "tradeoff.md"
+    head = md.read_text().split("\n## ", 1)[0].rstrip() if md.exists() else ""
+    day = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d")
+    stamp = (
+        f"The noise-axis rows were measured on {day} by `python benchmarks/bench_tradeoff.py "
+        f"--noise-only` ({(time.perf_counter() - t0 + elapsed) / 60:.1f} min, errors only); "
+        "every other row and time is from the full run above."
+    )
+    body = markdown(rows, st, "", 0.0).split("\n## ", 1)[1]
+    md.write_text(f"{head}\n\n{stamp}\n\n## {body}")
+    plot(rows, out_dir / "tradeoff_pareto.png")
+
+
 def main() -> None:
     """Command line entry."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
@@ -889,6 +1037,11 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=None, help="timed repeats (median)")
     ap.add_argument("--out-dir", type=Path, default=None, help="where to write the results")
     ap.add_argument("--replot", action="store_true", help="only redraw the plot from the csv")
+    ap.add_argument(
+        "--noise-only",
+        action="store_true",
+        help="measure only the noise-level axis and merge it into the existing tradeoff.csv",
+    )
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
     st = settings_for(args.quick, args.seeds, args.repeats)
@@ -902,6 +1055,11 @@ def main() -> None:
 
     def log(msg: str) -> None:
         print(f"[{time.perf_counter() - t0:6.0f} s] {msg}", flush=True)
+
+    if args.noise_only:
+        merge_noise_rows(out_dir, st, time.perf_counter() - t0)
+        log(f"noise axis merged into {out_dir}")
+        return
 
     rows, ref_note = model_rows(st)
     log("model grid done")
@@ -925,6 +1083,8 @@ def main() -> None:
     if st.presets:
         rows = preset_rows(st, case, rows) + rows
         log("presets done")
+    rows += noise_rows()
+    log("noise axis done")
     write_csv(rows, out_dir / "tradeoff.csv")
     text = markdown(rows, st, ref_note, time.perf_counter() - t0)
     (out_dir / "tradeoff.md").write_text(text)
