@@ -27,7 +27,8 @@ All datasets of one design share their shapes, so every fit reuses one compiled 
 `stairfit.imaging.synthetic`): `--photos` folders (seeds 100, 101, ...) of 10 views (+-25..65
 deg) at 2 MP with its 15% vignetting and flat-field photo, for each of two lights (its round
 0.6-deg light, and a point light as a control), measured and fitted by the
-functions `stairfit fit` runs (app/fit.py: `measure`, `to_observations`, `fit_setup`, `select`,
+functions `stairfit fit` runs (app/commands/fit.py: `measure`, `to_observations`, `fit_setup`,
+`select`,
 `refine`; balanced preset, model-error term on, variant `sharp+floor` forced, no posterior), and
 the intervals of sigma, scale and floor (and the model-error term's value) against the
 renderer's truth. The standard errors are those of the CLI as of this run (per-ROI
@@ -364,7 +365,7 @@ PHOTO_TRUTH_KEYS = {"sigma_rad": "sigma_deg", "scale": "scale", "floor": "floor"
 def photo_options() -> Any:
     """`stairfit fit --model sharp+floor --no-posterior --no-cache --quiet` (balanced preset,
     model-error term on)."""
-    from stairfit.fit import FitOptions
+    from stairfit.outcome import FitOptions
     from stairfit.presets import get_preset
 
     return FitOptions(
@@ -380,9 +381,10 @@ def photo_options() -> Any:
 
 
 def fit_photo_folder(folder: Path, out: Path) -> Any:
-    """The stages of `stairfit fit` (app/fit.py `fit_scene` without writing outputs): measure,
+    """The stages of `stairfit fit` (app/commands/fit.py `fit_scene` without writing outputs):
+    measure,
     observations, selection (forced variant), accuracy check; the chosen fit and the table."""
-    from stairfit import fit as app_fit
+    from stairfit.commands import fit as app_fit
     from stairfit.scene import load_scene
 
     options = photo_options()
@@ -553,7 +555,7 @@ def photo_section(light: str, ph: dict[str, Any]) -> list[str]:
     mef = ph["model_error_frac"]
     return [
         *coverage_table(
-            f"## Photo level, {light} (tests/independent_photos.py, app/fit.py)",
+            f"## Photo level, {light} (tests/independent_photos.py, app/commands/fit.py)",
             [(light, ph["ls"])],
         ),
         "| cell | n | dof | mean | sd (expected) | 5% / 50% / 95% | KS p |",
@@ -666,7 +668,7 @@ def settings_from(args: argparse.Namespace) -> Settings:
 
 def photo_error_model() -> str:
     """Which per-ROI error treatment the CLI of this checkout applies."""
-    from stairfit import fit as app_fit
+    from stairfit.commands import fit as app_fit
 
     if hasattr(app_fit, "channel_inflation"):
         return "standard errors with the CLI's per-ROI channel_inflation"
