@@ -239,6 +239,37 @@ def _to_model_error_bound(run: StartRun, problem: Problem, spec: FreeSpec, data:
     return float(np.max(rel * np.asarray(data.use))) < MODEL_ERROR_NEGLIGIBLE
 
 
+CONTINUE_ROUNDS = 3
+"""When no start converged, the best one that only ran out of steps continues from where it
+stopped, at most this many times `max_steps` more (the same compiled program). A small
+model-error term (2.7e-5 on an independent photo set, whose log-determinant residual is
+singular at 0) slows Levenberg-Marquardt: 256 steps ended every start of 2 of 50 sets short of
+the tolerance, 2048 converged."""
+
+
+def _continued(
+    runs: list[StartRun],
+    static: Static,
+    data: Data,
+    solver: optx.AbstractLeastSquaresSolver,
+    max_steps: int,
+) -> list[StartRun]:
+    """`runs` with the best start that ran out of steps continued (`CONTINUE_ROUNDS`)."""
+    if any(r.converged for r in runs):
+        return runs
+    short = [i for i, r in enumerate(runs) if r.finite and r.name == "nonlinear_max_steps_reached"]
+    if not short:
+        return runs
+    i = min(short, key=lambda k: -2.0 * float(runs[k].ev.loglik))
+    run = runs[i]
+    for _ in range(CONTINUE_ROUNDS):
+        more = _run(run.z, static, data, solver, max_steps)
+        run = more._replace(steps=run.steps + more.steps)
+        if run.converged or run.name != "nonlinear_max_steps_reached" or not run.finite:
+            break
+    return [*runs[:i], run, *runs[i + 1 :]]
+
+
 def start_vectors(problem: Problem, spec: FreeSpec, sigmas: tuple[float, ...]) -> np.ndarray:
     """One start per width: widths as given, others from the fixed values or a heuristic
     (radius `r_max / 4`; floor half the 10th percentile of the data; model error 2%)."""
@@ -351,6 +382,7 @@ def fit_core(
             f"({'; '.join(sorted({r.msg for r in runs}))}); check the observations (values, "
             "stderr) and the fixed parameters"
         )
+    runs = _continued(runs, static, data, solver, max_steps)
     chi2 = np.array([float(r.ev.chi2) if r.finite else np.inf for r in runs])
     objective = np.array([-2.0 * float(r.ev.loglik) if r.finite else np.inf for r in runs])
     bound = [i for i, r in enumerate(runs) if _to_model_error_bound(r, problem, spec, data)]

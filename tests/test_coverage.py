@@ -191,13 +191,9 @@ def test_photo_level_coverage_of_sigma(photo_cells: dict) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="since per-ROI whitening (branch whiten, merged here) the forced sharp+floor fit of "
-    "seed 202 stops with nonlinear_max_steps_reached (the benchmark: seed 116 with a point "
-    "light, 1 of its 40 sets); with channel_inflation all ten sets were fitted. Not diagnosed",
-)
 def test_every_photo_set_is_fitted(photo_cells: dict) -> None:
     """Every one of the 10 photo sets is fitted (`stairfit fit` would stop on any that is not);
-    the coverage tests above use the ones that are."""
+    the coverage tests above use the ones that are. Seed 202 used to stop with
+    nonlinear_max_steps_reached after whitening (a 2.7e-5 model-error term slows LM); the best
+    start now continues (`fitting._core.CONTINUE_ROUNDS`)."""
     assert not photo_cells["failed"], photo_cells["failed"]

@@ -118,3 +118,20 @@ def test_when_every_start_misfits_the_widths_between_them_are_tried(monkeypatch)
     est = fit.estimate("sigma_rad")
     assert abs(est.value - TRUTH.sigma_rad) < 3 * est.stderr
     assert len(fit.starts_sigma_rad) > len(starts)
+
+
+def test_a_start_that_ran_out_of_steps_continues(monkeypatch):
+    """No start meets the tolerance in `max_steps`: the best continues from where it stopped
+    (`fitting._core.CONTINUE_ROUNDS` more budgets, same compiled program)."""
+    from stairfit.fitting import _core
+
+    obs, spec, _ = zoo.standard(fitting.Params(sigma_rad=np.deg2rad(6.0), scale=1.0), seed=3)
+    v = LADDER["sharp"]
+    monkeypatch.setattr(_core, "CONTINUE_ROUNDS", 0)
+    with pytest.raises(fitting.FitError, match="max_steps = 4"):
+        fitting.fit_least_squares(obs, spec, variant=v, max_steps=4)
+    monkeypatch.undo()
+    fit = fitting.fit_least_squares(obs, spec, variant=v, max_steps=4)
+    assert fit.success and fit.num_steps > 4
+    full = fitting.fit_least_squares(obs, spec, variant=v)
+    np.testing.assert_allclose(fit.chi2, full.chi2, rtol=1e-8)
