@@ -55,6 +55,7 @@ def photo_specs(scene: Scene) -> list[Any]:
                 faces_mm=tuple(faces.items()),
                 markers=layout if faces else None,
                 reference=reference,
+                plane_of_incidence=scene.camera.plane_of_incidence,
                 **placement_fields(scene, photo, faces),
                 **radiometry_fields(scene, photo, calibration),
             )

@@ -95,13 +95,16 @@ class Camera:
 
     `focal_length_px` and `principal_point_px` (optional, pixels of the full-resolution raw
     image) make it a pinhole for placing wedge faces in 3-D from the markers; without them an
-    affine camera is assumed (docs/imaging.md §3-D placement).
+    affine camera is assumed (docs/imaging.md §3-D placement). `plane_of_incidence`: the image
+    direction of the plane of incidence for roi_px polygons, "vertical" or "horizontal"
+    (docs/imaging.md §Viewing spread).
     """
 
     sensitivity: str = "ideal"
     angular_extent_deg: float = 0.0
     focal_length_px: float | None = None
     principal_point_px: tuple[float, float] | None = None
+    plane_of_incidence: str = "vertical"
 
 
 @dataclass(frozen=True)
@@ -566,7 +569,8 @@ def _light(r: _Reader, d: dict[str, Any]) -> Light:
 
 
 def _camera(r: _Reader, d: dict[str, Any]) -> Camera:
-    fields = ["sensitivity", "angular_extent_deg", "focal_length_px", "principal_point_px"]
+    fields = ["sensitivity", "angular_extent_deg", "focal_length_px", "principal_point_px",
+              "plane_of_incidence"]  # fmt: skip
     r.table(d, "camera", fields)
     sens = r.get(d, "sensitivity", str, "camera", default="ideal")
     from stairfit.model import spectral
@@ -584,7 +588,14 @@ def _camera(r: _Reader, d: dict[str, Any]) -> Camera:
         if focal is None:
             r.fail("camera.principal_point_px", "needs camera.focal_length_px as well")
         centre = (float(centre[0]), float(centre[1]))
-    return Camera(sens, ext, focal, centre)
+    plane = r.get(d, "plane_of_incidence", str, "camera", default="vertical")
+    if plane not in ("vertical", "horizontal"):
+        r.fail(
+            "camera.plane_of_incidence",
+            f'{plane!r} is not "vertical" (the light and the camera move up and down the '
+            'image, the layer lines run across it) or "horizontal"',
+        )
+    return Camera(sens, ext, focal, centre, plane)
 
 
 def _markers(r: _Reader, d: Any, w: str) -> Markers:

@@ -55,10 +55,12 @@ class Data(NamedTuple):
     geometry and broadening do not depend on the channel: per key (R; distinct (theta_i, wedge),
     or (theta_i, wedge, theta_o), see `_problem.evaluation_grid`) `r_ti`, `r_b2`, `r_wedge`, and
     the viewing angles `r_to` either as a grid shared by all keys `(1, T)` or one per key
-    `(R, 1)`; every key is evaluated for all channels, `r_n` and `r_w` `(C, K)`; each row reads
-    `[r_key, r_t, r_c]`. Distinct (theta_i at each aperture node, beta2, layer_um) (G): `g_ti`,
-    `g_b2`, `g_layer`, indexed by `r_geo` (key, node). Per slot of `z` (P): `free`, `x_fixed`
-    (physical values of fixed slots). Per wedge (W): `sigma_source` (slot holding that wedge's
+    `(R, 1)`, with `r_so` (`(R, T)` or `(R, 1)`): the share of the aperture's viewing spread
+    each (key, view) sees (its ROI's `view_spread`); every key is evaluated for all channels,
+    `r_n` and `r_w` `(C, K)`; each row reads `[r_key, r_t, r_c]`. Distinct (theta_i at each
+    aperture node, beta2, layer_um) (G): `g_ti`, `g_b2`, `g_layer`, indexed by `r_geo` (key,
+    node). Per slot of `z` (P): `free`, `x_fixed` (physical values of fixed slots). Per wedge
+    (W): `sigma_source` (slot holding that wedge's
     width). `r_max_um`: upper bound of the edge radius. Per group of correlated rows (Gr, padded
     to 3 slots; `_whiten.GroupArrays`): `grp_rows`, `grp_mask`, `grp_corr`.
     """
@@ -79,6 +81,7 @@ class Data(NamedTuple):
     r_n: Array
     r_w: Float[Array, "C K"]
     r_to: Float[Array, "R1 T"]
+    r_so: Float[Array, "R1 T"]
     r_geo: Int[Array, "R M"]
     g_ti: Float[Array, " G"]
     g_b2: Float[Array, " G"]
@@ -108,10 +111,17 @@ class EvaluationGrid(NamedTuple):
     r_n: Array
     r_w: Array
     r_to: Array
+    r_so: Array
     r_geo: Array
     g_ti: Array
     g_b2: Array
     g_layer: Array
+
+
+def _view_nodes(g: EvaluationGrid, do: Array, aperture: model.Aperture) -> Array:
+    """Viewing angles at the aperture nodes, `(R|1, T, M)`: each (key, view)'s spread is the
+    aperture's narrowed by its ROI's share `r_so` [conventions §9]."""
+    return model.node_angles(g.r_to, g.r_so[..., None] * do[None, None, :], aperture.foreshortened)
 
 
 def _rounded_impl(
@@ -122,7 +132,7 @@ def _rounded_impl(
     aperture, resolution = cfg
     di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
     ti = model.node_angles(g.r_ti, di)  # (R, M)
-    to = jnp.swapaxes(model.node_angles(g.r_to, do, aperture.foreshortened), -1, -2)  # (R|1,M,T)
+    to = jnp.swapaxes(_view_nodes(g, do, aperture), -1, -2)  # (R|1, M, T)
     n = clamp_index(g.r_n + dn).reshape(-1)  # (C K): every channel's samples on one axis
     res = model.ROUNDED_RESOLUTION if resolution is None else resolution
     # geometry once per distinct (theta_i, beta2, layer) (G of them), then gathered to the keys
@@ -194,7 +204,7 @@ def _sharp_grid_impl(
     """
     di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
     ti = model.node_angles(g.r_ti, di)  # (R, M)
-    to = model.node_angles(g.r_to, do, aperture.foreshortened)  # (R|1, T, M)
+    to = _view_nodes(g, do, aperture)  # (R|1, T, M)
     b2 = g.r_b2[:, None]
     weight = model.lobe_weights(ti, b2)  # (R, M, 3)
     kernel = model.hemisphere_gaussian(
@@ -237,7 +247,7 @@ def _sharp_grid_jvp(
 
 def _grid(data: Data) -> EvaluationGrid:
     return EvaluationGrid(
-        data.r_ti, data.r_b2, data.r_n, data.r_w, data.r_to,
+        data.r_ti, data.r_b2, data.r_n, data.r_w, data.r_to, data.r_so,
         data.r_geo, data.g_ti, data.g_b2, data.g_layer,
     )  # fmt: skip
 

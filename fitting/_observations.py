@@ -47,6 +47,8 @@ class Observations(NamedTuple):
       correlations of the errors of the group's channel 0 and 1, 0 and 2, 1 and 2 rows (the
       same on every row of the group; default 0). The fit whitens each group with
       `C = S R S (+ model error)` (docs/fitting.md §Correlated channels).
+    * `view_spread`: the share (0-1] of the aperture's viewing-angle spread that the row's ROI
+      sees (the eroded ROI is narrower than its face; default 1) [conventions §9].
 
     Build it with `Observations.from_arrays` or `Observations.from_rows`, which validate.
     """
@@ -66,6 +68,7 @@ class Observations(NamedTuple):
     corr_01: NDArray
     corr_02: NDArray
     corr_12: NDArray
+    view_spread: NDArray
 
     @property
     def n_rows(self) -> int:
@@ -120,12 +123,13 @@ class Observations(NamedTuple):
         corr_01: ArrayLike | None = None,
         corr_02: ArrayLike | None = None,
         corr_12: ArrayLike | None = None,
+        view_spread: ArrayLike | None = None,
     ) -> Observations:
         """Validated observations from equal-length 1-D arrays (scalars broadcast).
 
         `use` defaults to all True; `saturated` rows are always excluded (`use` set False);
-        `roi_index` defaults to -1 (independent rows), the correlations to 0.
-        Raises `FitInputError` naming the row, the field and the fix for: an empty table,
+        `roi_index` defaults to -1 (independent rows), the correlations to 0, `view_spread`
+        to 1. Raises `FitInputError` naming the row, the field and the fix for: an empty table,
         mismatched lengths, non-finite or out-of-range angles, a wedge angle outside (0, 90)
         deg, a non-positive layer, NaN values or non-positive/NaN standard errors in used rows,
         inconsistent wedge geometry, a table in which every row is excluded, and groups
@@ -148,6 +152,7 @@ class Observations(NamedTuple):
             "corr_01": corr_01,
             "corr_02": corr_02,
             "corr_12": corr_12,
+            "view_spread": view_spread,
         }
         return _validate(cls(**_columns(fields)))
 
@@ -158,8 +163,8 @@ class Observations(NamedTuple):
         Each row needs `theta_i_rad` or `theta_i_deg`, `theta_o_rad` or `theta_o_deg`,
         `beta2_rad` or `beta2_deg` (or `wedge_deg`), `layer_um`, `wedge_index`,
         `channel_index`, `value`, `stderr`; optional `use`, `photo_index`, `saturated`,
-        `roi_index`, `corr_01`, `corr_02`, `corr_12`. Other keys are ignored. Degrees are
-        converted to radians here [conventions §1].
+        `roi_index`, `corr_01`, `corr_02`, `corr_12`, `view_spread`. Other keys are ignored.
+        Degrees are converted to radians here [conventions §1].
         """
         if len(rows) == 0:
             raise FitInputError(_EMPTY)
@@ -202,6 +207,7 @@ _OPTIONAL_DEFAULTS: tuple[tuple[str, object], ...] = (
     ("saturated", False),
     ("roi_index", -1),
     *((k, 0.0) for k in CORR_FIELDS),
+    ("view_spread", 1.0),
 )
 """Optional columns of `from_rows` and their defaults."""
 
@@ -238,6 +244,8 @@ def _columns(fields: Mapping[str, ArrayLike | None]) -> dict[str, NDArray]:
     for k in (*_FLOAT_FIELDS, *CORR_FIELDS):
         data = fields[k] if fields[k] is not None or k not in CORR_FIELDS else 0.0
         arrays[k] = _column(k, data, n, float)
+    spread = fields.get("view_spread")
+    arrays["view_spread"] = _column("view_spread", 1.0 if spread is None else spread, n, float)
     for k in _INT_FIELDS:
         default = {"photo_index": 0, "roi_index": -1}.get(k)
         arrays[k] = _column(k, fields[k] if fields[k] is not None else default, n, int)
@@ -339,6 +347,12 @@ def _check_rows(obs: Observations, used: NDArray) -> None:
     if bad.size:
         _fail(obs, "value", bad, "is not a finite number",
               "fix the measurement or set use=False for the row")  # fmt: skip
+    spread = obs.view_spread[used]
+    bad = used[~np.isfinite(spread) | (spread < 0.0) | (spread > 1.0)]
+    if bad.size:
+        _fail(obs, "view_spread", bad, "is not a share in [0, 1]",
+              "it is the eroded ROI's share of its face's viewing-angle spread (1 = the whole "
+              "face); fix the measurement table")  # fmt: skip
     se = obs.stderr[used]
     bad = used[~np.isfinite(se) | (se <= 0.0)]
     if bad.size:
@@ -428,6 +442,7 @@ def _sanitised(obs: Observations) -> Observations:
         layer_um=np.where(unused, w_layer[obs.wedge_index], obs.layer_um),
         value=np.where(unused, 0.0, obs.value),
         stderr=np.where(unused, 1.0, obs.stderr),
+        view_spread=np.where(unused, 1.0, obs.view_spread),
     )
 
 

@@ -299,6 +299,8 @@ def _fingerprint(fit: FitResult, data: Data) -> str:
     if fit.problem.correlated:  # independent rows keep the fingerprint they always had
         for name in ("grp_rows", "grp_mask", "grp_corr"):
             h.update(np.ascontiguousarray(np.asarray(getattr(data, name))).tobytes())
+    if not np.all(np.asarray(data.r_so) == 1.0):  # whole-face spreads keep their fingerprint
+        h.update(np.ascontiguousarray(np.asarray(data.r_so)).tobytes())
     h.update(repr((fit.names, fit.problem.priors, fit.problem.aperture)).encode())
     return h.hexdigest()[:32]
 

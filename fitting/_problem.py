@@ -257,13 +257,18 @@ def evaluation_grid(
     pair = np.stack([obs.theta_i_rad, obs.wedge_index.astype(float)], axis=1)
     uniq, key = np.unique(pair, axis=0, return_inverse=True)
     views, t_idx = np.unique(obs.theta_o_rad, return_inverse=True)
-    triple = np.stack([obs.theta_i_rad, obs.wedge_index.astype(float), obs.theta_o_rad], axis=1)
+    spread = np.where(obs.use, obs.view_spread, 1.0)
+    triple = np.stack(
+        [obs.theta_i_rad, obs.wedge_index.astype(float), obs.theta_o_rad, spread], axis=1
+    )
     uniq_v, key_v = np.unique(triple, axis=0, return_inverse=True)
-    if uniq.shape[0] * views.size <= 2 * uniq_v.shape[0]:
+    shared = _shared_spread(key.ravel(), t_idx.ravel(), spread, (uniq.shape[0], views.size))
+    if shared is not None and uniq.shape[0] * views.size <= 2 * uniq_v.shape[0]:
         keys, r_key, r_t, r_to = uniq, key.ravel(), t_idx.ravel(), views[None, :]
+        r_so = shared
     else:
         keys, r_key = uniq_v, key_v.ravel()
-        r_t, r_to = np.zeros(obs.n_rows, dtype=int), uniq_v[:, 2:3]
+        r_t, r_to, r_so = np.zeros(obs.n_rows, dtype=int), uniq_v[:, 2:3], uniq_v[:, 3:4]
     wedge = keys[:, 1].astype(int)
     b2_w, layer_w = np.zeros(obs.n_wedges), np.ones(obs.n_wedges)
     b2_w[obs.wedge_index] = obs.beta2_rad
@@ -279,8 +284,19 @@ def evaluation_grid(
         "r_n": n_base,
         "r_w": weights,
         "r_to": r_to,
+        "r_so": r_so,
     }
     return {**grid, **_geometry_keys(grid, aperture)}
+
+
+def _shared_spread(
+    r_key: np.ndarray, r_t: np.ndarray, spread: np.ndarray, shape: tuple[int, int]
+) -> np.ndarray | None:
+    """The rows' viewing-spread shares on the shared (key, view) grid, `(R, T)` (1 where no
+    row is); None when two rows of one (key, view) differ (they need keys of their own)."""
+    grid = np.ones(shape)
+    grid[r_key, r_t] = spread
+    return grid if np.array_equal(grid[r_key, r_t], spread) else None
 
 
 def _geometry_keys(grid: dict, aperture: model.Aperture) -> dict:

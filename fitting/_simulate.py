@@ -97,7 +97,9 @@ def model_radiance(
     if float(params.edge_radius_um) > 0.0:
         dens = _rounded_rows(params, obs, n, w, sigma, aperture, resolution)
     else:
-        dens = model.band_density(ti, to, jnp.asarray(obs.beta2_rad), n, w, sigma, aperture)
+        dens = model.band_density(
+            ti, to, jnp.asarray(obs.beta2_rad), n, w, sigma, aperture, obs.view_spread
+        )
     return np.asarray(model.radiance(dens, ti, to, params.scale, params.floor))
 
 
@@ -114,7 +116,8 @@ def _rounded_rows(
     ap = aperture or model.Aperture()
     di, do, dw = ap.nodes()
     ti = model.node_angles(obs.theta_i_rad, di)[..., None]  # (N, M, 1)
-    to = model.node_angles(obs.theta_o_rad, do, ap.foreshortened)[..., None]
+    spread = np.asarray(obs.view_spread)[:, None] * do  # the ROI's share of the view spread
+    to = model.node_angles(obs.theta_o_rad, spread, ap.foreshortened)[..., None]
     kwargs = {} if resolution is None else {"resolution": resolution}
     rho = model.brdf_rounded(
         ti,

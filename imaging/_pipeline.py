@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from ._cache import prune_previews, read_cache, write_cache
@@ -36,16 +37,17 @@ from ._placement import (
     CameraPose,
     PinholeCamera,
     check_in_image,
+    face_axis_px,
     face_polygon,
     fit_camera_pose,
     hidden_fraction,
     view_parallax_deg,
 )
 from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
-from ._roi import Polygon, RoiMask, as_polygon, roi_mask
+from ._roi import INCIDENCE_AXES, Polygon, RoiMask, as_polygon, roi_mask, view_spread
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 7
+TABLE_VERSION = 8
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
@@ -55,6 +57,7 @@ TABLE_VERSION = 7
 5 (radiometry branch): the radiometry column (dark frames, flat fields, HDR brackets).
 6 (radiometry branch): the face_view_deg column (a pinhole-placed face's own view angle).
 7: both of the above together (the two branches' tables 5 and 6 are stale).
+8: the view_spread column (the eroded ROI's share of its face's viewing-angle spread).
 """
 
 
@@ -99,6 +102,10 @@ class PhotoSpec:
             the reference: values are expressed at its exposure). docs/imaging.md §HDR brackets.
         calibration: flat-field photos and dark frames to correct with (docs/imaging.md §Flat
             fields and dark frames), or None.
+        plane_of_incidence: the image direction of the plane of incidence for pixel polygons,
+            "vertical" (the layer lines run across the image, as `stairfit simulate` shoots)
+            or "horizontal"; marker-placed faces take it from the camera pose
+            (docs/imaging.md §Viewing spread).
     """
 
     path: Path
@@ -116,6 +123,7 @@ class PhotoSpec:
     occluders_mm: tuple[tuple[str, Polygon, float], ...] = ()
     bracket: tuple[BracketMember, ...] = ()
     calibration: CalibrationSpec | None = None
+    plane_of_incidence: str = "vertical"
 
     def __post_init__(self) -> None:
         path = Path(self.path)
@@ -131,6 +139,11 @@ class PhotoSpec:
             self, "faces_mm", _named_polygons(self.faces_mm, f"photo {name!r}, face_mm")
         )
         _check_geometry_fields(self)
+        if self.plane_of_incidence not in INCIDENCE_AXES:
+            raise ImagingError(
+                f"photo {name!r}: plane_of_incidence = {self.plane_of_incidence!r} must be one "
+                f"of {', '.join(map(repr, INCIDENCE_AXES))}"
+            )
         names = self.roi_names()
         if not names:
             raise ImagingError(f"photo {name!r}: no ROIs; give pixel polygons or faces in mm")
@@ -214,6 +227,7 @@ def cache_key(spec: PhotoSpec, settings: ExtractionSettings) -> str:
         if spec.placed_names()
         else None,
         "reference": spec.reference,
+        "plane_of_incidence": spec.plane_of_incidence,
         "exposure": [spec.exposure_time_s, spec.f_number, spec.iso],
         "settings": asdict(settings),
     }
@@ -331,6 +345,7 @@ def measure_frame(
     key = cache_key(spec, settings)
     stats_frame, black = _stats_source(frame, radiometry)
     stats = {n: roi_channel_stats(stats_frame, roi, settings) for n, roi in rois.items()}
+    spreads = {n: view_spread(roi, _in_plane_axis(spec, placement, n)) for n, roi in rois.items()}
     common = {n: _common_stderr(radiometry, roi, stats[n]) for n, roi in rois.items()}
     ref = stats[spec.reference] if spec.reference else None
     ref_flags = [_flags(s, settings) for s in ref] if ref else None
@@ -383,9 +398,19 @@ def measure_frame(
                     camera=frame.camera,
                     **_marker_columns(placement if by_marker else None, detection, spec, n),
                     radiometry=radiometry.description if radiometry is not None else "",
+                    view_spread=spreads[n],
                 )
             )
     return FrameMeasurement(tuple(rows), rois, exposure, detection, placement)
+
+
+def _in_plane_axis(spec: PhotoSpec, pose: CameraPose | None, name: str) -> np.ndarray:
+    """The image direction along which ROI `name`'s viewing angle varies: from the camera pose
+    for a marker-placed face, else the scene's `plane_of_incidence`."""
+    if pose is not None and name in spec.placed_names():
+        angle = dict(spec.face_angles_deg).get(name, 0.0)
+        return face_axis_px(pose, dict(spec.faces_mm)[name], angle)
+    return np.asarray(INCIDENCE_AXES[spec.plane_of_incidence])
 
 
 def place_faces(

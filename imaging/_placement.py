@@ -448,6 +448,21 @@ def face_polygon(pose: CameraPose, outline_mm: Polygon, beta2_deg: float = 0.0) 
     return tuple((float(x), float(y)) for x, y in img)
 
 
+def face_axis_px(pose: CameraPose, outline_mm: Polygon, beta2_deg: float = 0.0) -> np.ndarray:
+    """Unit image vector (px) of a placed face's in-plane direction: the image of the face's
+    uphill direction `(cos beta2, 0, sin beta2)` at its centre, along which its viewing angle
+    varies (docs/imaging.md §Viewing spread)."""
+    face = face_outline_3d(outline_mm, beta2_deg)
+    centre = face.mean(axis=0)
+    b = math.radians(beta2_deg)
+    step = 0.05 * float(np.ptp(face[:, 0]) or 1.0)
+    uphill = step * np.array([math.cos(b), 0.0, math.sin(b)])
+    ends = pose.project(np.stack([centre - uphill, centre + uphill]))
+    d = ends[1] - ends[0]
+    norm = float(np.hypot(*d))
+    return d / norm if norm > 0 else np.array([0.0, 1.0])
+
+
 def face_view_deg(pose: CameraPose, outline_mm: Polygon, beta2_deg: float = 0.0) -> float | None:
     """The view angle (deg, about y, base frame) from a face's centre to a pinhole's centre:
     the face's own `view_deg` through a camera at finite distance (a raised or off-centre face

@@ -187,3 +187,40 @@ def roi_mask(
         mask=np.ascontiguousarray(mask),
         n_before_erosion=n_before,
     )
+
+
+INCIDENCE_AXES: dict[str, tuple[float, float]] = {"vertical": (0.0, 1.0), "horizontal": (1.0, 0.0)}
+"""Image direction (x, y in px) of the plane of incidence for pixel polygons, by the scene's
+`[camera] plane_of_incidence` (docs/imaging.md §Viewing spread)."""
+
+
+def polygon_axis_variance(polygon: Polygon, axis: np.ndarray) -> float:
+    """Variance (px^2) of the coordinate along the unit vector `axis` over the polygon's area
+    (its second moment by Green's theorem; 0 for a degenerate polygon)."""
+    p = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+    a = np.asarray(axis, dtype=np.float64)
+    t = p @ a
+    w = p @ np.array([-a[1], a[0]])
+    t1, w1 = np.roll(t, -1), np.roll(w, -1)
+    cross = t * w1 - t1 * w
+    area = 0.5 * cross.sum()
+    if abs(area) < 1e-12:
+        return 0.0
+    m1 = ((t + t1) * cross).sum() / (6 * area)
+    m2 = ((t * t + t * t1 + t1 * t1) * cross).sum() / (12 * area)
+    return max(float(m2 - m1 * m1), 0.0)
+
+
+def view_spread(roi: RoiMask, axis: np.ndarray) -> float:
+    """The fraction of its polygon's spread along `axis` (a unit image vector, the face's
+    in-plane direction) that the eroded ROI keeps: the ratio of the standard deviations of the
+    coordinate along `axis` over the eroded pixels (as unit squares) and over the polygon.
+    The fit narrows the face's viewing-angle spread by it (docs/imaging.md §Viewing spread);
+    1.0 when either is undefined."""
+    ys, xs = np.nonzero(roi.mask)
+    full = polygon_axis_variance(roi.polygon, axis)
+    if xs.size < 2 or full <= 0:
+        return 1.0
+    t = (xs + roi.x0) * float(axis[0]) + (ys + roi.y0) * float(axis[1])
+    kept = float(t.var()) + 1.0 / 12.0  # a pixel is a unit square, not a point
+    return float(np.sqrt(min(kept / full, 1.0)))

@@ -71,6 +71,9 @@ class MeasurementRow:
             about y, base frame): the photo's view_deg (seen from the markers' centre) plus the
             parallax from the pose (`view_parallax_deg`); `stairfit fit` takes theta_o from it.
             None otherwise (docs/imaging.md §3-D placement).
+        view_spread: the eroded ROI's share of its face polygon's spread along the face's
+            in-plane direction (ratio of standard deviations, <= 1); the fit narrows the
+            scene's `angular_extent_deg` by it for this ROI (docs/imaging.md §Viewing spread).
     """
 
     photo: str
@@ -107,6 +110,7 @@ class MeasurementRow:
     placement: str
     radiometry: str = ""
     face_view_deg: float | None = None
+    view_spread: float = 1.0
 
 
 COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(MeasurementRow))

@@ -1,7 +1,8 @@
 """Synthetic RAW photographs of wedges on a marked base, for tests, the demo and benchmarks.
 
 `render_photo` draws a Bayer mosaic from per-face relative radiance (the units `measure_photos`
-recovers): faces and background, ArUco markers on the base, a mild multiplicative texture,
+recovers), uniform or varying along the face's in-plane direction (a viewing-angle profile):
+faces and background, ArUco markers on the base, a mild multiplicative texture,
 vignetting, then the sensor: DN = radiance * t * (ISO/100) / N^2 above black, Poisson shot noise
 in electrons, Gaussian read noise, black level, quantisation and clipping at the white level.
 It also returns the exact noise-free expectation of every ROI mean the decoder computes, so tests
@@ -282,6 +283,7 @@ def render_photo(
     seed: int = 0,
     keep_field: bool = False,
     texture_seed: int | None = None,
+    profile_ends: Mapping[str, tuple[Sequence[float], Sequence[float]]] | None = None,
 ) -> SyntheticPhoto:
     """Render a RAW photo of wedge faces on a base.
 
@@ -289,7 +291,12 @@ def render_photo(
         size: (width, height) in pixels.
         faces_px: face name -> polygon in pixel coordinates (docs/imaging.md §Pixels).
         radiance: face name -> (R, G, B) relative radiance, the units the decoder recovers:
-            DN above black = radiance * t * (ISO/100) / N^2 (see `Exposure.scale`).
+            DN above black = radiance * t * (ISO/100) / N^2 (see `Exposure.scale`); or a
+            profile `(Q, 3)` along the face (needs `profile_ends`).
+        profile_ends: face name -> ((x, y), (x, y)) pixel positions where a profile face's
+            coordinate s is -1 and +1: a pixel at p has s = 2 (p - a).(b - a) / |b - a|^2 - 1
+            (clipped to [-1, 1]), and its radiance is the profile interpolated linearly at s
+            between Q nodes evenly spaced over [-1, 1].
         exposure: the exposure (time, f-number, ISO).
         background: (R, G, B) relative radiance of the base.
         sensor: the sensor model (default `SensorModel()`: 14 bits, RGGB).
@@ -326,8 +333,17 @@ def render_photo(
     bg = np.asarray(background, dtype=np.float32).reshape(3)
     polys = {n: as_polygon(faces_px[n], f"face {n!r}") for n in names}
     label = _face_labels((h_img, w_img), [polys[n] for n in names])
-    lut = np.vstack([bg] + [np.asarray(radiance[n], dtype=np.float32).reshape(3) for n in names])
+    profiles = {n: np.asarray(radiance[n], dtype=np.float32) for n in names}
+    ends = dict(profile_ends or {})
+    for n, prof in profiles.items():
+        if prof.ndim == 2 and (prof.shape[0] < 2 or prof.shape[1] != 3 or n not in ends):
+            raise ImagingError(f"render_photo: the profile of face {n!r} needs (Q >= 2, 3) "
+                               "values and its profile_ends")  # fmt: skip
+    lut = np.vstack([bg] + [p.reshape(-1, 3).mean(axis=0) for p in profiles.values()])
     field = _cfa_field(pattern, lut, label)
+    for k, n in enumerate(names, start=1):
+        if profiles[n].ndim == 2:
+            _paint_profile(field, label == k, pattern, profiles[n], ends[n])
     corners_px: dict[int, np.ndarray] = {}
     if markers is not None:
         if plane_to_image is None:
@@ -362,6 +378,28 @@ def render_photo(
         marker_corners_px=corners_px,
         field=field if keep_field else None,
     )
+
+
+def _paint_profile(
+    field: np.ndarray,
+    inside: np.ndarray,
+    pattern: np.ndarray,
+    profile: np.ndarray,
+    ends: tuple[Sequence[float], Sequence[float]],
+) -> None:
+    """Overwrite `field` where `inside` with the (Q, 3) profile interpolated at each pixel's
+    face coordinate s (see `render_photo`), each pixel in its own CFA colour."""
+    ys, xs = np.nonzero(inside)
+    a, b = np.asarray(ends[0], float), np.asarray(ends[1], float)
+    d = b - a
+    s = 2.0 * ((xs - a[0]) * d[0] + (ys - a[1]) * d[1]) / float(d @ d) - 1.0
+    nodes = np.linspace(-1.0, 1.0, profile.shape[0])
+    colour = pattern[ys % 2, xs % 2]
+    out = np.empty(xs.size, dtype=np.float32)
+    for c in range(3):
+        sel = colour == c
+        out[sel] = np.interp(np.clip(s[sel], -1.0, 1.0), nodes, profile[:, c])
+    field[ys, xs] = out
 
 
 def _face_labels(shape: tuple[int, int], polygons: Sequence[Polygon]) -> np.ndarray:

@@ -73,14 +73,20 @@ def node_angles(
 
 
 def _aperture_angles(
-    theta_i: ArrayLike, theta_o: ArrayLike, aperture: Aperture | None
+    theta_i: ArrayLike,
+    theta_o: ArrayLike,
+    aperture: Aperture | None,
+    view_spread: ArrayLike = 1.0,
 ) -> tuple[Array, Array, Array]:
-    """Angles of incidence and viewing at the aperture nodes (clipped to the hemisphere)."""
+    """Angles of incidence and viewing at the aperture nodes (clipped to the hemisphere); the
+    viewing offsets narrowed by `view_spread` (the share of the spread an observation sees)."""
     dtype = jnp.result_type(jnp.asarray(theta_i), jnp.asarray(theta_o))
     aperture = aperture or Aperture()
     di, do, dw = (jnp.asarray(a, dtype) for a in aperture.nodes())
+    theta_o = jnp.asarray(theta_o, dtype)
+    spread = with_rank(jnp.asarray(view_spread, dtype), theta_o.ndim)[..., None]
     ti = node_angles(jnp.asarray(theta_i, dtype), di)  # (n_obs, n_nodes)
-    to = node_angles(jnp.asarray(theta_o, dtype), do, aperture.foreshortened)
+    to = node_angles(theta_o, spread * with_rank(do, theta_o.ndim + 1), aperture.foreshortened)
     return ti, to, dw
 
 
@@ -111,10 +117,11 @@ def band_kernel(
     beta2: ArrayLike,
     sigma: ArrayLike,
     aperture: Aperture | None = None,
+    view_spread: ArrayLike = 1.0,
 ) -> Float[Array, "n_obs n_nodes 3"]:
     """Broadening density (1/rad) of each lobe at each aperture node [conventions §5]."""
     theta_i, theta_o, beta2, sigma = same_rank(theta_i, theta_o, beta2, sigma)
-    ti, to, _ = _aperture_angles(theta_i, theta_o, aperture)
+    ti, to, _ = _aperture_angles(theta_i, theta_o, aperture, view_spread)
     b2 = jnp.asarray(beta2)[..., None]
     return hemisphere_gaussian(
         to[..., None], lobe_directions(ti, b2), jnp.asarray(sigma)[..., None, None]
@@ -129,6 +136,7 @@ def band_density(
     spectral_weight: ArrayLike,
     sigma: ArrayLike,
     aperture: Aperture | None = None,
+    view_spread: ArrayLike = 1.0,
 ) -> Float[Array, " n_obs"]:
     """Band- and aperture-averaged reflectance density (1/rad) for each observation.
 
@@ -137,11 +145,13 @@ def band_density(
     the wavelength samples the observation's channel sees, and the channel's normalised weights
     there (rows sum to 1; one column with weight 1 is the one-effective-wavelength
     approximation) [conventions §4, §8]. `aperture` (default: a point) averages over the finite
-    sizes of light and patch. Angles in radians [conventions §1].
+    sizes of light and patch; `view_spread` (per observation, default 1) narrows the patch's
+    viewing spread to the share its ROI sees [conventions §9]. Angles in radians
+    [conventions §1].
     """
     theta_i, theta_o, beta2, sigma = same_rank(theta_i, theta_o, beta2, sigma)
     ratio = band_ratio(theta_i, beta2, n, spectral_weight, aperture)
-    kernel = band_kernel(theta_i, theta_o, beta2, sigma, aperture)
+    kernel = band_kernel(theta_i, theta_o, beta2, sigma, aperture, view_spread)
     _, _, dw = _aperture_angles(theta_i, theta_o, aperture)
     return jnp.sum(ratio * kernel, axis=-1) @ dw
 

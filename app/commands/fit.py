@@ -264,6 +264,11 @@ def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
     return table
 
 
+def _spread(value: float) -> float:
+    """A row's `view_spread` for the fit: 1 (the whole face) where it is undefined."""
+    return float(value) if np.isfinite(value) and 0 <= value <= 1 else 1.0
+
+
 def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]], list[str]]:
     """The fit's observation table from the measurement table and the scene geometry.
 
@@ -310,6 +315,7 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
                 "saturated": saturated,
                 "roi_index": rois.setdefault((r.photo, r.wedge), len(rois)),
                 **roi_correlations(r),
+                "view_spread": _spread(r.view_spread),
             }
         )
         info.append(
