@@ -173,18 +173,12 @@ def test_photo_level_coverage_of_scale_and_floor(photo_cells: dict) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="sigma is biased low by 2-3 standard errors on the independent photos (benchmark, 20 "
-    "sets, errors whitened per ROI: pull mean -3.4 with the round 0.6-deg light, -2.5 with a "
-    "point light; 95% coverage 10% / 32%; the same with channel_inflation). The scene's "
-    "camera.angular_extent_deg is the whole face's spread of viewing "
-    "angles, but the ROI is eroded by 8 px (80-90% of the face's width here): with the extent "
-    "scaled by 0.7 the pull of two sets went from -2.7 / -1.6 to +1.9 / +2.8, with 0 to +6 / +7",
-)
 def test_photo_level_coverage_of_sigma(photo_cells: dict) -> None:
     """sigma from 10 independent photo sets: 68% and 95% intervals within the 99%
-    Clopper-Pearson limits of 10 datasets."""
+    Clopper-Pearson limits of 10 datasets. It failed (pull mean -3.4) while the fit averaged
+    every ROI over its whole face's viewing spread; with each ROI's `view_spread` it passes.
+    The benchmark's 20 sets with this round light still fail (pull mean -1.53, 95% coverage
+    65%; the point light passes, -0.64): n = 10 has wider limits than that residual bias."""
     for lev in bc.LEVELS:
         cell = photo_cells["cells"]["sigma_rad"][lev]
         assert cell["ok"], (lev, cell)
