@@ -83,10 +83,12 @@ class Specimen:
 
 @dataclass(frozen=True)
 class Light:
-    """The light source: spectrum by name and angular diameter [conventions §8, §9]."""
+    """The light source: spectrum by name, angular diameter and shape [conventions §8, §9]:
+    "uniform" (every in-plane offset across the diameter alike) or "disk" (a round light)."""
 
     illuminant: str = "D65"
     angular_diameter_deg: float = 0.0
+    shape: str = "uniform"
 
 
 @dataclass(frozen=True)
@@ -557,7 +559,7 @@ def _per_channel_index(r: _Reader, params: dict[str, Any], w: str) -> IndexSpec:
 
 
 def _light(r: _Reader, d: dict[str, Any]) -> Light:
-    r.table(d, "light", ["illuminant", "angular_diameter_deg"])
+    r.table(d, "light", ["illuminant", "angular_diameter_deg", "shape"])
     ill = r.get(d, "illuminant", str, "light", default="D65")
     from stairfit.model import spectral
 
@@ -565,7 +567,15 @@ def _light(r: _Reader, d: dict[str, Any]) -> Light:
         spectral.illuminant_spd(ill)
     except ValueError as e:
         r.fail("light.illuminant", str(e))
-    return Light(ill, r.get(d, "angular_diameter_deg", float, "light", default=0.0, lo=0, hi=30))
+    shape = r.get(d, "shape", str, "light", default="uniform")
+    if shape not in ("uniform", "disk"):
+        r.fail(
+            "light.shape",
+            f'{shape!r} is not "disk" (a round light) or "uniform" (a bar across the plane of '
+            "incidence: every in-plane offset alike)",
+        )
+    diameter = r.get(d, "angular_diameter_deg", float, "light", default=0.0, lo=0, hi=30)
+    return Light(ill, diameter, shape)
 
 
 def _camera(r: _Reader, d: dict[str, Any]) -> Camera:

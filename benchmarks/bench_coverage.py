@@ -88,7 +88,8 @@ PHOTO_LIGHTS: dict[str, dict[str, float]] = {
     "point light": {"light_diameter_deg": 0.0},
 }
 """The renderer's round 0.6-deg light (its default), and a point light as a control: the fit
-averages a finite light uniformly across its diameter (docs/fitting.md §9)."""
+averages a finite light over its shape (`[light] shape`; the renderer writes "disk" for its
+round light), docs/conventions.md §9."""
 PHOTO_VARIANT = "sharp+floor"
 
 

@@ -20,30 +20,49 @@ COS_THETA_O_FLOOR = float(np.cos(np.deg2rad(89.9)))
 """`cos(theta_o)` is floored here in the radiance conversion [conventions §9]."""
 
 
+LIGHT_SHAPES: tuple[str, ...] = ("uniform", "disk")
+"""How a finite light's in-plane offsets are distributed (`Aperture.light_shape`)."""
+
+
 class Aperture(NamedTuple):
     """Finite angular extent of the light and of the viewed patch [conventions §9].
 
-    The density is averaged uniformly over `theta_i +- half_width_i_rad` and
-    `theta_o +- half_width_o_rad` with `n_nodes` Gauss-Legendre nodes along each (so
-    `n_nodes**2` evaluations; `n_nodes = 1` is a point evaluation). A light of diameter `D` at
-    distance `d` has `half_width_i = atan(D / 2d)`; a wedge face seen across a length `L` at
-    distance `d` spans about `half_width_o = atan(L cos(theta_o) / 2d)`. With `foreshortened`,
-    `half_width_o_rad` is that spread seen face-on (`atan(L / 2d)`) and every observation uses
-    it times `cos(theta_o)` (`node_angles`); without, the same spread at every `theta_o`.
+    The density is averaged over `theta_i +- half_width_i_rad` and uniformly over
+    `theta_o +- half_width_o_rad`, with `n_nodes` nodes along each (so `n_nodes**2`
+    evaluations; `n_nodes = 1` is a point evaluation). Over the light, `light_shape` "uniform"
+    weighs every in-plane offset alike (Gauss-Legendre: a light that is a bar across the plane
+    of incidence, or a square), "disk" weighs them as a round light's in-plane marginal, the
+    semicircle `sqrt(1 - x^2)` (Gauss-Chebyshev of the second kind: its variance is 3/4 of the
+    uniform one's). A light of diameter `D` at distance `d` has `half_width_i = atan(D / 2d)`;
+    a wedge face seen across a length `L` at distance `d` spans about
+    `half_width_o = atan(L cos(theta_o) / 2d)`. With `foreshortened`, `half_width_o_rad` is
+    that spread seen face-on (`atan(L / 2d)`) and every observation uses it times
+    `cos(theta_o)` (`node_angles`); without, the same spread at every `theta_o`.
     """
 
     half_width_i_rad: float = 0.0
     half_width_o_rad: float = 0.0
     n_nodes: int = 1
     foreshortened: bool = False
+    light_shape: str = "uniform"
 
     def nodes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Offsets in theta_i, offsets in theta_o, and weights (sum 1), each (n_nodes**2,)."""
         if self.n_nodes == 1:
             return np.zeros(1), np.zeros(1), np.ones(1)
+        if self.light_shape not in LIGHT_SHAPES:
+            raise ValueError(f"Aperture.light_shape {self.light_shape!r}: use one of "
+                             f"{', '.join(LIGHT_SHAPES)}")  # fmt: skip
         x, w = np.polynomial.legendre.leggauss(self.n_nodes)
-        xi, xo = np.meshgrid(x, x, indexing="ij")
-        ww = np.outer(w, w) / 4.0
+        xl, wl = x, w
+        if self.light_shape == "disk":
+            k = np.arange(1, self.n_nodes + 1)
+            xl, wl = (
+                np.cos(k * np.pi / (self.n_nodes + 1)),
+                np.sin(k * np.pi / (self.n_nodes + 1)) ** 2,
+            )
+        xi, xo = np.meshgrid(xl, x, indexing="ij")
+        ww = np.outer(wl / wl.sum(), w / w.sum())
         return (
             (xi * self.half_width_i_rad).ravel(),
             (xo * self.half_width_o_rad).ravel(),

@@ -573,7 +573,11 @@ def _scene(setup: Setup, photos: list[dict[str, Any]], flats: list[str]) -> dict
         "version": 1,
         "angles_relative_to": "face" if setup.layout == "flush" else "base",
         "specimen": {"layer_um": setup.layer_um, "material": "pla", "wedges": wedges},
-        "light": {"illuminant": "D65", "angular_diameter_deg": setup.light_diameter_deg},
+        "light": {
+            "illuminant": "D65",
+            "angular_diameter_deg": setup.light_diameter_deg,
+            "shape": "disk" if setup.light_shape == "disk" else "uniform",
+        },
         "camera": camera,
         "markers": {
             "dictionary": "DICT_4X4_50",

@@ -140,3 +140,18 @@ def test_a_profile_face_renders_its_profile_along_the_face() -> None:
         # the CFA colours sample different rows (R and B differ by +-0.7% for s^2 at this
         # small size); their mean follows the continuous ROI
         assert float(np.mean(photo.expected["w"])) == pytest.approx(mean_of(f), rel=2e-3)
+
+
+def test_a_disk_light_weighs_offsets_like_a_round_light() -> None:
+    """`light_shape = "disk"`: the in-plane offsets of a round light of radius h have variance
+    h^2/4 (a uniform bar: h^2/3) and the nodes integrate the semicircle's moments exactly."""
+    h = 0.01
+    for n in (3, 5, 7):
+        di, _, w = model.Aperture(h, 0.0, n, light_shape="disk").nodes()
+        assert float(w.sum()) == pytest.approx(1.0)
+        assert float(w @ di**2) == pytest.approx(h**2 / 4, rel=1e-12)
+        assert float(w @ di**4) == pytest.approx(h**4 / 8, rel=1e-12)  # E[x^4] = 1/8 on the disk
+        du, _, wu = model.Aperture(h, 0.0, n).nodes()
+        assert float(wu @ du**2) == pytest.approx(h**2 / 3, rel=1e-12)
+    with pytest.raises(ValueError, match="light_shape"):
+        model.Aperture(h, 0.0, 3, light_shape="round").nodes()

@@ -378,6 +378,7 @@ def fit_setup(scene: Scene, preset: Preset) -> tuple[Any, Any]:
         if (scene.light.angular_diameter_deg > 0 or scene.camera.angular_extent_deg > 0)
         else 1,
         foreshortened=True,  # angular_extent_deg is the spread seen face-on (docs/scene.md)
+        light_shape=scene.light.shape,
     )
     return spectral, aperture
 
