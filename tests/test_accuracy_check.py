@@ -19,7 +19,7 @@ DEG = np.pi / 180
 SCENE = SimpleNamespace(  # what fit_setup reads of a scene: a dispersive index, a point light
     specimen=SimpleNamespace(index=SimpleNamespace(build=lambda: "pla-bodurov2016")),
     camera=SimpleNamespace(sensitivity="ideal", angular_extent_deg=0.0),
-    light=SimpleNamespace(illuminant="D65", angular_diameter_deg=0.0),
+    light=SimpleNamespace(illuminant="D65", angular_diameter_deg=0.0, shape="uniform"),
 )
 
 
