@@ -401,6 +401,15 @@ class _Reader:
             self.fail(name, f"{v!r} is outside [{lo}, {hi}]; fix the value")
         return v
 
+    def choice(self, d: dict[str, Any], key: str, where: str, choices: dict[str, str]) -> str:
+        """A string field that must be one of `choices` (value -> meaning; the first is the
+        default); the error lists each with its meaning."""
+        v = self.get(d, key, str, where, default=next(iter(choices)))
+        if v not in choices:
+            listed = "; ".join(f'"{c}" ({m})' for c, m in choices.items())
+            self.fail(_join(where, key), f"{v!r} is not one of: {listed}")
+        return v
+
     def polygon(self, d: dict[str, Any], key: str, where: str) -> Polygon | None:
         if key not in d:
             return None
@@ -567,13 +576,10 @@ def _light(r: _Reader, d: dict[str, Any]) -> Light:
         spectral.illuminant_spd(ill)
     except ValueError as e:
         r.fail("light.illuminant", str(e))
-    shape = r.get(d, "shape", str, "light", default="uniform")
-    if shape not in ("uniform", "disk"):
-        r.fail(
-            "light.shape",
-            f'{shape!r} is not "disk" (a round light) or "uniform" (a bar across the plane of '
-            "incidence: every in-plane offset alike)",
-        )
+    shape = r.choice(d, "shape", "light", {
+        "uniform": "a bar across the plane of incidence: every in-plane offset alike",
+        "disk": "a round light",
+    })  # fmt: skip
     diameter = r.get(d, "angular_diameter_deg", float, "light", default=0.0, lo=0, hi=30)
     return Light(ill, diameter, shape)
 
@@ -598,13 +604,11 @@ def _camera(r: _Reader, d: dict[str, Any]) -> Camera:
         if focal is None:
             r.fail("camera.principal_point_px", "needs camera.focal_length_px as well")
         centre = (float(centre[0]), float(centre[1]))
-    plane = r.get(d, "plane_of_incidence", str, "camera", default="vertical")
-    if plane not in ("vertical", "horizontal"):
-        r.fail(
-            "camera.plane_of_incidence",
-            f'{plane!r} is not "vertical" (the light and the camera move up and down the '
-            'image, the layer lines run across it) or "horizontal"',
-        )
+    plane = r.choice(d, "plane_of_incidence", "camera", {
+        "vertical": "the light and the camera move up and down the image, the layer lines "
+        "run across it",
+        "horizontal": "they move across the image",
+    })  # fmt: skip
     return Camera(sens, ext, focal, centre, plane)
 
 

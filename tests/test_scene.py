@@ -168,3 +168,24 @@ def test_simulated_scene_reads_back(tmp_path):
         (20.0, 72.0),
         (0.0, 72.0),
     )
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "message"),
+    [
+        (["light", "shape"], "round", r'light\.shape: .round. is not one of: "uniform" .*"disk"'),
+        (["camera", "plane_of_incidence"], "up",
+         r'camera\.plane_of_incidence: .up. is not one of: "vertical"'),
+        (["camera", "plane_of_incidence"], 1, r"camera\.plane_of_incidence: must be"),
+    ],
+)  # fmt: skip
+def test_light_shape_and_plane_of_incidence_are_checked(tmp_path, path, value, message):
+    """The two choice fields: a one-line error naming the file, the field and the choices;
+    defaults "uniform" and "vertical"."""
+    with pytest.raises(UserError, match=message) as err:
+        load_scene(_write(tmp_path, _mutate(path, value)))
+    assert str(tmp_path / "scene.toml") in str(err.value) and "\n" not in str(err.value)
+    scene = load_scene(_write(tmp_path, GOOD))
+    assert (scene.light.shape, scene.camera.plane_of_incidence) == ("uniform", "vertical")
+    disk = load_scene(_write(tmp_path, _mutate(["light", "shape"], "disk")))
+    assert disk.light.shape == "disk"
