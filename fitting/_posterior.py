@@ -87,7 +87,16 @@ TAU_RELIABLE = 50.0
 """emcee's `get_autocorr_time` trusts its estimate only on chains longer than 50 tau (it raises
 otherwise; the stopping rule uses `integrated_time(tol=0)`, which does not)."""
 
-_batched_physical = jax.jit(jax.vmap(physical, in_axes=(0, None, None)), static_argnums=(1,))
+
+def _block_physical(block: Array, base_z: Array, slots: Array, static: Static, data: Data) -> Array:
+    """Physical values of the free slots for one block of unconstrained samples `(B, p)`: the
+    samples scattered into the full parameter vector, transformed, and the free slots read back
+    (all inside one compiled program; eager scatters cost about 1 ms each)."""
+    full = jnp.broadcast_to(base_z, (block.shape[0], base_z.shape[0])).at[:, slots].set(block)
+    return jax.vmap(physical, in_axes=(0, None, None))(full, static, data)[:, slots]
+
+
+_batched_physical = jax.jit(_block_physical, static_argnums=(3,))
 
 
 class PosteriorOptions(NamedTuple):
@@ -409,6 +418,8 @@ class _Run(NamedTuple):
     sampling_s: float
     diagnostics: Diagnostics | None = None
     diagnosed: int = 0
+    chain: np.ndarray | None = None
+    """The whole chain in physical values, converted chunk by chunk (None: no chunk ran)."""
 
 
 def _burn_in(tau: np.ndarray, n_steps: int, opts: PosteriorOptions) -> int:
@@ -431,24 +442,35 @@ def _run_chunks(
 ) -> _Run:
     """Run in chunks of `chunk_steps` (the first from `state`, every later one, and every one of
     a resumed chain, from where emcee stopped: `run_mcmc(None, n)`), saving the chain after
-    each, until it is converged (`PosteriorOptions`) or `max_steps` long."""
+    each, until it is converged (`PosteriorOptions`) or `max_steps` long.
+
+    Each chunk's new steps alone are converted to physical values (the whole chain each time
+    made the conversion quadratic in the chain's length). Tau is estimated after every chunk
+    until the first R-hat / ESS check; after a failed check only once the chain has reached the
+    next check's length (`DIAGNOSE_GROWTH`), where "settled" compares it with the estimate of
+    the previous chunk at which it was computed."""
     backend: ChainBackend = sampler.backend
     tau = np.full(t.slots.size, np.inf)
     spent, check_at, last = 0.0, 0, _Run(tau, False, 0.0)
+    done = backend.get_chain() if backend.iteration else None
+    chain = None if done is None else _physical_chain(t, done)
     while (n_run := min(opts.chunk_steps, opts.max_steps - backend.iteration)) > 0:
         t0 = time.perf_counter()
         sampler.run_mcmc(state, n_run, progress=progress)
         spent += time.perf_counter() - t0
         state = None
         chain_z = backend.get_chain()
-        tau_new = emcee.autocorr.integrated_time(chain_z, tol=0)
-        settled = bool(np.all(np.abs(tau_new - tau) < opts.tau_rtol * tau_new))
-        tau, n = tau_new, chain_z.shape[0]
-        check = n > opts.tau_factor * np.max(tau) and settled and n >= check_at
-        chain = _physical_chain(t, chain_z) if check or backend.path is not None else None
+        new = _physical_chain(t, chain_z[0 if chain is None else chain.shape[0] :])
+        chain = new if chain is None else np.concatenate([chain, new])
+        n, check = chain_z.shape[0], False
+        if n >= check_at:
+            tau_new = emcee.autocorr.integrated_time(chain_z, tol=0)
+            settled = bool(np.all(np.abs(tau_new - tau) < opts.tau_rtol * tau_new))
+            tau = tau_new
+            check = n > opts.tau_factor * np.max(tau) and settled
         if backend.path is not None:
             backend.save(chain, tau)
-        last = last._replace(tau=tau, sampling_s=spent)
+        last = last._replace(tau=tau, sampling_s=spent, chain=chain)
         if check:
             d = chain_diagnostics(chain, _burn_in(tau, n, opts))
             last = last._replace(diagnostics=d, diagnosed=n)
@@ -504,10 +526,11 @@ def _summary(
     acc = backend.accepted / n_steps
     burn = _burn_in(run.tau, n_steps, opts)
     thin = max(1, int(opts.thin_frac * float(np.min(run.tau))))
-    samples = t.physical(chain_z[burn::thin].reshape(-1, p))
+    have = run.chain is not None and run.chain.shape[0] == n_steps
+    chain = run.chain if have else _physical_chain(t, chain_z)
+    samples = chain[burn::thin].reshape(-1, p)
     q = np.percentile(samples, [2.5, 16, 50, 84, 97.5], axis=0)
     ls_se = np.asarray(t.fit.stderrs)
-    chain = _physical_chain(t, chain_z)
     same = run.diagnostics is not None and run.diagnosed == n_steps
     diag = run.diagnostics if same else chain_diagnostics(chain, burn)
     checks = diagnostic_warnings(diag, t.fit.names)
@@ -599,9 +622,7 @@ def _to_physical_samples(
     n_pad = -n % PHYSICAL_BLOCK
     padded = np.concatenate([kept_z, np.repeat(kept_z[-1:], n_pad, axis=0)], axis=0)
     out = []
-    base = jnp.asarray(base_z)
+    base, free = jnp.asarray(base_z), jnp.asarray(slots)
     for block in padded.reshape(-1, PHYSICAL_BLOCK, kept_z.shape[1]):
-        full = jnp.broadcast_to(base, (PHYSICAL_BLOCK, base.shape[0]))
-        full = full.at[:, jnp.asarray(slots)].set(jnp.asarray(block))
-        out.append(np.asarray(_batched_physical(full, static, data))[:, slots])
+        out.append(np.asarray(_batched_physical(jnp.asarray(block), base, free, static, data)))
     return np.concatenate(out, axis=0)[:n]
