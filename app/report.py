@@ -238,6 +238,7 @@ def posterior_diagnostics(post: Any) -> dict[str, Any] | None:
         return None
     return {
         "seed": post.seed,
+        "moves": post.moves,
         "n_walkers": post.n_walkers,
         "n_steps": post.n_steps,
         "tau": list(post.tau),
