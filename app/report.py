@@ -151,7 +151,9 @@ def write_outputs(outcome: FitOutcome, out: Path) -> None:
 
 
 def write_observations(outcome: FitOutcome, path: Path) -> None:
-    """The fitted rows: geometry, measurement, model, uncertainty and whitened residual."""
+    """The fitted rows: geometry, measurement, model, uncertainty and whitened residual, and
+    what the fit's error model and aperture used per row: the ROI group and its channel
+    correlations (docs/fitting.md §Correlated channels) and the row's viewing spread."""
     fit = outcome.selection.fit
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
@@ -170,6 +172,11 @@ def write_observations(outcome: FitOutcome, path: Path) -> None:
                 "model",
                 "uncertainty",
                 "whitened_residual",
+                "roi_index",
+                "corr_01",
+                "corr_02",
+                "corr_12",
+                "view_spread",
             ]
         )
         obs = outcome.observations
@@ -189,6 +196,11 @@ def write_observations(outcome: FitOutcome, path: Path) -> None:
                     f"{fit.model[i]:.8g}",
                     f"{fit.uncertainty[i]:.6g}",
                     f"{fit.residuals[i]:.5g}",
+                    int(obs.roi_index[i]),
+                    f"{obs.corr_01[i]:.6g}",
+                    f"{obs.corr_02[i]:.6g}",
+                    f"{obs.corr_12[i]:.6g}",
+                    f"{obs.view_spread[i]:.6g}",
                 ]
             )
 

@@ -1,15 +1,23 @@
 """The NumPy + SciPy baseline of one sharp-model fit, run as its own process (issue 14).
 
 Reads what `stairfit fit` measured (the scene's `scene.toml` and the fit folder's
-`observations.csv`: face-frame angles, values and the uncertainties stairfit fitted with) and
-fits the same model with `scipy.optimize.least_squares` (trf, 2-point finite-difference
-Jacobian) on the plain NumPy staircase of `numpy_staircase.py`: the sharp lobes broadened by
-sigma, averaged over the same Gauss-Legendre aperture nodes as `stairfit.model.Aperture`,
-`scale * cos(theta_i) * rho / cos(theta_o) + floor * cos(theta_i)` [conventions §9], one
-effective wavelength per channel (the balanced preset's sampling). The starts are stairfit's
-sigma starts, with scale (and floor) from a linear least-squares solve at each. It imports
-neither jax nor stairfit, so timing this process from outside (`bench_cold.py`) is the
-baseline's whole cost, imports included.
+`observations.csv`: face-frame angles, values, the uncertainties stairfit fitted with, each
+ROI's channel correlations and each row's viewing spread) and fits the same model with
+`scipy.optimize.least_squares` (trf, 2-point finite-difference Jacobian) on the plain NumPy
+staircase of `numpy_staircase.py`:
+
+* the sharp lobes broadened by sigma, averaged over the same Gauss-Legendre aperture nodes as
+  `stairfit.model.Aperture`, the viewing offsets scaled by each row's `view_spread` and
+  foreshortened by `cos(theta_o)`;
+* `scale * cos(theta_i) * rho / cos(theta_o) + floor * cos(theta_i)` [conventions §9], one
+  effective wavelength per channel (the balanced preset's sampling);
+* residuals whitened per ROI with the 3 x 3 correlation of its R, G, B errors
+  (docs/fitting.md §Correlated channels).
+
+The stairfit fit it is compared with runs with `--no-model-error` (a variance parameter has no
+least-squares form here). The starts are stairfit's sigma starts, with scale (and floor) from
+a linear least-squares solve at each. It imports neither jax nor stairfit, so timing this
+process from outside (`bench_cold.py`) is the baseline's whole cost, imports included.
 
     python benchmarks/scipy_sharp_fit.py PHOTOS_DIR FIT_DIR [--variant sharp+floor]
 
@@ -55,8 +63,57 @@ def read_rows(photos: Path, fit: Path) -> dict[str, np.ndarray]:
         "beta2": np.array([beta2[r["wedge"]] for r in rows]) * DEG,
         "value": np.array([float(r["value"]) for r in rows]),
         "sigma_y": np.array([float(r["uncertainty"]) for r in rows]),
+        "spread": np.array([float(r["view_spread"]) for r in rows]),
+        "groups": roi_groups(rows),
         "scene": scene,
     }
+
+
+EIGEN_FLOOR = 1e-3
+"""As stairfit's: a correlation matrix's eigenvalues are clipped at this, then its diagonal
+rescaled to 1 (docs/fitting.md §Correlated channels)."""
+
+
+def _clipped(r: np.ndarray) -> np.ndarray:
+    w, v = np.linalg.eigh(r)
+    if w.min() >= EIGEN_FLOOR:
+        return r
+    c = (v * np.maximum(w, EIGEN_FLOOR)) @ v.T
+    d = np.sqrt(np.diag(c))
+    return c / np.outer(d, d)
+
+
+def roi_groups(rows: list[dict[str, str]]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(row positions in channel order, correlation matrix) of every ROI group of the used
+    rows; a row with roi_index -1 is a group of its own."""
+    channel = {"R": 0, "G": 1, "B": 2}
+    keys: dict[str, list[int]] = {}
+    for i, r in enumerate(rows):
+        keys.setdefault(r["roi_index"] if r["roi_index"] != "-1" else f"single{i}", []).append(i)
+    out = []
+    for members in keys.values():
+        members.sort(key=lambda i: channel.get(rows[i]["channel"], 0))
+        r = rows[members[0]]
+        c01, c02, c12 = (float(r[k]) for k in ("corr_01", "corr_02", "corr_12"))
+        full = np.array([[1.0, c01, c02], [c01, 1.0, c12], [c02, c12, 1.0]])
+        ch = [channel.get(rows[i]["channel"], 0) for i in members]
+        out.append((np.array(members), _clipped(full[np.ix_(ch, ch)])))
+    return out
+
+
+def whitener(d: dict[str, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(rows, inverse Cholesky factor of S R S) per group: `L^-1 r` are the residuals whose
+    squares sum to chi^2."""
+    out = []
+    for members, corr in d["groups"]:
+        s = d["sigma_y"][members]
+        out.append((members, np.linalg.inv(np.linalg.cholesky(s[:, None] * corr * s[None, :]))))
+    return out
+
+
+def whiten(r: np.ndarray, w: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """`r` (rows, or rows x columns) whitened group by group."""
+    return np.concatenate([inv @ r[members] for members, inv in w])
 
 
 def aperture_nodes(half_i: float, half_o: float, n_nodes: int) -> tuple[np.ndarray, ...]:
@@ -72,7 +129,9 @@ def density(d: dict[str, np.ndarray], n: float, sigma: float, nodes: tuple) -> n
     """Aperture-averaged broadened density (1/rad) of every row."""
     di, do, dw = nodes
     ti = np.clip(d["theta_i"][:, None] + di, -np.pi / 2, np.pi / 2)
-    to = np.clip(d["theta_o"][:, None] + do, -np.pi / 2, np.pi / 2)
+    # the face-on spread, narrowed by the ROI's share and foreshortened by cos(theta_o)
+    half_o = d["spread"] * np.cos(d["theta_o"])
+    to = np.clip(d["theta_o"][:, None] + do * half_o[:, None], -np.pi / 2, np.pi / 2)
     return nps.brdf(ti, to, d["beta2"][:, None], n, sigma) @ dw
 
 
@@ -80,24 +139,28 @@ def fit(d: dict[str, np.ndarray], variant: str, starts_deg: list[float], n_nodes
     """Best of the starts (chi^2) of trf + 2-point FD Jacobian."""
     scene = d["scene"]
     n = CONSTANT_INDEX[scene["specimen"].get("material", "pla")]
+    if scene["light"].get("shape", "uniform") != "uniform":
+        raise SystemExit('the baseline knows only [light] shape = "uniform" (stairfit\'s own)')
     half_i = 0.5 * scene["light"].get("angular_diameter_deg", 0.0) * DEG
     half_o = 0.5 * scene["camera"].get("angular_extent_deg", 0.0) * DEG
     nodes = aperture_nodes(half_i, half_o, n_nodes if half_i > 0 or half_o > 0 else 1)
     cos_i = np.cos(d["theta_i"])
     geo = cos_i / np.maximum(np.cos(d["theta_o"]), COS_FLOOR)
     with_floor = variant == "sharp+floor"
+    w = whitener(d)
+    white_value = whiten(d["value"], w)
 
     def resid(p: np.ndarray) -> np.ndarray:
         model = np.exp(p[1]) * geo * density(d, n, np.exp(p[0]), nodes)
         if with_floor:
             model = model + p[2] * cos_i
-        return (d["value"] - model) / d["sigma_y"]
+        return white_value - whiten(model, w)
 
     best = None
     for s_deg in starts_deg:
         cols = [geo * density(d, n, s_deg * DEG, nodes), cos_i][: 2 if with_floor else 1]
-        a = np.stack(cols, axis=1) / d["sigma_y"][:, None]
-        lin = np.linalg.lstsq(a, d["value"] / d["sigma_y"], rcond=None)[0]
+        a = whiten(np.stack(cols, axis=1), w)
+        lin = np.linalg.lstsq(a, white_value, rcond=None)[0]
         p0 = [np.log(s_deg * DEG), np.log(max(lin[0], 1e-12))]
         lo, hi = [-np.inf, -np.inf], [np.inf, np.inf]
         if with_floor:

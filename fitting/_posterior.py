@@ -474,15 +474,20 @@ def _run_chunks(
     until the first R-hat / ESS check; after a failed check only once the chain has reached the
     next check's length (`DIAGNOSE_GROWTH`), where "settled" compares it with the estimate of
     the previous chunk at which it was computed."""
+    from tqdm import tqdm
+
     backend: ChainBackend = sampler.backend
     tau = np.full(t.slots.size, np.inf)
     spent, check_at, last = 0.0, 0, _Run(tau, False, 0.0)
     done = backend.get_chain() if backend.iteration else None
     chain = None if done is None else _physical_chain(t, done)
+    # one bar for the whole chain (emcee's own draws a new bar for every chunk)
+    bar = tqdm(desc="posterior", unit="step", disable=not progress, initial=backend.iteration)
     while (n_run := min(opts.chunk_steps, opts.max_steps - backend.iteration)) > 0:
         t0 = time.perf_counter()
-        sampler.run_mcmc(state, n_run, progress=progress)
+        sampler.run_mcmc(state, n_run, progress=False)
         spent += time.perf_counter() - t0
+        bar.update(n_run)
         state = None
         chain_z = backend.get_chain()
         new = _physical_chain(t, chain_z[0 if chain is None else chain.shape[0] :])
@@ -496,12 +501,16 @@ def _run_chunks(
         if backend.path is not None:
             backend.save(chain, tau)
         last = last._replace(tau=tau, sampling_s=spent, chain=chain)
+        bar.set_postfix_str(f"tau {np.max(tau):.3g}", refresh=False)
         if check:
             d = chain_diagnostics(chain, _burn_in(tau, n, opts))
             last = last._replace(diagnostics=d, diagnosed=n)
+            bar.set_postfix_str(f"tau {np.max(tau):.3g}, R-hat {np.max(d.rhat):.4f}")
             if _diagnostics_pass(d, opts):
+                bar.close()
                 return last._replace(converged=True)
             check_at = math.ceil(DIAGNOSE_GROWTH * n)
+    bar.close()
     return last
 
 

@@ -54,6 +54,7 @@ def test_sharp_scene_is_recovered(tmp_path: Path) -> None:
     assert {"sigma_deg", "scale"} <= set(pulls), pulls
     assert all(abs(p) < PULL_MAX for p in pulls.values()), pulls
     _check_chain_diagnostics(tmp_path / "fit", results)
+    _check_observation_columns(tmp_path / "fit")
     # the sharp scene is described by its model, and the report says what became of rounding
     assert results["assessment"]["misfits"] is False, results["assessment"]["headline"]
     rounding = results["model_selection"]["rounding"]
@@ -61,6 +62,24 @@ def test_sharp_scene_is_recovered(tmp_path: Path) -> None:
     page = (tmp_path / "fit" / "report.html").read_text()
     assert "does not describe the data" not in page
     assert f"Rounded edges: {html.escape(rounding['sentence'])}" in page
+
+
+def _check_observation_columns(out: Path) -> None:
+    """observations.csv records what the fit's error model used: each ROI's three channel rows
+    share a `roi_index` and its correlations, and every row has a viewing spread in (0, 1]
+    (what benchmarks/scipy_sharp_fit.py reads to solve the same problem)."""
+    import csv
+
+    with open(out / "observations.csv", newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["used"] == "1"]
+    groups: dict[str, set] = {}
+    for r in rows:
+        assert 0 < float(r["view_spread"]) <= 1, r
+        key = tuple(r[k] for k in ("corr_01", "corr_02", "corr_12"))
+        groups.setdefault(r["roi_index"], set()).add((r["photo"], r["wedge"], key))
+    assert "-1" not in groups and len(groups) >= len(rows) / 3
+    assert all(len(g) == 1 for g in groups.values()), "one ROI per roi_index, one set of corr"
+    assert any(float(r["view_spread"]) < 1 for r in rows)  # eroded ROIs see less than the face
 
 
 def _check_chain_diagnostics(out: Path, results: dict) -> None:
