@@ -250,6 +250,13 @@ def test_independent_rows_take_the_plain_path_and_ungrouped_zero_correlation_agr
 # --- gradients at correlations of +-1 ----------------------------------------------------------
 
 
+# compiled once for all four correlations (they are data): eagerly, the first case took 17 s
+_ll_and_grad = jax.jit(jax.value_and_grad(log_likelihood_z), static_argnums=(1,))
+_residual_jacobian = jax.jit(
+    lambda z, static, data: jax.jacfwd(residuals)(z, (static, data)), static_argnums=(1,)
+)
+
+
 @pytest.mark.parametrize(
     "corr", [(1.0, 1.0, 1.0), (-1.0, -1.0, 1.0), (0.999999, 0.999999, 0.999999), (1.0, -1.0, 1.0)]
 )
@@ -269,8 +276,8 @@ def test_gradients_are_finite_at_extreme_correlations(corr: tuple[float, float, 
     z0 = jnp.asarray(start_vectors(problem, spec_v, (TRUTH.sigma_rad,))[0])
     k = problem.layout.slot("model_error_frac")
     for z in (z0, z0.at[k].set(-30.0)):  # 2% model error, and practically none
-        ll, grad = jax.value_and_grad(log_likelihood_z)(z, static, data)
-        jac = jax.jacfwd(residuals)(z, (static, data))
+        ll, grad = _ll_and_grad(z, static, data)
+        jac = _residual_jacobian(z, static, data)
         assert np.isfinite(float(ll))
         assert np.all(np.isfinite(np.asarray(grad))) and np.any(np.asarray(grad) != 0)
         assert np.all(np.isfinite(np.asarray(jac)))
