@@ -114,6 +114,15 @@ def test_moves_are_named_validated_and_de_mixes_faster_than_stretch(fit):
     )
 
 
+def test_progress_is_one_bar_for_the_whole_chain(fit, capsys):
+    """`progress=True` draws one "posterior" bar counting steps across the chunks (emcee's own
+    progress drew a new bar for every chunk: 0/100 ... 100/100 lines in a log)."""
+    _short(fit, seed=1, max_steps=300, progress=True)
+    err = capsys.readouterr().err
+    assert "posterior" in err and "300step" in err, err
+    assert "100/100" not in err, err
+
+
 def test_chain_as_inference_data_opens_in_arviz(fit, tmp_path):
     import arviz as az
 
