@@ -20,6 +20,17 @@ REFERENCE = "accurate"
 converged reference."""
 
 
+CHI2_ROSE = 1.05
+"""A refit whose chi^2 exceeds the preset fit's by this factor says that the reference itself
+is not converged there (a finer model should not describe the data worse)."""
+
+CHI2_ROSE_NOTE = (
+    "chi^2 rose, so the accurate knobs are not converged for these data either: an aperture "
+    "node average across a kink of the lobe weights (a regime boundary) or a lobe at the "
+    "horizon converges slowly (docs/fitting.md §3, known limitation)"
+)
+
+
 class AccuracyCheck(NamedTuple):
     """What the check found and did: `preset`; `error` (a `fitting.NumericalError` of the
     preset's fit, None when the preset is the reference); `action` (`none`, `warned`,
@@ -99,4 +110,6 @@ def _refit(
         f"knobs in {elapsed:.0f} s (chi^2 {selection.fit.chi2:.5g} -> {fit.chi2:.5g}); the "
         "parameters, the posterior and the figures are the refined fit's"
     )
+    if fit.chi2 > CHI2_ROSE * selection.fit.chi2:
+        message += f"; {CHI2_ROSE_NOTE}"
     return refined, AccuracyCheck(preset.name, error, "refitted", elapsed, message)
