@@ -232,8 +232,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--first-seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="2 seeds, no posterior")
     p.add_argument("--out-dir", type=Path, default=None)
+    p.add_argument(
+        "--report-only",
+        action="store_true",
+        help="rewrite the .md from the .json of an earlier (possibly partial) run",
+    )
     args = p.parse_args(argv)
     from stairfit import __version__
+
+    if args.report_only:
+        return report_only(args.out_dir or HERE / "results")
 
     n = 2 if args.quick else args.seeds
     posterior = not args.quick
@@ -257,6 +265,22 @@ def main(argv: list[str] | None = None) -> int:
             (out_dir / "demo_calibration.json").write_text(json.dumps(partial, indent=1))
     meta["wall_s"] = time.perf_counter() - t0
     meta["load_end"] = load_text()
+    summary = summarize(records)
+    (out_dir / "demo_calibration.json").write_text(
+        json.dumps({"meta": meta, "records": records, "summary": summary}, indent=1)
+    )
+    (out_dir / "demo_calibration.md").write_text(markdown(meta, records, summary))
+    print(markdown(meta, records, summary))
+    return 0
+
+
+def report_only(out_dir: Path) -> int:
+    """The .md of the seeds an earlier run finished (a run stopped early writes its .json
+    after every seed; its end load and wall time are then those of the last seed)."""
+    data = json.loads((out_dir / "demo_calibration.json").read_text())
+    meta, records = data["meta"], data["records"]
+    meta.setdefault("load_end", "(stopped early: not recorded)")
+    meta.setdefault("wall_s", sum(r["wall_s"] for r in records))
     summary = summarize(records)
     (out_dir / "demo_calibration.json").write_text(
         json.dumps({"meta": meta, "records": records, "summary": summary}, indent=1)
