@@ -132,6 +132,29 @@ def whitened_photo_means(obs: Any, model_values: np.ndarray, groups: list) -> np
     return np.array([np.mean(white[use & (photo == p)]) for p in np.unique(photo[use])])
 
 
+def chi2_parts(obs: Any, model_values: np.ndarray, groups: list) -> dict[str, float]:
+    """The whitened chi^2 at `model_values` over the used rows of complete (3-channel) ROIs,
+    split into each ROI's channel-common part (its generalised-least-squares mean relative
+    residual over that mean's variance; 1 dof per ROI) and the rest, the channel differences
+    (2 dof per ROI)."""
+    v, use = np.asarray(obs.value, float), np.asarray(obs.use, bool)
+    common = differences = 0.0
+    n = 0
+    for rows, cov in groups:
+        if rows.size != 3 or not use[rows].all():
+            continue
+        mu = model_values[rows]
+        rel = v[rows] / mu - 1.0
+        inv = np.linalg.inv(cov / np.outer(mu, mu))
+        one = np.ones(3)
+        info = one @ inv @ one
+        mean = one @ inv @ rel / info
+        common += mean**2 * info
+        differences += rel @ inv @ rel - mean**2 * info
+        n += 1
+    return {"common": float(common), "differences": float(differences), "rois": n}
+
+
 def fit_pulls(obs: Any, spectral: Any, aperture: Any, options: Any, truth: Any) -> dict:
     """The demo's forced sharp+floor fit of `obs`: each parameter's pull and interval hits."""
     from stairfit import fitting
@@ -192,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     model_recs: list[dict[str, Any]] = []
     photo_recs: list[dict[str, Any]] = []
+    failed: list[dict[str, Any]] = []
     spread: dict[str, list[float]] = {"photos": [], "model_data": []}
     with tempfile.TemporaryDirectory() as tmp:
         for seed in seeds:
@@ -201,17 +225,23 @@ def main(argv: list[str] | None = None) -> int:
             groups = group_covariances(obs)
             spread["photos"].append(float(np.std(whitened_photo_means(obs, mu, groups), ddof=1)))
             rec = fit_pulls(obs, spectral, aperture, options, truth)
-            photo_recs.append({"seed": seed, **rec})
+            photo_recs.append({"seed": seed, "chi2_at_truth": chi2_parts(obs, mu, groups), **rec})
             print(f"seed {seed} photos: {rec}", flush=True)
             rng = np.random.default_rng(10_000 + seed)
             for k in range(draws):
                 value = mu + draw_noise(groups, obs.n_rows, rng)
                 sim = obs._replace(value=value)
+                parts = chi2_parts(sim, mu, groups)
                 spread["model_data"].append(
                     float(np.std(whitened_photo_means(sim, mu, groups), ddof=1))
                 )
-                rec = fit_pulls(sim, spectral, aperture, options, truth)
-                model_recs.append({"seed": seed, "draw": k, **rec})
+                try:
+                    rec = fit_pulls(sim, spectral, aperture, options, truth)
+                except fitting.FitError as err:  # counted and reported, not hidden
+                    failed.append({"seed": seed, "draw": k, "error": str(err)})
+                    print(f"seed {seed} draw {k}: FAILED {err}", flush=True)
+                    continue
+                model_recs.append({"seed": seed, "draw": k, "chi2_at_truth": parts, **rec})
                 pulls = {q: round(v["pull"], 2) for q, v in rec["params"].items()}
                 print(f"seed {seed} draw {k}: {pulls} (load {load_text()})", flush=True)
     meta["wall_s"] = time.perf_counter() - t0
@@ -221,6 +251,7 @@ def main(argv: list[str] | None = None) -> int:
         "model_data": {"summary": summarize(model_recs), "records": model_recs},
         "photos": {"summary": summarize(photo_recs), "records": photo_recs},
         "photo_mean_spread": {k: float(np.mean(v)) for k, v in spread.items()},
+        "failed": failed,
     }
     (out_dir / "demo_model_data.json").write_text(json.dumps(result, indent=1))
     (out_dir / "demo_model_data.md").write_text(markdown(result))
@@ -255,6 +286,22 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         f"Sd over photos of the rows' mean whitened residual at the truth: photos "
         f"{sp['photos']:.3f}, model data {sp['model_data']:.3f} (mean over seeds / draws).",
+        "",
+        "Chi^2 at the truth (no model-error term) of complete 3-channel ROIs, split into the "
+        "ROIs' channel-common part (1 dof each) and their channel differences (2 dof each), "
+        "mean over seeds / draws: "
+        + "; ".join(
+            f"{what} common {np.mean([r['chi2_at_truth']['common'] for r in recs]):.1f}, "
+            f"differences {np.mean([r['chi2_at_truth']['differences'] for r in recs]):.1f} "
+            f"for {np.mean([r['chi2_at_truth']['rois'] for r in recs]):.1f} ROIs"
+            for what, recs in (
+                ("photos", result["photos"]["records"]),
+                ("model data", result["model_data"]["records"]),
+            )
+        ),
+        "",
+        f"Fits that raised: {len(result['failed'])}"
+        + "".join(f"\n- seed {f['seed']} draw {f['draw']}: {f['error']}" for f in result["failed"]),
         "",
     ]
     return "\n".join(lines)
