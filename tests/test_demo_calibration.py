@@ -72,8 +72,8 @@ def test_demo_truth_is_a_plausible_draw(demo: tuple[dict, dict]) -> None:
     (benchmarks/bench_demo_calibration.py, benchmarks/results/demo_calibration.md) scale's pull
     has mean -0.06 +- 0.11 and sd 0.95, and its 68% / 95% intervals cover 56 and 75 of 80,
     within their 99% Clopper-Pearson limits. Seed 0's -2.16 (least squares; -2.29 in
-    posterior sd) is a 1-in-30 draw. (sigma's mean, -0.43 +- 0.10, is a small bias of the
-    photos' measurement, not of the fit; docs/fitting.md.) One seed can only reject a gross
+    posterior sd) is a 1-in-30 draw. (sigma's mean, -0.43 +- 0.10, is a small bias that the
+    photos bring and model data do not; docs/fitting.md.) One seed can only reject a gross
     bias, so this test asks what one seed can answer, at a false-alarm rate of 1e-3. The
     truth's joint distance from the optimum (chi^2 with one degree of freedom per parameter,
     using the reported correlations; seed 0: 6.03 for 3, tail 0.11) must have a tail
