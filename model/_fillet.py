@@ -19,6 +19,7 @@ derivatives through the per-ray geometry are consistent.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -44,6 +45,9 @@ FILLET_RAYS = 2048
 
 FILLET_BOUNCES = 16
 """Default number of reflections traced per ray (the bound of docs/rounded.md §1)."""
+
+FILLET_FD_STEP = 0.01
+"""Step of the derivative in `r_f`, as a fraction of `min(l1, l2)` (docs/rounded.md §11)."""
 
 _EPS = 1e-9  # smallest accepted ray parameter, in periods (rejects a ray's own start point)
 _SHIFTS = (-1, 0, 1)  # cells whose tread, fillet and riser are tested
@@ -273,8 +277,15 @@ def _ray_power(traced: _Rays, n: Array) -> Float[Array, "... 2 n_rays"]:
     f = fresnel_sp(traced.cos, n[..., None, None, None])
     p_s = jnp.prod(jnp.where(traced.hit, f.s, 1.0), axis=-1)
     p_p = jnp.prod(jnp.where(traced.hit, f.p, 1.0), axis=-1)
-    sign = jnp.asarray([1.0, -1.0], p_s.dtype)[:, None]
+    sign = with_rank(jnp.asarray([1.0, -1.0], p_s.dtype)[:, None], p_s.ndim)
     return 0.5 * (p_s + p_p) * traced.escaped * sign / traced.cos.shape[-2]
+
+
+def _pair_sum(x: Array) -> Array:
+    """Sum over the trailing (pair, ray) axes, the pair first: a ray that misses the fillet
+    then contributes `x + (-x) = 0` exactly, so `r_f = 0` is the rounded model to the bit."""
+    # an explicit add, not a reduction: XLA merges consecutive reductions and reorders them
+    return jnp.sum(x[..., 0, :] + x[..., 1, :], axis=-1)
 
 
 def _args(*arrays: ArrayLike) -> tuple[Array, ...]:
@@ -283,6 +294,69 @@ def _args(*arrays: ArrayLike) -> tuple[Array, ...]:
     if not jnp.issubdtype(dtype, jnp.floating):
         dtype = jnp.result_type(float)
     return same_rank(*(a if jnp.iscomplexobj(a) else jnp.asarray(a, dtype) for a in arrays))
+
+
+class _Static(NamedTuple):
+    """The static knobs of a correction (hashable: a `custom_jvp` non-differentiable arg)."""
+
+    kind: str  # "brdf", "binned" or "total"
+    rays: int
+    bounces: int
+
+
+def _correction(
+    static: _Static, rf: Array, ti: Array, b: Array, l1: Array, r: Array, *rest: Array
+) -> Array:
+    """`T(r, r_f) - T(r, 0)` for one output kind; `rest` is `(n,)`, `(n, edges)` or
+    `(n, theta_o, sigma)`."""
+    traced = _pair_rays(ti, b, l1, r, rf, static.rays, static.bounces)
+    w = _ray_power(traced, rest[0])
+    if static.kind == "total":
+        return _pair_sum(w)
+    if static.kind == "brdf":
+        to, sg = rest[1], rest[2]
+        return _pair_sum(
+            w * hemisphere_gaussian(to[..., None, None], traced.theta_o, sg[..., None, None])
+        )
+    e = rest[1]
+    th = traced.theta_o[..., None]
+    e_d = with_rank(e, th.ndim)
+    inside = (th >= e_d[..., :-1]) & (th < e_d[..., 1:])
+    inside = inside.at[..., -1].set(inside[..., -1] | (th[..., 0] == e[-1]))
+    return _pair_sum(jnp.moveaxis(w[..., None] * inside, -1, -3))
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _fd_in_fillet(static: _Static, rf: Array, rf_max: Array, args: tuple) -> Array:
+    """`_correction(static, rf, *args)`, differentiated in `rf` by a central difference of
+    step `FILLET_FD_STEP` (one-sided at 0 and at `rf_max`) and in everything else through the
+    rays (docs/rounded.md §11: the rays grazing a tip arc make the per-ray derivative in `rf`
+    heavy-tailed, so its sum is not a usable derivative)."""
+    return _correction(static, rf, *args)
+
+
+@_fd_in_fillet.defjvp
+def _fd_in_fillet_jvp(static: _Static, primals: tuple, tangents: tuple) -> tuple:
+    rf, rf_max, args = primals
+    d_rf, _, d_args = tangents
+    out, d_out = jax.jvp(lambda *a: _correction(static, rf, *a), args, d_args)
+    step = FILLET_FD_STEP * jnp.minimum(args[2], args[2] * jnp.cos(args[1]) / jnp.sin(args[1]))
+    hi = jnp.minimum(rf + step, jnp.maximum(rf_max, rf))
+    lo = jnp.maximum(rf - step, 0.0)
+    span = hi - lo
+    ok = span > 0
+    span_safe = jnp.where(ok, span, 1.0)
+    slope = _correction(static, hi, *args) - _correction(static, lo, *args)
+    extra = out.ndim - d_rf.ndim
+    scale = jnp.where(ok, d_rf / span_safe, 0.0).reshape(d_rf.shape + (1,) * extra)
+    return out, d_out + slope * scale
+
+
+def _filleted(static: _Static, base: Array, ti, b, l1, r, rf, *rest) -> Array:  # noqa: ANN001
+    """The rounded `base` plus the fillet correction (broadcast geometry)."""
+    ti, b, l1, r, rf = jnp.broadcast_arrays(ti, b, l1, r, rf)
+    rf_max = jnp.minimum(l1, l1 * jnp.cos(b) / jnp.sin(b)) - r
+    return base + _fd_in_fillet(static, rf, jax.lax.stop_gradient(rf_max), (ti, b, l1, r, *rest))
 
 
 def brdf_filleted(
@@ -312,10 +386,7 @@ def brdf_filleted(
         theta_i, theta_o, beta2, n, sigma, layer_um, edge_radius_um, fillet_radius_um
     )
     base = brdf_rounded(ti, to, b, n, sg, l1, r, resolution=resolution)
-    traced = _pair_rays(ti, b, l1, r, rf, rays, bounces)
-    w = _ray_power(traced, n)
-    kernel = hemisphere_gaussian(to[..., None, None], traced.theta_o, sg[..., None, None])
-    rho = base + jnp.sum(w * kernel, axis=(-2, -1))
+    rho = _filleted(_Static("brdf", rays, bounces), base, ti, b, l1, r, rf, n, to, sg)
     return jnp.where(rho >= 0, rho, 0.0)
 
 
@@ -337,14 +408,8 @@ def filleted_binned(
     check_fillet_radius(beta2, layer_um, edge_radius_um, fillet_radius_um)
     ti, b, n, l1, r, rf = _args(theta_i, beta2, n, layer_um, edge_radius_um, fillet_radius_um)
     base = rounded_binned(ti, bin_edges, b, n, l1, r, resolution=resolution)
-    traced = _pair_rays(ti, b, l1, r, rf, rays, bounces)
-    w = _ray_power(traced, n)
-    e = jnp.asarray(bin_edges, w.dtype)
-    th = traced.theta_o[..., None]
-    e_d = with_rank(e, th.ndim)
-    inside = (th >= e_d[..., :-1]) & (th < e_d[..., 1:])
-    inside = inside.at[..., -1].set(inside[..., -1] | (th[..., 0] == e[-1]))
-    return base + jnp.sum(w[..., None] * inside, axis=(-3, -2))
+    e = jnp.asarray(bin_edges, base.dtype)
+    return _filleted(_Static("binned", rays, bounces), base, ti, b, l1, r, rf, n, e)
 
 
 def filleted_total(
@@ -363,5 +428,4 @@ def filleted_total(
     check_fillet_radius(beta2, layer_um, edge_radius_um, fillet_radius_um)
     ti, b, n, l1, r, rf = _args(theta_i, beta2, n, layer_um, edge_radius_um, fillet_radius_um)
     base = rounded_total(ti, b, n, l1, r, resolution=resolution)
-    w = _ray_power(_pair_rays(ti, b, l1, r, rf, rays, bounces), n)
-    return base + jnp.sum(w, axis=(-2, -1))
+    return _filleted(_Static("total", rays, bounces), base, ti, b, l1, r, rf, n)
