@@ -47,7 +47,8 @@ FILLET_BOUNCES = 16
 """Default number of reflections traced per ray (the bound of docs/rounded.md §1)."""
 
 FILLET_FD_STEP = 0.01
-"""Step of the derivative in `r_f`, as a fraction of `min(l1, l2)` (docs/rounded.md §11)."""
+"""Steps of the correction's derivatives in the geometry, as a fraction of `min(l1, l2)` (the
+radii), of `l1`, and of 15 deg (the angles) (docs/rounded.md §11)."""
 
 _EPS = 1e-9  # smallest accepted ray parameter, in periods (rejects a ray's own start point)
 _SHIFTS = (-1, 0, 1)  # cells whose tread, fillet and riser are tested
@@ -326,37 +327,68 @@ def _correction(
     return _pair_sum(jnp.moveaxis(w[..., None] * inside, -1, -3))
 
 
+def _cap(b: Array, l1: Array) -> Array:
+    """`min(l1, l2)`, the room for `r + r_f` [conventions §2]."""
+    return jnp.minimum(l1, l1 * jnp.cos(b) / jnp.sin(b))
+
+
+def _fd_points(geom: tuple) -> list[tuple[Array, Array]]:
+    """For each geometric argument `(ti, b, l1, r, rf)`, the two values the difference uses:
+    `+-` a step (`FILLET_FD_STEP` of 15 deg for the angles, of `l1` for the layer, of
+    `min(l1, l2)` for the radii), one-sided where a side would leave the domain (grazing
+    incidence, a wedge or layer on which `r + r_f` no longer fits, a radius below 0)."""
+    ti, b, l1, r, rf = geom
+    cap = _cap(b, l1)
+    fits = lambda b_, l1_: r + rf <= _cap(b_, l1_) * (1 + 1e-12)  # noqa: E731
+    h_angle, h_len = FILLET_FD_STEP * np.pi / 12, FILLET_FD_STEP * cap
+    b_hi = jnp.where((b + h_angle < HALF_PI) & fits(b + h_angle, l1), b + h_angle, b)
+    b_lo = jnp.where((b - h_angle > 0) & fits(b - h_angle, l1), b - h_angle, b)
+    l1_lo = jnp.where(fits(b, 0.99 * l1), 0.99 * l1, l1)
+    room = jnp.maximum(cap - r - rf, 0.0)
+    return [
+        (jnp.maximum(ti - h_angle, -HALF_PI), jnp.minimum(ti + h_angle, HALF_PI)),
+        (b_lo, b_hi),
+        (l1_lo, 1.01 * l1),
+        (jnp.maximum(r - h_len, 0.0), r + jnp.minimum(h_len, room)),
+        (jnp.maximum(rf - h_len, 0.0), rf + jnp.minimum(h_len, room)),
+    ]
+
+
 @partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _fd_in_fillet(static: _Static, rf: Array, rf_max: Array, args: tuple) -> Array:
-    """`_correction(static, rf, *args)`, differentiated in `rf` by a central difference of
-    step `FILLET_FD_STEP` (one-sided at 0 and at `rf_max`) and in everything else through the
-    rays (docs/rounded.md §11: the rays grazing a tip arc make the per-ray derivative in `rf`
-    heavy-tailed, so its sum is not a usable derivative)."""
-    return _correction(static, rf, *args)
+def _fd_correction(static: _Static, geom: tuple, rest: tuple) -> Array:
+    """`_correction(static, rf, ti, b, l1, r, *rest)` for `geom = (ti, b, l1, r, rf)`,
+    differentiated in the geometry by differences (`_fd_points`) and in `rest` (index,
+    viewing angle, broadening: they do not move a ray) through the rays. docs/rounded.md §11:
+    rays grazing a tip arc make the per-ray derivative in the geometry heavy-tailed, so its
+    sum is not a usable derivative (0.7-1.7 times the slope in `r_f`, up to 12 in `theta_i`)."""
+    ti, b, l1, r, rf = geom
+    return _correction(static, rf, ti, b, l1, r, *rest)
 
 
-@_fd_in_fillet.defjvp
-def _fd_in_fillet_jvp(static: _Static, primals: tuple, tangents: tuple) -> tuple:
-    rf, rf_max, args = primals
-    d_rf, _, d_args = tangents
-    out, d_out = jax.jvp(lambda *a: _correction(static, rf, *a), args, d_args)
-    step = FILLET_FD_STEP * jnp.minimum(args[2], args[2] * jnp.cos(args[1]) / jnp.sin(args[1]))
-    hi = jnp.minimum(rf + step, jnp.maximum(rf_max, rf))
-    lo = jnp.maximum(rf - step, 0.0)
-    span = hi - lo
-    ok = span > 0
-    span_safe = jnp.where(ok, span, 1.0)
-    slope = _correction(static, hi, *args) - _correction(static, lo, *args)
-    extra = out.ndim - d_rf.ndim
-    scale = jnp.where(ok, d_rf / span_safe, 0.0).reshape(d_rf.shape + (1,) * extra)
-    return out, d_out + slope * scale
+@_fd_correction.defjvp
+def _fd_correction_jvp(static: _Static, primals: tuple, tangents: tuple) -> tuple:
+    geom, rest = primals
+    d_geom, d_rest = tangents
+    ti, b, l1, r, rf = geom
+    out, d_out = jax.jvp(lambda *a: _correction(static, rf, ti, b, l1, r, *a), rest, d_rest)
+    for k, (lo, hi) in enumerate(_fd_points(geom)):
+        span = hi - lo
+        ok = span > 0
+        at = [list(geom), list(geom)]
+        at[0][k], at[1][k] = lo, hi
+        slope = _fd_correction(static, tuple(at[1]), rest) - _fd_correction(
+            static, tuple(at[0]), rest
+        )
+        d = d_geom[k]
+        scale = jnp.where(ok, d / jnp.where(ok, span, 1.0), 0.0)
+        d_out = d_out + slope * scale.reshape(d.shape + (1,) * (out.ndim - d.ndim))
+    return out, d_out
 
 
 def _filleted(static: _Static, base: Array, ti, b, l1, r, rf, *rest) -> Array:  # noqa: ANN001
     """The rounded `base` plus the fillet correction (broadcast geometry)."""
-    ti, b, l1, r, rf = jnp.broadcast_arrays(ti, b, l1, r, rf)
-    rf_max = jnp.minimum(l1, l1 * jnp.cos(b) / jnp.sin(b)) - r
-    return base + _fd_in_fillet(static, rf, jax.lax.stop_gradient(rf_max), (ti, b, l1, r, *rest))
+    geom = tuple(jnp.broadcast_arrays(ti, b, l1, r, rf))
+    return base + _fd_correction(static, geom, rest)
 
 
 def brdf_filleted(
