@@ -51,3 +51,14 @@ from ._rounded import rounded_geometry as rounded_geometry
 from ._rounded import rounded_paths as rounded_paths
 from ._rounded import rounded_structure as rounded_structure
 from ._rounded import rounded_total as rounded_total
+
+# isort: split
+# Concave fillets (issue 15; docs/rounded.md §1, §11), appended after the rounded exports.
+from ._fillet import FILLET_BOUNCES as FILLET_BOUNCES
+from ._fillet import FILLET_RAYS as FILLET_RAYS
+from ._fillet import brdf_filleted as brdf_filleted
+from ._fillet import check_fillet_radius as check_fillet_radius
+from ._fillet import fillet_bounce_bound as fillet_bounce_bound
+from ._fillet import filleted_binned as filleted_binned
+from ._fillet import filleted_total as filleted_total
+from ._fillet import max_fillet_radius as max_fillet_radius

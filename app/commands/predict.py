@@ -39,7 +39,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "theta_i is mirror reflection, theta_o = -theta_i retroreflection). By default the "
             "table holds the broadened in-plane reflectance density rho (1/rad, §4); --lobes "
             "gives the sharp lobes and --diffuse the diffuse-lighting integral. "
-            "--edge-radius-um > 0 rounds the layer edges (docs/rounded.md)."
+            "--edge-radius-um > 0 rounds the layer edges and --fillet-radius-um > 0 the concave "
+            "corners between layers (docs/rounded.md)."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
@@ -63,6 +64,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "radius r (um) of the rounded layer edges, 0 = sharp; 0 <= r <= min(l1, l2) for "
             "every wedge (docs/rounded.md). With r > 0 the density uses the rounded model and "
             "--lobes lists its ten paths"
+        ),
+    )
+    p.add_argument(
+        "--fillet-radius-um",
+        type=float,
+        default=0.0,
+        help=(
+            "radius r_f (um) of the fillets in the concave corners, 0 = sharp; "
+            "0 <= r_f <= min(l1, l2) - r for every wedge (docs/rounded.md §11); density only"
         ),
     )
     p.add_argument("--wavelength-nm", default="550", help="wavelengths (nm)")
@@ -96,6 +106,14 @@ def run(args: argparse.Namespace) -> int:
     wedges, lam, theta_i, theta_o = _grids(args)
     _check_table_size(args, wedges, lam, theta_i, theta_o)
     radius = _edge_radius(args.edge_radius_um, wedges, args.layer_um)
+    fillet = _fillet_radius(args.fillet_radius_um, wedges, args.layer_um, radius)
+    if fillet > 0.0 and (args.lobes or args.diffuse):
+        flag = "--lobes" if args.lobes else "--diffuse"
+        raise UserError(
+            f"--fillet-radius-um with {flag}: fillets are only available for the density (their "
+            f"rays have no path list or diffuse integral); drop {flag} or use "
+            "--fillet-radius-um 0"
+        )
     if radius > 0.0 and args.diffuse:
         raise UserError(
             "--edge-radius-um with --diffuse: the diffuse integral is only available for the "
@@ -118,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
         elif args.diffuse:
             _write_diffuse(w, b2, lam, n_lam, to, args)
         else:
-            _write_density(w, b2, lam, n_lam, ti, to, radius, args)
+            _write_density(w, b2, lam, n_lam, ti, to, (radius, fillet), args)
     return 0
 
 
@@ -252,10 +270,11 @@ def _write_density(
     n_lam: np.ndarray,
     theta_i: np.ndarray,
     theta_o: np.ndarray,
-    radius: float,
+    radii: tuple[float, float],
     args: argparse.Namespace,
 ) -> None:
-    """The broadened density rho (1/rad) on the full grid, sharp or rounded [conventions §4]."""
+    """The broadened density rho (1/rad) on the full grid: sharp, rounded (tip radius > 0) or
+    filleted (fillet radius > 0) [conventions §4]."""
     from stairfit import model
 
     w.writerow(
@@ -267,11 +286,13 @@ def _write_density(
             "theta_o_deg",
             "sigma_deg",
             "edge_radius_um",
+            "fillet_radius_um",
             "rho_per_rad",
         ]
     )
+    radius, fillet = radii
     B, N, T, Th_o = np.meshgrid(b2, n_lam, theta_i, theta_o, indexing="ij")
-    if radius > 0.0:
+    if radius > 0.0 or fillet > 0.0:
         R = _rounded_density(b2, n_lam, theta_i, theta_o, args)
     else:
         R = _jit(model.brdf)(T, Th_o, B, N, np.deg2rad(args.sigma_deg))
@@ -286,6 +307,7 @@ def _write_density(
                 _f(np.rad2deg(Th_o[idx])),
                 _f(args.sigma_deg),
                 _f(radius),
+                _f(fillet),
                 _f(R[idx]),
             ]
         )
@@ -319,6 +341,34 @@ def _edge_radius(radius_um: float, wedges_deg: np.ndarray, layer_um: float) -> f
     return float(radius_um)
 
 
+def _fillet_radius(
+    fillet_um: float, wedges_deg: np.ndarray, layer_um: float, radius_um: float
+) -> float:
+    """The fillet radius (um) if it fits every requested wedge beside the tip arcs, else a
+    one-line UserError: `0 <= r_f <= min(l1, l2) - r` (`model.max_fillet_radius`)."""
+    from stairfit import model
+
+    if fillet_um == 0.0:
+        return 0.0
+    rf_max = _jit(model.max_fillet_radius)(np.deg2rad(wedges_deg), layer_um, radius_um)
+    limit = int(np.argmin(rf_max))
+    valid = f"[0, {max(float(rf_max[limit]), 0.0):.6g}] um"
+    if not (np.isfinite(fillet_um) and fillet_um >= 0.0):
+        raise UserError(
+            f"--fillet-radius-um: {fillet_um:g} um is outside the valid range {valid}: the "
+            "radius must be >= 0 (0 = sharp concave corners)"
+        )
+    cap = float(rf_max[limit]) + radius_um
+    if fillet_um > float(rf_max[limit]) + cap * 1e-12:
+        raise UserError(
+            f"--fillet-radius-um: {fillet_um:g} um is outside the valid range {valid}: tip arc "
+            f"and fillet must fit the facets, r + r_f <= min(l1, l2) = {cap:.6g} um for "
+            f"--wedge-deg {wedges_deg[limit]:g} with --layer-um {layer_um:g} and "
+            f"--edge-radius-um {radius_um:g}; choose r_f in {valid}"
+        )
+    return float(fillet_um)
+
+
 def _rounded_density(
     b2: np.ndarray,
     n_lam: np.ndarray,
@@ -326,16 +376,22 @@ def _rounded_density(
     theta_o: np.ndarray,
     args: argparse.Namespace,
 ) -> np.ndarray:
-    """`model.brdf_rounded` on the (wedge, wavelength, theta_i, theta_o) grid (radians).
+    """`model.brdf_rounded` (or `brdf_filleted` with a fillet) on the (wedge, wavelength,
+    theta_i, theta_o) grid (radians).
 
     Each quantity on its own axis: the geometry is computed once per (wedge, theta_i) and the
     Fresnel factors once per wavelength (see `brdf_rounded`) [conventions §1, §4].
     """
+    import functools
+
     import jax
 
     from stairfit import model
 
-    fn = jax.jit(model.brdf_rounded)
+    if args.fillet_radius_um > 0.0:
+        fn = jax.jit(functools.partial(model.brdf_filleted, fillet_radius_um=args.fillet_radius_um))
+    else:
+        fn = jax.jit(model.brdf_rounded)
     rho = fn(
         theta_i[None, None, :, None],
         theta_o[None, None, None, :],
