@@ -31,8 +31,10 @@ from ._broadening import hemisphere_gaussian
 from ._fresnel import fresnel_sp
 from ._rounded import (
     ROUNDED_RESOLUTION,
+    _room_np,
     brdf_rounded,
     check_edge_radius,
+    max_edge_radius,
     rounded_binned,
     rounded_total,
 )
@@ -70,10 +72,8 @@ def max_fillet_radius(
     angles), so the flat tread `[r, l2 - r_f]` and riser `[r_f, l1 - r]` keep a non-negative
     length exactly when `r + r_f <= min(l1, l2)` [conventions §2].
     """
-    beta2 = jnp.asarray(beta2)
-    l1 = jnp.asarray(layer_um, dtype=beta2.dtype)
-    r = jnp.asarray(edge_radius_um, dtype=beta2.dtype)
-    return jnp.minimum(l1, l1 * jnp.cos(beta2) / jnp.sin(beta2)) - r
+    room = max_edge_radius(beta2, layer_um)
+    return room - jnp.asarray(edge_radius_um, dtype=room.dtype)
 
 
 def check_fillet_radius(
@@ -94,7 +94,7 @@ def check_fillet_radius(
             f"fillet_radius_um = {rf.min():g} um is negative: the fillet radius must be >= 0 "
             "(0 is a sharp concave corner)"
         )
-    cap = np.minimum(l1, l1 * np.cos(b) / np.sin(b))
+    cap = _room_np(b, l1)
     bad = r + rf > cap * (1 + 1e-12)
     if np.any(bad):
         i = np.flatnonzero(bad.ravel())[0]
@@ -329,7 +329,7 @@ def _correction(
 
 def _cap(b: Array, l1: Array) -> Array:
     """`min(l1, l2)`, the room for `r + r_f` [conventions §2]."""
-    return jnp.minimum(l1, l1 * jnp.cos(b) / jnp.sin(b))
+    return max_edge_radius(b, l1)
 
 
 def _fd_points(geom: tuple) -> list[tuple[Array, Array]]:

@@ -85,6 +85,12 @@ def max_edge_radius(beta2: ArrayLike, layer_um: ArrayLike) -> Float[Array, "..."
     return jnp.minimum(l1, l1 * jnp.cos(beta2) / jnp.sin(beta2))
 
 
+def _room_np(b: np.ndarray, l1: np.ndarray) -> np.ndarray:
+    """`max_edge_radius` for concrete float64 arrays (the range checks: no float32 rounding
+    at the bound when x64 is off)."""
+    return np.minimum(l1, l1 * np.cos(b) / np.sin(b))
+
+
 def check_edge_radius(beta2: ArrayLike, layer_um: ArrayLike, edge_radius_um: ArrayLike) -> None:
     """Raise ValueError if a concrete `edge_radius_um` is negative or exceeds `max_edge_radius`.
 
@@ -95,7 +101,7 @@ def check_edge_radius(beta2: ArrayLike, layer_um: ArrayLike, edge_radius_um: Arr
     if any(isinstance(a, jax.core.Tracer) for a in arrays):
         return
     b, l1, r = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in arrays))
-    r_max = np.minimum(l1, l1 * np.cos(b) / np.sin(b))
+    r_max = _room_np(b, l1)
     if np.any(r < 0):
         raise ValueError(
             f"edge_radius_um = {r.min():g} um is negative: the edge radius must be >= 0 "
