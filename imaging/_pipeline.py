@@ -47,7 +47,7 @@ from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import INCIDENCE_AXES, Polygon, RoiMask, as_polygon, roi_mask, view_spread
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 8
+TABLE_VERSION = 9
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
@@ -58,6 +58,7 @@ TABLE_VERSION = 8
 6 (radiometry branch): the face_view_deg column (a pinhole-placed face's own view angle).
 7: both of the above together (the two branches' tables 5 and 6 are stale).
 8: the view_spread column (the eroded ROI's share of its face's viewing-angle spread).
+9: each channel's value moved by its plane to the ROI's centroid (docs/imaging.md §Channel sites).
 """
 
 
