@@ -25,12 +25,21 @@ and the others. Grid: beta2 10/20/30/45/60 deg; theta_i at each kink and at offs
 +-80; sigma 2/6/12 deg; light half-widths 0.1/0.3/1/3 deg; both shapes; n = 1..8.
 
     python benchmarks/bench_aperture.py [--dense 2000] [--out benchmarks/results/aperture.md]
+    python benchmarks/bench_aperture.py --timing [--repeats 30]
+
+`--timing`: the run-time cost on the fit's grid instead. `fitting._forward._sharp_grid_impl`
+(per-row light nodes) against a copy of it with the fixed offsets it had before (the baseline),
+timed interleaved in the same run (`_timing.interleaved_medians`), value and the two-direction
+Jacobian the fit's custom JVP takes; compilation reported apart. Grid: the paper setup's
+(6 wedges lit at theta_i = 0, 16 views, 3 channels, one wavelength each), a 0.6-deg round light
+and a face spread of 1 deg, 2 and 3 nodes per axis (the balanced and accurate presets').
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 
 import jax
@@ -39,6 +48,10 @@ import numpy as np
 import scipy.special
 
 from stairfit import model
+from stairfit.fitting import _forward
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _timing import first_call_seconds, interleaved_medians
 
 jax.config.update("jax_enable_x64", True)
 
@@ -289,15 +302,74 @@ def summary(res: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _plain_sharp_grid(
+    sigma_k: jax.Array, dn: jax.Array, aperture: model.Aperture, g: _forward.EvaluationGrid
+) -> jax.Array:
+    """`_forward._sharp_grid_impl` as it was before issue 12 (the same light offsets on every
+    row, static weights; the direct-Fresnel branch): the timing baseline."""
+    di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
+    ti = model.node_angles(g.r_ti, di)
+    to = _forward._view_nodes(g, do, aperture)
+    b2 = g.r_b2[:, None]
+    weight = model.lobe_weights(ti, b2)
+    kernel = model.hemisphere_gaussian(
+        to[..., None], model.lobe_directions(ti, b2)[:, None], sigma_k[:, None, None, None]
+    )
+    n = g.r_n + dn
+    fresnel = model.lobe_fresnel(ti[:, :, None, None], b2[:, :, None, None], n)
+    band = jnp.einsum("ck,rmckl->rmcl", g.r_w, fresnel)
+    return jnp.einsum("rml,rtml,rmcl,m->rtc", weight, kernel, band, dw)
+
+
+def timing(repeats: int) -> str:
+    """Ratio of the new grid evaluation's time to the old one's (value + 2-direction JVP)."""
+    b2 = jnp.asarray([10.0, 20.0, 30.0, 40.0, 45.0, 60.0]) * DEG
+    to = jnp.linspace(-80.0, 80.0, 16)[None, :] * DEG
+    g = _forward.EvaluationGrid(
+        r_ti=jnp.zeros(6), r_b2=b2, r_n=jnp.full((3, 1), INDEX), r_w=jnp.ones((3, 1)),
+        r_to=to, r_so=jnp.ones_like(to), r_geo=jnp.zeros((6, 1), int), g_ti=jnp.zeros(1),
+        g_b2=jnp.zeros(1), g_layer=jnp.zeros(1),
+    )  # fmt: skip
+    sigma = jnp.full(6, 6.0 * DEG)
+    lines = [
+        "## Run-time cost on the fit's grid (`--timing`)",
+        "",
+        "| nodes per axis | new / old (value + JVP) | compile new / old (s) |",
+        "|---|---|---|",
+    ]
+    for n in (2, 3):
+        ap = model.Aperture(0.3 * DEG, 0.5 * DEG, n, foreshortened=True, light_shape="disk")
+        fns = {}
+        compile_s = {}
+        for name, impl in (("new", _forward._sharp_grid_impl), ("old", _plain_sharp_grid)):
+
+            def value_and_jvp(eps: jax.Array, impl=impl, ap=ap) -> tuple[jax.Array, jax.Array]:
+                return jax.jvp(lambda e: impl(sigma + e[0], e[1], ap, g), (eps,), (jnp.ones(2),))
+
+            f = jax.jit(value_and_jvp)
+            eps = jnp.zeros(2)
+            compile_s[name] = first_call_seconds(lambda f=f, eps=eps: f(eps))
+            fns[name] = lambda f=f, eps=eps: f(eps)
+        med = interleaved_medians(fns, repeats)
+        lines.append(
+            f"| {n} | {med['new'] / med['old']:.2f} ({1e6 * med['new']:.0f} / "
+            f"{1e6 * med['old']:.0f} us) | {compile_s['new']:.2f} / {compile_s['old']:.2f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dense", type=int, default=2000)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--timing", action="store_true")
+    ap.add_argument("--repeats", type=int, default=30)
     args = ap.parse_args()
-    text = summary(run(args.dense))
+    text = timing(args.repeats) if args.timing else summary(run(args.dense))
     print(text)
-    if args.out:
-        args.out.write_text(text)
+    if args.out:  # the timing table is appended to the accuracy tables
+        with args.out.open("a" if args.timing else "w") as fh:
+            fh.write(("\n" if args.timing else "") + text)
 
 
 if __name__ == "__main__":
