@@ -204,3 +204,52 @@ def test_values_and_gradients_are_finite_at_kinks_and_interval_ends(
     args = (jnp.asarray(ti_deg * DEG), jnp.asarray(b2), jnp.asarray(SIGMA))
     value, grads = jax.value_and_grad(f, argnums=(0, 1, 2))(*args)
     assert np.isfinite(float(value)) and all(np.isfinite(float(g)) for g in grads)
+
+
+def _fit_grid_and_rows(shape: str, rounded: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's grid model (`_forward.model_values`) and the row-by-row model
+    (`fitting.model_radiance`: `band_density`, or `brdf_rounded` per row) on photos lit at
+    kinks of the 20- and 45-deg wedges, with a 1-deg light of `shape`."""
+    import zoo
+
+    from stairfit import fitting
+    from stairfit.fitting import _forward, _problem
+
+    design = fitting.Design(
+        (20.0, 45.0), (0.0, -20.0, 45.0, 50.0, 0.1), (80.0, -60.0, 30.0, -30.0, 75.0)
+    )
+    r_um = 20.0 if rounded else 0.0
+    truth = fitting.Params(sigma_rad=6 * DEG, delta_n=0.02, scale=1.3, edge_radius_um=r_um)
+    obs, spec, _ = zoo.scene(truth, design, zoo.effective(), seed=0)
+    ap = model.Aperture(0.5 * DEG, 0.2 * DEG, 3, light_shape=shape)
+    prob = _problem.prepare(obs, spec, aperture=ap)
+    names = ("delta_n", "edge_radius_um") if rounded else ("delta_n",)
+    fs = _problem.spec_for(fitting.variant("v", *names), prob)
+    static, data = prob.static_for(fs), prob.arrays_for(fs)
+    lay = prob.layout
+    z = np.zeros(lay.size)
+    z[0] = np.log(truth.sigma_rad)
+    z[lay.slot("delta_n")] = truth.delta_n
+    z[lay.slot("scale")] = np.log(truth.scale)
+    if rounded:
+        z[lay.slot("edge_radius_um")] = np.arcsin(2 * r_um / prob.r_max_um - 1)
+    grid = jax.jit(lambda zz: _forward.model_values(zz, static, data)[0])(jnp.asarray(z))
+    rows = fitting.model_radiance(truth, obs, spec, aperture=ap)
+    return np.asarray(grid), np.asarray(rows)
+
+
+@pytest.mark.parametrize("shape", ["uniform", "disk"])
+def test_the_fit_grid_uses_the_same_light_nodes_as_the_model(shape: str) -> None:
+    """The fit's (key, view, channel) grid with per-key light weights equals `band_density` row
+    by row at photos lit exactly at, and beside, kinks of the lobe weights."""
+    grid, rows = _fit_grid_and_rows(shape, rounded=False)
+    np.testing.assert_allclose(grid, rows, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.slow  # the rounded model takes about a minute to compile on 2 cores
+def test_the_rounded_fit_grid_uses_the_same_light_nodes_as_the_model() -> None:
+    """The rounded model's grid (geometry per distinct light node, `_problem._geometry_keys`)
+    equals `brdf_rounded` row by row with the same light nodes, at kink rows, a round light."""
+    grid, rows = _fit_grid_and_rows("disk", rounded=True)
+    # atol: a far-tail row at 1e-8 of the peak differs by 2e-20 (1.2e-10 relative, rounding)
+    np.testing.assert_allclose(grid, rows, rtol=1e-10, atol=1e-14 * np.abs(rows).max())
