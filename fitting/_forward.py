@@ -130,8 +130,8 @@ def _rounded_impl(
     """Band- and aperture-averaged rounded density on the (key, view, channel) grid,
     `(R, T, C)`."""
     aperture, resolution = cfg
-    di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
-    ti = model.node_angles(g.r_ti, di)  # (R, M)
+    do = jnp.asarray(aperture.nodes()[1], g.r_ti.dtype)
+    ti, dw = model.light_nodes(g.r_ti, g.r_b2, aperture)  # (R, M) each: per-key light nodes
     to = jnp.swapaxes(_view_nodes(g, do, aperture), -1, -2)  # (R|1, M, T)
     n = clamp_index(g.r_n + dn).reshape(-1)  # (C K): every channel's samples on one axis
     res = model.ROUNDED_RESOLUTION if resolution is None else resolution
@@ -148,7 +148,7 @@ def _rounded_impl(
     )  # (R, M, T, C K)
     rho = rho.reshape(*rho.shape[:-1], *g.r_w.shape)
     band = jnp.einsum("ck,rmtck->rmtc", g.r_w, rho)
-    return jnp.einsum("rmtc,m->rtc", band, dw)
+    return jnp.einsum("rmtc,rm->rtc", band, dw)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
@@ -202,8 +202,8 @@ def _sharp_grid_impl(
     like the rounded model's grid: the lobe weights and broadening depend on (theta_i, wedge,
     theta_o) and are shared by the channels; only the Fresnel factors depend on the channel.
     """
-    di, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
-    ti = model.node_angles(g.r_ti, di)  # (R, M)
+    do = jnp.asarray(aperture.nodes()[1], g.r_ti.dtype)
+    ti, dw = model.light_nodes(g.r_ti, g.r_b2, aperture)  # (R, M) each: per-key light nodes
     to = _view_nodes(g, do, aperture)  # (R|1, T, M)
     b2 = g.r_b2[:, None]
     weight = model.lobe_weights(ti, b2)  # (R, M, 3)
@@ -217,7 +217,7 @@ def _sharp_grid_impl(
     else:
         fresnel = model.lobe_fresnel(g.g_ti[:, None, None], g.g_b2[:, None, None], n)  # (G,C,K,3)
         band = jnp.einsum("ck,gckl->gcl", g.r_w, fresnel)[g.r_geo]  # (R, M, C, 3)
-    return jnp.einsum("rml,rtml,rmcl,m->rtc", weight, kernel, band, dw)
+    return jnp.einsum("rml,rtml,rmcl,rm->rtc", weight, kernel, band, dw)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2,))

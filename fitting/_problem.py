@@ -302,7 +302,8 @@ def _shared_spread(
 def _geometry_keys(grid: dict, aperture: model.Aperture) -> dict:
     """Distinct (theta_i at each aperture node, beta2, layer_um) of the keys: the rounded
     geometry depends on nothing else, so a fit computes it once per entry."""
-    ti = np.asarray(model.node_angles(np.asarray(grid["r_ti"], float), aperture.nodes()[0]))
+    r_ti, r_b2 = (np.asarray(grid[k], float) for k in ("r_ti", "r_b2"))
+    ti = np.asarray(model.light_nodes(r_ti, r_b2, aperture)[0])
     shape = ti.shape  # (R, M)
     b2 = np.broadcast_to(np.asarray(grid["r_b2"], float)[:, None], shape)
     layer = np.broadcast_to(np.asarray(grid["r_layer"], float)[:, None], shape)

@@ -114,8 +114,9 @@ def _rounded_rows(
 ) -> np.ndarray:
     """Rounded-model band density per row, straight from `stairfit.model.brdf_rounded`."""
     ap = aperture or model.Aperture()
-    di, do, dw = ap.nodes()
-    ti = model.node_angles(obs.theta_i_rad, di)[..., None]  # (N, M, 1)
+    _, do, _ = ap.nodes()
+    ti, dw = model.light_nodes(obs.theta_i_rad, obs.beta2_rad, ap)  # (N, M) each
+    ti = ti[..., None]  # (N, M, 1)
     spread = np.asarray(obs.view_spread)[:, None] * do  # the ROI's share of the view spread
     to = model.node_angles(obs.theta_o_rad, spread, ap.foreshortened)[..., None]
     kwargs = {} if resolution is None else {"resolution": resolution}
@@ -129,7 +130,7 @@ def _rounded_rows(
         float(params.edge_radius_um),
         **kwargs,
     )  # (N, M, K)
-    return np.einsum("nk,nmk->nm", w, np.asarray(rho)) @ dw
+    return np.einsum("nk,nmk,nm->n", w, np.asarray(rho), np.asarray(dw))
 
 
 def design_observations(design: Design) -> Observations:

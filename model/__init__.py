@@ -19,12 +19,14 @@ from ._lobes import LOBE_NAMES as LOBE_NAMES
 from ._lobes import Lobes as Lobes
 from ._lobes import lobe_directions as lobe_directions
 from ._lobes import lobe_fresnel as lobe_fresnel
+from ._lobes import lobe_weight_kinks as lobe_weight_kinks
 from ._lobes import lobe_weights as lobe_weights
 from ._lobes import sharp_lobes as sharp_lobes
 from ._measurement import Aperture as Aperture
 from ._measurement import band_density as band_density
 from ._measurement import band_kernel as band_kernel
 from ._measurement import band_ratio as band_ratio
+from ._measurement import light_nodes as light_nodes
 from ._measurement import node_angles as node_angles
 from ._measurement import radiance as radiance
 from .materials import MATERIALS as MATERIALS

@@ -63,6 +63,15 @@ def lobe_weights(theta_i: ArrayLike, beta2: ArrayLike) -> Float[Array, "... 3"]:
     return jnp.stack([tread, riser, retro], axis=-1)
 
 
+def lobe_weight_kinks(beta2: ArrayLike) -> Float[Array, "... 3"]:
+    """Angles of incidence where the lobe weights (and the lobes' Fresnel factors) have a kink in
+    `theta_i`: `-beta2` and `90 deg - beta2` (regimes A|B and B|C, where a facet's local angle
+    passes 90 deg) and `90 deg - 2 beta2` (tread and riser lit equally, the retroreflected share
+    at its peak) [conventions §3]. Radians."""
+    beta2 = jnp.asarray(beta2)
+    return jnp.stack([-beta2, jnp.pi / 2 - 2 * beta2, jnp.pi / 2 - beta2], axis=-1)
+
+
 def lobe_directions(theta_i: ArrayLike, beta2: ArrayLike) -> Float[Array, "... 3"]:
     """Paper Eqs. 4-6: `theta_i + 2 beta2`, `theta_i - 2 beta1`, `-theta_i` [conventions §3]."""
     theta_i, beta2 = jnp.broadcast_arrays(jnp.asarray(theta_i), jnp.asarray(beta2))

@@ -25,9 +25,9 @@ CHI2_ROSE = 1.05
 is not converged there (a finer model should not describe the data worse)."""
 
 CHI2_ROSE_NOTE = (
-    "chi^2 rose, so the accurate knobs are not converged for these data either: an aperture "
-    "node average across a kink of the lobe weights (a regime boundary) or a lobe at the "
-    "horizon converges slowly (docs/fitting.md §3, known limitation)"
+    "chi^2 rose, so the accurate knobs are not converged for these data either: a lobe at the "
+    "horizon, or a light interval holding two kinks of the lobe weights or one close to its "
+    "end, converges slowly (docs/fitting.md §3, light nodes across a kink)"
 )
 
 
