@@ -111,7 +111,7 @@ PRESETS: dict[str, Preset] = {
     "accurate": Preset(
         name="accurate",
         spectral="full",
-        aperture_nodes=3,
+        aperture_nodes=4,  # even: a light interval split at a kink gets 2 + 2 (docs/fitting.md §3)
         rounded_resolution=8,
         diffuse_nodes=8,
         sigma_starts_deg=(1.0, 3.0, 10.0, 30.0),
