@@ -493,6 +493,21 @@ def pixel_view_deg(
     return np.degrees(np.arctan2(centre[0] - xy[:, 0], centre[2] - z))
 
 
+def roi_view_half_width_deg(
+    pose: CameraPose, outline_mm: Polygon, beta2_deg: float, pixels_px: np.ndarray
+) -> float | None:
+    """The half-width (deg) of the uniform spread of viewing angles with the same standard
+    deviation as `pixel_view_deg` over an ROI's (n, 2) pixel centres: `sqrt(3) sd`, the row's
+    own `h_o cos(theta_o) view_spread` [conventions §9]. Unlike the scene's one
+    `angular_extent_deg` it follows each face's own length along its slope (a standing
+    60-deg face on a 20 mm footprint is 40 mm long) and its distance. None for the other
+    camera models or fewer than 2 pixels. docs/imaging.md §Viewing spread."""
+    angles = pixel_view_deg(pose, outline_mm, beta2_deg, pixels_px)
+    if angles is None or angles.size < 2:
+        return None
+    return float(math.sqrt(3.0) * angles.std())
+
+
 def view_parallax_deg(
     pose: CameraPose,
     layout: MarkerLayout,

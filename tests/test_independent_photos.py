@@ -213,7 +213,7 @@ def test_faces_placed_in_3d_from_the_markers_match_the_renderers_projection(
         scene, photos=tuple(dataclasses.replace(p, roi_px=()) for p in scene.photos)
     )
     views = {p.file: p.view_deg for p in scene.photos}
-    centre_misses = []
+    centre_misses, spread_ratio = [], {}
     for spec in photo_specs(unaided):
         _, pose, placed = imaging.place_faces(imaging.decode_raw(spec.path), spec)
         assert pose.model == "pinhole" and set(placed) == set(drawn[spec.name])
@@ -242,9 +242,20 @@ def test_faces_placed_in_3d_from_the_markers_match_the_renderers_projection(
             )
             assert mean == pytest.approx(rendered, abs=0.003), (spec.name, name)
             centre_misses.append(abs(own - rendered))
+            # the ROI's own spread of viewing angles (sqrt(3) sd), against the renderer's
+            angles = np.degrees(np.arctan2(cam.centre[0] - x, cam.centre[2] - z))
+            half = imaging.roi_view_half_width_deg(pose, dict(spec.faces_mm)[name], beta2, pixels)
+            assert half == pytest.approx(math.sqrt(3) * angles.std(), rel=0.01), (spec.name, name)
+            scene_half = (
+                0.5 * scene.camera.angular_extent_deg * math.cos(math.radians(want + beta2))
+            )
+            spread_ratio[name] = max(spread_ratio.get(name, 0.0), half / scene_half)
         for name, polygon in placed.items():
             truth = np.asarray(drawn[spec.name][name], float)
             ours = np.asarray(polygon, float)
             miss = np.linalg.norm(ours - truth, axis=-1)  # outline order: foot, top, top, foot
             assert miss[[0, 3]].max() < 0.5 and miss[[1, 2]].max() < 2.5, (spec.name, name, miss)
     assert max(centre_misses) > 0.008  # seen from the face's centre, the ROI's mean is missed
+    # the scene's one angular_extent_deg (footprint / distance) is the 10-deg face's spread, not
+    # the 60-deg face's (40 mm along its slope): its eroded ROI sees 1.7-2x the scene's spread
+    assert spread_ratio["w10"] < 1.05 and spread_ratio["w60"] > 1.6, spread_ratio
