@@ -47,7 +47,7 @@ from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import INCIDENCE_AXES, Polygon, RoiMask, as_polygon, roi_mask, view_spread
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 9
+TABLE_VERSION = 10
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
@@ -59,6 +59,7 @@ TABLE_VERSION = 9
 7: both of the above together (the two branches' tables 5 and 6 are stale).
 8: the view_spread column (the eroded ROI's share of its face's viewing-angle spread).
 9: each channel's value moved by its plane to the ROI's centroid (docs/imaging.md §Channel sites).
+10: face_view_deg is the mean view angle over the eroded ROI's pixels (was: at the face's centre).
 """
 
 
@@ -397,7 +398,7 @@ def measure_frame(
                     reprojection_error_px=placement.rms_error_px if by_marker else None,  # type: ignore[union-attr]
                     n_markers=len(placement.ids) if by_marker else None,  # type: ignore[union-attr]
                     camera=frame.camera,
-                    **_marker_columns(placement if by_marker else None, detection, spec, n),
+                    **_marker_columns(placement if by_marker else None, detection, spec, roi),
                     radiometry=radiometry.description if radiometry is not None else "",
                     view_spread=spreads[n],
                 )
@@ -475,16 +476,20 @@ def _check_hidden(spec: PhotoSpec, pose: CameraPose, rois: dict[str, RoiMask]) -
 
 
 def _marker_columns(
-    pose: CameraPose | None, detection: MarkerDetection | None, spec: PhotoSpec, name: str
+    pose: CameraPose | None, detection: MarkerDetection | None, spec: PhotoSpec, roi: RoiMask
 ) -> dict:
-    """The marker columns of ROI `name`'s rows: ids used, their smallest cell (px), the camera
-    model and, through a pinhole, the face's own view angle (`face_view_deg`)."""
+    """The marker columns of an ROI's rows: ids used, their smallest cell (px), the camera
+    model and, through a pinhole, the face's own view angle (`face_view_deg`: the mean over
+    the eroded ROI's pixels, what its mean measures)."""
     if pose is None or detection is None:
         return {"marker_ids": "", "marker_cell_px": None, "placement": ""}
     cells = dict(zip(detection.ids, detection.cell_px, strict=True))
+    name = roi.name
     angle = dict(spec.face_angles_deg).get(name, 0.0)
     assert spec.markers is not None  # a pose comes from markers
-    parallax = view_parallax_deg(pose, spec.markers, dict(spec.faces_mm)[name], angle)
+    ys, xs = np.nonzero(roi.mask)
+    pixels = np.column_stack([xs + roi.x0, ys + roi.y0])  # pixel centres (docs §Pixels)
+    parallax = view_parallax_deg(pose, spec.markers, dict(spec.faces_mm)[name], angle, pixels)
     own = None if parallax is None or spec.view_deg is None else spec.view_deg + parallax
     return {
         "marker_ids": " ".join(str(i) for i in pose.ids),

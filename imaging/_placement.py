@@ -474,16 +474,64 @@ def face_view_deg(pose: CameraPose, outline_mm: Polygon, beta2_deg: float = 0.0)
     return _view_of(centre, face_outline_3d(outline_mm, beta2_deg).mean(axis=0))
 
 
-def view_parallax_deg(
-    pose: CameraPose, layout: MarkerLayout, outline_mm: Polygon, beta2_deg: float = 0.0
+def pixel_view_deg(
+    pose: CameraPose, outline_mm: Polygon, beta2_deg: float, pixels_px: np.ndarray
+) -> np.ndarray | None:
+    """The view angle (deg, about y, base frame) from the face point each pixel sees to a
+    pinhole's centre: (n, 2) pixel centres (x, y) back-projected onto the face's plane (the
+    plane-to-image homography of the face's 3-D outline through `pose`). None for the other
+    camera models. docs/imaging.md §3-D placement."""
+    centre = pose.camera_centre_mm()
+    if centre is None:
+        return None
+    face = face_outline_3d(outline_mm, beta2_deg)
+    pts = np.concatenate([face, 0.5 * (face + np.roll(face, -1, axis=0))])  # >= 4, not collinear
+    h, _ = cv2.findHomography(pose.project(pts), pts[:, :2], 0)
+    px = np.asarray(pixels_px, dtype=np.float64).reshape(-1, 2)
+    xy = cv2.perspectiveTransform(px.reshape(-1, 1, 2), h).reshape(-1, 2)
+    z = (xy[:, 0] - face[:, 0].min()) * math.tan(math.radians(beta2_deg))
+    return np.degrees(np.arctan2(centre[0] - xy[:, 0], centre[2] - z))
+
+
+def roi_view_half_width_deg(
+    pose: CameraPose, outline_mm: Polygon, beta2_deg: float, pixels_px: np.ndarray
 ) -> float | None:
-    """How much farther (deg, about y) a pinhole camera is turned as seen from a face's centre
-    than as seen from the centre of the layout's markers: `face_view_deg` of the face minus
-    that of the markers' centre. A photo's `view_deg` is the camera seen from the markers'
-    centre; each face is seen at `view_deg + view_parallax_deg`. The difference is what the
-    pose determines well: a pose from coplanar markers through a long lens may be tilted by a
-    few tenths of a degree, the same for every point. None for the other camera models."""
-    face = face_view_deg(pose, outline_mm, beta2_deg)
+    """The half-width (deg) of the uniform spread of viewing angles with the same standard
+    deviation as `pixel_view_deg` over an ROI's (n, 2) pixel centres: `sqrt(3) sd`, the row's
+    own `h_o cos(theta_o) view_spread` [conventions §9]. Unlike the scene's one
+    `angular_extent_deg` it follows each face's own length along its slope (a standing
+    60-deg face on a 20 mm footprint is 40 mm long) and its distance. None for the other
+    camera models or fewer than 2 pixels. docs/imaging.md §Viewing spread."""
+    angles = pixel_view_deg(pose, outline_mm, beta2_deg, pixels_px)
+    if angles is None or angles.size < 2:
+        return None
+    return float(math.sqrt(3.0) * angles.std())
+
+
+def view_parallax_deg(
+    pose: CameraPose,
+    layout: MarkerLayout,
+    outline_mm: Polygon,
+    beta2_deg: float = 0.0,
+    pixels_px: np.ndarray | None = None,
+) -> float | None:
+    """How much farther (deg, about y) a pinhole camera is turned as seen from a face than as
+    seen from the centre of the layout's markers. A photo's `view_deg` is the camera seen from
+    the markers' centre; each face is seen at `view_deg + view_parallax_deg`. The difference is
+    what the pose determines well: a pose from coplanar markers through a long lens may be
+    tilted by a few tenths of a degree, the same for every point. None for the other camera
+    models.
+
+    The face is seen from its outline's centre (`face_view_deg`), or, with `pixels_px` (the
+    (n, 2) centres of the ROI's pixels), as the mean over those pixels of `pixel_view_deg`:
+    what the ROI's mean measures. Through a pinhole the near part of a tilted face covers more
+    pixels per mm^2, so the two differ (up to 0.019 deg on the standing 60-deg face at 900 mm,
+    0.5% of the radiance on a steep lobe flank; docs/imaging.md §3-D placement)."""
+    if pixels_px is None:
+        face = face_view_deg(pose, outline_mm, beta2_deg)
+    else:
+        angles = pixel_view_deg(pose, outline_mm, beta2_deg, pixels_px)
+        face = None if angles is None or angles.size == 0 else float(angles.mean())
     if face is None:
         return None
     corners = np.array([c for _, c in layout.markers], float).reshape(-1, 2)

@@ -194,16 +194,26 @@ def test_faces_placed_in_3d_from_the_markers_match_the_renderers_projection(
     from a face (`face_view_deg`) up to 0.46 deg off the renderer's; the face's own view angle
     the fit uses, the photo's view_deg (seen from the markers' centre, here the row's middle)
     plus the parallax from the pose, is within 0.02 deg (0.009 measured; the parallax itself
-    reaches 0.72 deg). The fast counterpart of tests/test_independent_fit.py's standing-layout
-    fit."""
+    reaches 0.72 deg). The view angle `stairfit fit` takes, the mean over the eroded ROI's pixels
+    (each back-projected onto the face), is the renderer's own mean over the same pixels within
+    0.003 deg (0.0015 measured, the pose's tilt, the same for every face of a photo); taken at
+    the face's centre it misses that mean by up to 0.013 deg (perspective: the near part of a
+    tilted face covers more pixels). The fast counterpart of tests/test_independent_fit.py's
+    standing-layout fit."""
     setup = ip.standing_setup(flat_photos=0, write_intrinsics=True)
-    ip.render_folder(tmp_path, seed=11, megapixels=1.0, views=(-40.0, 10.0), setup=setup)
+    rendered_setup = ip.render_folder(
+        tmp_path, seed=11, megapixels=1.0, views=(-40.0, 10.0), setup=setup
+    )["setup"]
+    setup = dataclasses.replace(
+        setup, width=rendered_setup["width"], height=rendered_setup["height"]
+    )
     scene = load_scene(tmp_path)
     drawn = {p.file: dict(p.roi_px) for p in scene.photos}
     unaided = dataclasses.replace(
         scene, photos=tuple(dataclasses.replace(p, roi_px=()) for p in scene.photos)
     )
     views = {p.file: p.view_deg for p in scene.photos}
+    centre_misses, spread_ratio = [], {}
     for spec in photo_specs(unaided):
         _, pose, placed = imaging.place_faces(imaging.decode_raw(spec.path), spec)
         assert pose.model == "pinhole" and set(placed) == set(drawn[spec.name])
@@ -220,8 +230,32 @@ def test_faces_placed_in_3d_from_the_markers_match_the_renderers_projection(
                 pose, spec.markers, dict(spec.faces_mm)[name], beta2
             )
             assert own == pytest.approx(want, abs=0.02), (spec.name, name)
+            # the ROI's mean sees the face at the mean over its pixels (the renderer's rays)
+            roi = imaging.roi_mask(placed[name], (setup.height, setup.width), 8,
+                                   photo=spec.name, wedge=name, source="markers")  # fmt: skip
+            ys, xs = np.nonzero(roi.mask)
+            pixels = np.column_stack([xs + roi.x0, ys + roi.y0]).astype(float)
+            x, _, z = ip._face_points(cam, setup, k, pixels[:, 0], pixels[:, 1])
+            rendered = np.degrees(np.arctan2(cam.centre[0] - x, cam.centre[2] - z)).mean()
+            mean = views[spec.name] + imaging.view_parallax_deg(
+                pose, spec.markers, dict(spec.faces_mm)[name], beta2, pixels
+            )
+            assert mean == pytest.approx(rendered, abs=0.003), (spec.name, name)
+            centre_misses.append(abs(own - rendered))
+            # the ROI's own spread of viewing angles (sqrt(3) sd), against the renderer's
+            angles = np.degrees(np.arctan2(cam.centre[0] - x, cam.centre[2] - z))
+            half = imaging.roi_view_half_width_deg(pose, dict(spec.faces_mm)[name], beta2, pixels)
+            assert half == pytest.approx(math.sqrt(3) * angles.std(), rel=0.01), (spec.name, name)
+            scene_half = (
+                0.5 * scene.camera.angular_extent_deg * math.cos(math.radians(want + beta2))
+            )
+            spread_ratio[name] = max(spread_ratio.get(name, 0.0), half / scene_half)
         for name, polygon in placed.items():
             truth = np.asarray(drawn[spec.name][name], float)
             ours = np.asarray(polygon, float)
             miss = np.linalg.norm(ours - truth, axis=-1)  # outline order: foot, top, top, foot
             assert miss[[0, 3]].max() < 0.5 and miss[[1, 2]].max() < 2.5, (spec.name, name, miss)
+    assert max(centre_misses) > 0.008  # seen from the face's centre, the ROI's mean is missed
+    # the scene's one angular_extent_deg (footprint / distance) is the 10-deg face's spread, not
+    # the 60-deg face's (40 mm along its slope): its eroded ROI sees 1.7-2x the scene's spread
+    assert spread_ratio["w10"] < 1.05 and spread_ratio["w60"] > 1.6, spread_ratio

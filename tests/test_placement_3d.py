@@ -67,7 +67,19 @@ def _pinhole(view_deg: float, distance_mm: float, focal_px: float, roll_deg: flo
         img = cam @ k.T
         return img[:, :2] / img[:, 2:]
 
+    project.centre, project.rot, project.k = centre, rot, k  # type: ignore[attr-defined]
     return project
+
+
+def _face_hits(project, outline, beta2: float, pixels: np.ndarray) -> np.ndarray:
+    """Where the test pinhole's rays through (n, 2) pixels meet a face's plane, z = (x - x_min)
+    tan(beta2): plain ray casting, (n, 3)."""
+    rays = np.column_stack([pixels, np.ones(len(pixels))]) @ np.linalg.inv(project.k).T
+    d = rays @ project.rot  # camera -> world
+    c = project.centre
+    x0, slope = float(np.min(np.asarray(outline, float)[:, 0])), math.tan(math.radians(beta2))
+    t = (slope * (c[0] - x0) - c[2]) / (d[:, 2] - slope * d[:, 0])
+    return c + t[:, None] * d
 
 
 def _lift(outline, beta2: float) -> np.ndarray:
@@ -124,6 +136,53 @@ def test_pinhole_camera_places_faces_exactly(view_deg: float) -> None:
     for name, (outline, beta2) in WEDGES.items():
         placed = np.asarray(imaging.face_polygon(pose, outline, beta2))
         assert np.abs(placed - project(_lift(outline, beta2))).max() < 1e-5, name
+
+
+@pytest.mark.parametrize("view_deg", [-60.0, 0.0, 15.0])
+def test_pixel_view_angles_are_the_rays_from_the_face_points(view_deg: float) -> None:
+    """`pixel_view_deg` back-projects pixels onto the face and measures the view angle from
+    there: against points on the face projected by the test's own pinhole (exact, 1e-6 deg)."""
+    project = _pinhole(view_deg, distance_mm=400.0, focal_px=2400.0)
+    pose = _pose(project, view_deg, imaging.PinholeCamera(2400.0))
+    rng = np.random.default_rng(3)
+    for name, (outline, beta2) in WEDGES.items():
+        xy = np.asarray(outline, float)
+        pts = _lift(rng.uniform(xy.min(axis=0), xy.max(axis=0), size=(50, 2)), beta2)
+        pts[:, 2] = (pts[:, 0] - xy[:, 0].min()) * math.tan(math.radians(beta2))
+        d = project.centre - pts
+        want = np.degrees(np.arctan2(d[:, 0], d[:, 2]))
+        got = imaging.pixel_view_deg(pose, outline, beta2, project(pts))
+        assert np.abs(got - want).max() < 1e-6, name
+
+
+def test_roi_view_angle_is_the_pixel_mean_not_the_face_centre() -> None:
+    """Through a pinhole the near part of a tilted face covers more pixels: the view angle
+    averaged over the face's pixels (what an ROI's mean measures) differs from the one at the
+    outline's centre. `view_parallax_deg` with the pixels gives the brute-force pixel mean
+    (every pixel centre inside the projected face, cast onto it by the test's rays) to 1e-6 deg,
+    and that differs from the centre's by more than 0.05 deg here (60 deg face, 400 mm)."""
+    view_deg = 0.0
+    project = _pinhole(view_deg, distance_mm=400.0, focal_px=2400.0)
+    pose = _pose(project, view_deg, imaging.PinholeCamera(2400.0))
+    outline, beta2 = WEDGES["w60"]
+    polygon = project(_lift(outline, beta2))
+    lo, hi = np.floor(polygon.min(axis=0)), np.ceil(polygon.max(axis=0))
+    gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
+    grid = np.column_stack([gx.ravel(), gy.ravel()])
+    edge = np.roll(polygon, -1, axis=0) - polygon  # a convex quadrilateral: one side of each
+    side = edge[:, 0] * (grid[:, None, 1] - polygon[:, 1]) - edge[:, 1] * (
+        grid[:, None, 0] - polygon[:, 0]
+    )
+    pixels = grid[(side > 0).all(axis=1) | (side < 0).all(axis=1)]
+    hits = _face_hits(project, outline, beta2, pixels)
+    d = project.centre - hits
+    markers = np.array([c for c in MARKERS.values()], float).reshape(-1, 2).mean(axis=0)
+    dm = project.centre - np.append(markers, 0.0)
+    want = np.degrees(np.arctan2(d[:, 0], d[:, 2])).mean() - math.degrees(math.atan2(dm[0], dm[2]))
+    got = imaging.view_parallax_deg(pose, LAYOUT, outline, beta2, pixels)
+    at_centre = imaging.view_parallax_deg(pose, LAYOUT, outline, beta2)
+    assert got == pytest.approx(want, abs=1e-6)
+    assert abs(got - at_centre) > 0.05, (got, at_centre)
 
 
 def test_close_perspective_camera_without_intrinsics_is_refused() -> None:
