@@ -47,8 +47,11 @@ class Observations(NamedTuple):
       correlations of the errors of the group's channel 0 and 1, 0 and 2, 1 and 2 rows (the
       same on every row of the group; default 0). The fit whitens each group with
       `C = S R S (+ model error)` (docs/fitting.md §Correlated channels).
-    * `view_spread`: the share (0-1] of the aperture's viewing-angle spread that the row's ROI
-      sees (the eroded ROI is narrower than its face; default 1) [conventions §9].
+    * `view_spread`: the row's viewing-angle spread as a multiple (>= 0) of the aperture's
+      (default 1) [conventions §9]: the eroded ROI's share of its face's (< 1: the ROI is
+      narrower than its face), or for an ROI placed through a pinhole its own spread over the
+      scene's (above 1 for a face longer along its slope than the scene's extent assumes;
+      docs/imaging.md §Viewing spread).
 
     Build it with `Observations.from_arrays` or `Observations.from_rows`, which validate.
     """
@@ -348,11 +351,11 @@ def _check_rows(obs: Observations, used: NDArray) -> None:
         _fail(obs, "value", bad, "is not a finite number",
               "fix the measurement or set use=False for the row")  # fmt: skip
     spread = obs.view_spread[used]
-    bad = used[~np.isfinite(spread) | (spread < 0.0) | (spread > 1.0)]
+    bad = used[~np.isfinite(spread) | (spread < 0.0)]
     if bad.size:
-        _fail(obs, "view_spread", bad, "is not a share in [0, 1]",
-              "it is the eroded ROI's share of its face's viewing-angle spread (1 = the whole "
-              "face); fix the measurement table")  # fmt: skip
+        _fail(obs, "view_spread", bad, "is not a finite multiple >= 0",
+              "it is the row's viewing-angle spread over the aperture's (1 = the whole face); "
+              "fix the measurement table")  # fmt: skip
     se = obs.stderr[used]
     bad = used[~np.isfinite(se) | (se <= 0.0)]
     if bad.size:

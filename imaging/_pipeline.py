@@ -41,13 +41,14 @@ from ._placement import (
     face_polygon,
     fit_camera_pose,
     hidden_fraction,
+    roi_view_half_width_deg,
     view_parallax_deg,
 )
 from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import INCIDENCE_AXES, Polygon, RoiMask, as_polygon, roi_mask, view_spread
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 10
+TABLE_VERSION = 11
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
@@ -60,6 +61,7 @@ TABLE_VERSION = 10
 8: the view_spread column (the eroded ROI's share of its face's viewing-angle spread).
 9: each channel's value moved by its plane to the ROI's centroid (docs/imaging.md §Channel sites).
 10: face_view_deg is the mean view angle over the eroded ROI's pixels (was: at the face's centre).
+11: the view_half_width_deg column (a pinhole-placed ROI's own spread of viewing angles).
 """
 
 
@@ -480,7 +482,8 @@ def _marker_columns(
 ) -> dict:
     """The marker columns of an ROI's rows: ids used, their smallest cell (px), the camera
     model and, through a pinhole, the face's own view angle (`face_view_deg`: the mean over
-    the eroded ROI's pixels, what its mean measures)."""
+    the eroded ROI's pixels, what its mean measures) and the ROI's own spread of viewing
+    angles (`view_half_width_deg`, `roi_view_half_width_deg`)."""
     if pose is None or detection is None:
         return {"marker_ids": "", "marker_cell_px": None, "placement": ""}
     cells = dict(zip(detection.ids, detection.cell_px, strict=True))
@@ -489,13 +492,15 @@ def _marker_columns(
     assert spec.markers is not None  # a pose comes from markers
     ys, xs = np.nonzero(roi.mask)
     pixels = np.column_stack([xs + roi.x0, ys + roi.y0])  # pixel centres (docs §Pixels)
-    parallax = view_parallax_deg(pose, spec.markers, dict(spec.faces_mm)[name], angle, pixels)
+    outline = dict(spec.faces_mm)[name]
+    parallax = view_parallax_deg(pose, spec.markers, outline, angle, pixels)
     own = None if parallax is None or spec.view_deg is None else spec.view_deg + parallax
     return {
         "marker_ids": " ".join(str(i) for i in pose.ids),
         "marker_cell_px": min(cells[i] for i in pose.ids),
         "placement": pose.model,
         "face_view_deg": own,
+        "view_half_width_deg": roi_view_half_width_deg(pose, outline, angle, pixels),
     }
 
 

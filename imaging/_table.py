@@ -74,6 +74,11 @@ class MeasurementRow:
         view_spread: the eroded ROI's share of its face polygon's spread along the face's
             in-plane direction (ratio of standard deviations, <= 1); the fit narrows the
             scene's `angular_extent_deg` by it for this ROI (docs/imaging.md §Viewing spread).
+        view_half_width_deg: for a face placed through a pinhole camera, the half-width (deg)
+            of the uniform spread of viewing angles with the standard deviation of its eroded
+            ROI's pixels' own view angles (`imaging.roi_view_half_width_deg`): the ROI's own
+            spread, which follows the face's length along its slope and its distance; `stairfit
+            fit` uses it in place of `angular_extent_deg x view_spread`. None otherwise.
     """
 
     photo: str
@@ -111,6 +116,7 @@ class MeasurementRow:
     radiometry: str = ""
     face_view_deg: float | None = None
     view_spread: float = 1.0
+    view_half_width_deg: float | None = None
 
 
 COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(MeasurementRow))

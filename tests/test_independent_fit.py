@@ -110,25 +110,16 @@ def test_the_paper_setup_fits_unaided(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="diagnosed (2026-12-03), half fixed: the fit takes every face's viewing spread from "
-    "the scene's one angular_extent_deg (footprint / distance), but a standing face's spread is "
-    "its length along the slope / distance: the 60-deg face's is 2x (eroded ROIs: 1.02-2.04x "
-    "what the fit uses, imaging.roi_view_half_width_deg). Fixed here: each row's view angle is "
-    "the mean over its ROI's pixels (was the face centre's, up to 0.019 deg off). Model at the "
-    "truth, diagonal chi^2 for 141 rows: 610 (before) -> 358 (pixel mean) -> 121 (and each "
-    "ROI's own spread). Forced sharp+floor fits, no posterior: sigma 6.0048 +- 0.0006 (pull "
-    "+7.4) now; 6.0010 +- 0.0006 (pull +1.5), scale pull -1.4, floor -0.02, chi^2/dof 1.005 "
-    "with the own spreads (passed by hand: h_o x 2.04, view_spread / 2.04). Needs app/fitting: "
-    "a measurement column with the ROI's own spread, used for h_o cos(theta_o) view_spread",
-)
 def test_standing_wedges_fit_with_rois_from_the_markers(tmp_path: Path) -> None:
     """Wedges standing on the plate (`standing_setup`: each face rises along +x by its wedge
     angle, as `face_mm` is defined for scenes relative to the base), every ROI placed from the
     markers: the faces are not in the markers' plane, so this needs placement in 3-D with the
     camera's focal length; the slow counterpart of tests/test_independent_photos.py's fast
-    placement check."""
+    placement check. It failed (a strict xfail until 2026-12-03: sigma 6.0048 +- 0.0006, pull
+    +7.4) while every row took its view angle at the face's centre and its viewing spread from
+    the scene's one `angular_extent_deg`: the ROI's pixels see the face at their own angles
+    (mean up to 0.019 deg off the centre's) and a standing 60-deg face spans twice the
+    footprint's spread (docs/imaging.md §Viewing spread)."""
     setup = ip.standing_setup(**{
         k: getattr(setup_for_this_stairfit(tmp_path), k) for k in ("exposure_tags",)
     }, write_intrinsics=True)  # fmt: skip

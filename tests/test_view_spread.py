@@ -108,15 +108,37 @@ def test_fit_grid_agrees_with_model_radiance_under_spreads(grouped: bool) -> Non
     assert np.max(np.abs(ref / whole - 1)) > 1e-4  # the spreads matter at this aperture
 
 
-def test_observations_refuse_a_spread_outside_0_1() -> None:
+@pytest.mark.parametrize("value", [-0.5, np.nan, np.inf])
+def test_observations_refuse_a_negative_or_non_finite_spread(value: float) -> None:
     obs = zoo.scene(fitting.Params(sigma_rad=0.1, scale=1.0), zoo.mixed_design(),
                     zoo.effective("pla"), seed=0).obs  # fmt: skip
     bad = np.ones(obs.n_rows)
-    bad[4] = 1.5
+    bad[4] = value
     with pytest.raises(fitting.FitInputError, match="view_spread"):
         fitting.Observations.from_arrays(
             **{k: getattr(obs, k) for k in obs._fields if k != "view_spread"}, view_spread=bad
         )
+
+
+def test_a_spread_above_1_widens_the_rows_viewing_average() -> None:
+    """A pinhole-placed ROI may see more than the scene's `angular_extent_deg` (a face longer
+    along its slope, docs/imaging.md §Viewing spread): `view_spread = 2` is accepted and is the
+    same model as the aperture with twice the viewing half-width."""
+    ap = model.Aperture(0.0, np.deg2rad(2.0), 3, foreshortened=True)
+    wide = ap._replace(half_width_o_rad=2 * ap.half_width_o_rad)
+    sc = zoo.scene(fitting.Params(sigma_rad=0.05, scale=1.0), zoo.mixed_design(),
+                   zoo.effective("pla"), seed=0)  # fmt: skip
+    obs = sc.obs
+    twice = fitting.Observations.from_arrays(
+        **{k: getattr(obs, k) for k in obs._fields if k != "view_spread"},
+        view_spread=np.full(obs.n_rows, 2.0),
+    )
+    truth = fitting.Params(sigma_rad=0.05, scale=1.0)
+    got = fitting.model_radiance(truth, twice, sc.spec, aperture=ap)
+    want = fitting.model_radiance(truth, obs, sc.spec, aperture=wide)
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    base = fitting.model_radiance(truth, obs, sc.spec, aperture=ap)
+    assert np.max(np.abs(got - base)) > 1e-4 * np.max(base)  # the spread matters here
 
 
 def test_a_profile_face_renders_its_profile_along_the_face() -> None:
@@ -155,3 +177,16 @@ def test_a_disk_light_weighs_offsets_like_a_round_light() -> None:
         assert float(wu @ du**2) == pytest.approx(h**2 / 3, rel=1e-12)
     with pytest.raises(ValueError, match="light_shape"):
         model.Aperture(h, 0.0, 3, light_shape="round").nodes()
+
+
+def test_the_fit_takes_a_pinhole_rois_own_spread() -> None:
+    """`stairfit fit`'s row spread: a pinhole-placed ROI's own half-width over the one the
+    aperture gives its row, `angular_extent_deg / 2 x cos(theta_o)` (1 deg over 0.5 x 0.5 at 60
+    deg: 4); without one, the eroded ROI's share; an undefined share: the whole face."""
+    from stairfit.commands.fit import _spread
+
+    assert _spread(0.8, 1.0, 1.0, 60.0) == pytest.approx(4.0, rel=1e-12)
+    assert _spread(0.8, None, 1.0, 60.0) == 0.8
+    assert _spread(0.8, math.nan, 1.0, 60.0) == 0.8
+    assert _spread(0.8, 1.0, 0.0, 60.0) == 0.8  # no scene extent: nothing to scale
+    assert _spread(math.nan, None, 1.0, 0.0) == 1.0
