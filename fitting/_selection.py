@@ -295,7 +295,9 @@ def _select_fillets(
     base = _select_ladder(problem, rest, policy, criterion, threshold, opts) if rest else None
     fits = dict(base.fits) if base else {}
     rows = {r.name: r for r in base.table} if base else {}
-    needed, why = (True, "the preset fits them always") if base is None else (False, "")
+    needed, why = (
+        (True, "the ladder has no variant without fillets") if base is None else (False, "")
+    )
     if base is not None:
         needed, why = (
             fillet_needed(base)
