@@ -229,8 +229,8 @@ def _trace_one(
     dx = jnp.broadcast_to(jnp.sin(ti), px.shape)
     dz = jnp.broadcast_to(-jnp.cos(ti), px.shape)
 
-    def step(carry: tuple, _: None) -> tuple:
-        px, pz, dx, dz, active, esc = carry
+    def step(carry: tuple) -> tuple:
+        k, px, pz, dx, dz, active, esc, cos, hits = carry
         c = _candidates((px, pz, dx, dz), b, l1, r, rf)
         j = jnp.argmin(c.t, axis=0)[None]
         t = jnp.take_along_axis(c.t, j, 0)[0]
@@ -242,10 +242,22 @@ def _trace_one(
         dn = dx * nx + dz * nz
         new = (px + t * dx - shift * period, pz + t * dz, dx - 2 * dn * nx, dz - 2 * dn * nz)
         px, pz, dx, dz = (jnp.where(hit, a, o) for a, o in zip(new, (px, pz, dx, dz), strict=True))
-        return (px, pz, dx, dz, hit, esc), (jnp.where(hit, -dn, 1.0), hit)
+        cos = jax.lax.dynamic_update_index_in_dim(cos, jnp.where(hit, -dn, 1.0), k, 0)
+        hits = jax.lax.dynamic_update_index_in_dim(hits, hit, k, 0)
+        return (k + 1, px, pz, dx, dz, hit, esc, cos, hits)
 
-    start = (px, pz, dx, dz, jnp.ones(rays, bool), jnp.zeros(rays, bool))
-    (px, pz, dx, dz, active, esc), (cos, hit) = jax.lax.scan(step, start, None, length=bounces)
+    def more(carry: tuple) -> Array:
+        return (carry[0] < bounces) & jnp.any(carry[5])
+
+    # A while loop, not a scan: it stops once every ray has escaped or been absorbed (most
+    # need 1-3 reflections), and the steps it skips would change nothing (no ray active: cosine
+    # 1, no hit), so the result is the same as `bounces` steps to the bit. The rays are never
+    # differentiated through (derivatives in the geometry are differences, `_fd_correction`).
+    start = (
+        jnp.asarray(0), px, pz, dx, dz, jnp.ones(rays, bool), jnp.zeros(rays, bool),
+        jnp.ones((bounces, rays), px.dtype), jnp.zeros((bounces, rays), bool),
+    )  # fmt: skip
+    _, px, pz, dx, dz, active, esc, cos, hit = jax.lax.while_loop(more, step, start)
     last = _candidates((px, pz, dx, dz), b, l1, r, rf)
     esc = esc | (active & ~jnp.any(jnp.isfinite(last.t), axis=0) & (dz > 0))
     return _Rays(cos=cos.T, hit=hit.T, escaped=esc, theta_o=jnp.arctan2(dx, dz))
