@@ -288,7 +288,8 @@ def _fillet_impl(
     aperture nodes, contracted over (lane, ray) with the hemisphere Gaussians of the rays'
     directions (docs/rounded.md §11) [conventions §5, §8, §9]."""
     aperture = cfg[0]
-    _, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
+    do = jnp.asarray(aperture.nodes()[1], g.r_ti.dtype)
+    _, dw = model.light_nodes(g.r_ti, g.r_b2, aperture)  # (R, M): per-key light weights
     to = _view_nodes(g, do, aperture)  # (R|1, T, M)
     n = clamp_index(g.r_n + dn).reshape(-1)  # (C K)
     lead1 = jax.tree_util.tree_map(lambda a: a[:, None], rays)  # (G, 1, 2, n[, K])
@@ -302,7 +303,7 @@ def _fillet_impl(
     rho = jnp.einsum("rmkpn,rmtpn->rmtk", w, kern)
     rho = rho.reshape(*rho.shape[:-1], *g.r_w.shape)
     band = jnp.einsum("ck,rmtck->rmtc", g.r_w, rho)
-    return jnp.einsum("rmtc,m->rtc", band, dw)
+    return jnp.einsum("rmtc,rm->rtc", band, dw)
 
 
 def _fillet_rays(

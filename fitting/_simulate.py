@@ -152,8 +152,8 @@ def _filleted_rows(
     the rays are traced once per distinct (theta_i node, wedge, layer) (`fillet_geometry`),
     each row then finishes with `brdf_filleted_from_geometry` at its views, index and width."""
     ap = aperture or model.Aperture()
-    di, do, dw = ap.nodes()
-    ti = model.node_angles(obs.theta_i_rad, di)  # (N, M)
+    _, do, _ = ap.nodes()
+    ti, dw = model.light_nodes(obs.theta_i_rad, obs.beta2_rad, ap)  # (N, M) each
     spread = np.asarray(obs.view_spread)[:, None] * do
     to = np.asarray(model.node_angles(obs.theta_o_rad, spread, ap.foreshortened))  # (N, M)
     res = model.ROUNDED_RESOLUTION if resolution is None else resolution
@@ -177,7 +177,7 @@ def _filleted_rows(
         rho = _filleted_from_geometry(
             geo_g, to[rows].T[:, :, None], jnp.asarray(n)[rows][None], sigma[rows][None, :, None]
         )  # (M, rows, K)
-        out[rows] = np.einsum("nk,mnk,m->n", w[rows], np.asarray(rho), dw)
+        out[rows] = np.einsum("nk,mnk,nm->n", w[rows], np.asarray(rho), np.asarray(dw)[rows])
     return out
 
 
