@@ -276,16 +276,21 @@ def start_vectors(problem: Problem, spec: FreeSpec, sigmas: tuple[float, ...]) -
     lay, fixed = problem.layout, problem.fixed
     obs = problem.observations
     z = np.zeros(lay.size)
+    x_edge = 0.0  # the edge radius the fillet's transform is bounded by (its slot comes first)
     for p in lay.parameters()[1 + lay.n_wedges :]:  # every parameter but the widths
         x = float(getattr(fixed, p.param))
         if p.param == "edge_radius_um" and x <= 0:
             x = 0.25 * problem.r_max_um
+        if p.param == "fillet_radius_um" and x <= 0:
+            x = 0.25 * (problem.r_max_um - x_edge)
         if p.param == "floor" and x <= 0:
             v = obs.value[obs.use]
             x = max(0.5 * float(np.percentile(v, 10)), 1e-4 * float(np.max(np.abs(v))), 1e-12)
         if p.param == "model_error_frac" and x <= 0:
             x = 0.02
-        z[p.slot] = from_physical(x, p.transform, problem.r_max_um)
+        if p.param == "edge_radius_um":
+            x_edge = x if "edge_radius_um" in spec.free else float(fixed.edge_radius_um)
+        z[p.slot] = from_physical(x, p.transform, problem.r_max_um, x_edge)
     out = np.repeat(z[None, :], len(sigmas), axis=0)
     widths = [lay.slot("sigma_rad")] + [lay.slot("sigma_rad", w) for w in range(lay.n_wedges)]
     for i, s in enumerate(sigmas):

@@ -36,7 +36,9 @@ class Static(NamedTuple):
     log-determinant. `correlated`: some rows share a group (an ROI's channels) with correlated
     errors, and residuals are whitened per group (`_whiten`); False: every row is independent
     (the plain `(value - model) / sd`). `aperture`: finite light/patch sizes [conventions §9].
-    `resolution`: the rounded model's resolution setting (`None` = its default).
+    `resolution`: the rounded model's resolution setting (`None` = its default). `filleted`:
+    the rounded model plus concave fillets (`stairfit.model.brdf_filleted`; needed when the
+    fillet radius is free or non-zero; implies `rounded`).
     """
 
     layout: Layout
@@ -45,6 +47,7 @@ class Static(NamedTuple):
     correlated: bool = False
     aperture: model.Aperture = model.Aperture()
     resolution: int | None = None
+    filleted: bool = False
 
 
 class Data(NamedTuple):
@@ -98,8 +101,7 @@ class Data(NamedTuple):
 def physical(z: Array, static: Static, data: Data) -> Array:
     """Physical value of every slot: free slots through their transform, fixed ones as given."""
     z_safe = jnp.where(data.free, z, 0.0)
-    x = to_physical(z_safe, static.layout.kinds, data.r_max_um)
-    return jnp.where(data.free, x, data.x_fixed)
+    return to_physical(z_safe, static.layout.kinds, data.r_max_um, (data.free, data.x_fixed))
 
 
 class EvaluationGrid(NamedTuple):
@@ -277,11 +279,109 @@ def rounded_density(
     return dens[data.r_key, data.r_t, data.r_c]
 
 
+def _fillet_impl(
+    sigma_k: Array, dn: Array, rays: model.FilletRays, cfg: tuple, g: EvaluationGrid
+) -> Array:
+    """Band- and aperture-averaged fillet correction on the (key, view, channel) grid,
+    `(R, T, C)`, from the rays traced once per distinct geometry (`rays`, leading axis G):
+    `stairfit.model.fillet_ray_power` at every channel's index samples, gathered to the keys'
+    aperture nodes, contracted over (lane, ray) with the hemisphere Gaussians of the rays'
+    directions (docs/rounded.md §11) [conventions §5, §8, §9]."""
+    aperture = cfg[0]
+    _, do, dw = (jnp.asarray(a, g.r_ti.dtype) for a in aperture.nodes())
+    to = _view_nodes(g, do, aperture)  # (R|1, T, M)
+    n = clamp_index(g.r_n + dn).reshape(-1)  # (C K)
+    lead1 = jax.tree_util.tree_map(lambda a: a[:, None], rays)  # (G, 1, 2, n[, K])
+    w = model.fillet_ray_power(lead1, n)[g.r_geo]  # (R, M, C K, 2, n)
+    th = rays.theta_o[g.r_geo]  # (R, M, 2, n)
+    kern = model.hemisphere_gaussian(
+        jnp.swapaxes(to, -1, -2)[..., None, None],
+        th[:, :, None],
+        sigma_k[:, None, None, None, None],
+    )  # (R, M, T, 2, n)
+    rho = jnp.einsum("rmkpn,rmtpn->rmtk", w, kern)
+    rho = rho.reshape(*rho.shape[:-1], *g.r_w.shape)
+    band = jnp.einsum("ck,rmtck->rmtc", g.r_w, rho)
+    return jnp.einsum("rmtc,m->rtc", band, dw)
+
+
+def _fillet_rays(
+    g: EvaluationGrid, radius_um: Array, fillet_um: Array, cfg: tuple
+) -> model.FilletRays:
+    """The rays of each distinct geometry (G) at radii (`radius_um`, `fillet_um`), scalars or
+    one per geometry."""
+    r, rf = jnp.broadcast_arrays(radius_um, fillet_um, g.g_ti)[:2]
+    return model.fillet_rays(g.g_ti, g.g_b2, g.g_layer, r, rf, rays=cfg[2], bounces=cfg[3])
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
+def filleted_grid_density(
+    sigma_k: Array, dn: Array, radius_um: Array, fillet_um: Array, cfg: tuple, g: EvaluationGrid
+) -> Array:
+    """The rounded grid density plus the fillet correction, `(R, T, C)`; `cfg = (aperture,
+    resolution, rays, bounces)`. The rays are traced once per distinct geometry (G), not per
+    key, view or channel.
+
+    JVP in four directions (all widths together, `delta_n`, `r`, `r_f`, as
+    `rounded_grid_density`): the rounded part and the correction's widths and index
+    derivatives by forward mode with the rays fixed (they do not move a ray); the correction's
+    `r` and `r_f` derivatives by differences between traces at
+    `stairfit.model.fillet_difference_points` (docs/rounded.md §11), four extra traces of the G
+    geometries whatever the number of parameters. The grid arrays `g` are data."""
+    rays = _fillet_rays(g, radius_um, fillet_um, cfg)
+    return _rounded_impl(sigma_k, dn, radius_um, cfg[:2], g) + _fillet_impl(
+        sigma_k, dn, rays, cfg, g
+    )
+
+
+@filleted_grid_density.defjvp
+def _filleted_grid_jvp(cfg: tuple, primals: tuple, tangents: tuple) -> tuple[Array, Array]:
+    sigma_k, dn, radius_um, fillet_um, g = primals
+    t_sigma, t_dn, t_r, t_rf, _ = tangents
+    rays = _fillet_rays(g, radius_um, fillet_um, cfg)
+
+    def f(eps: Array) -> Array:
+        s, d = sigma_k + eps[0], dn + eps[1]
+        return _rounded_impl(s, d, radius_um + eps[2], cfg[:2], g) + _fillet_impl(
+            s, d, rays, cfg, g
+        )
+
+    value, jac = _value_and_jac(f, jnp.zeros(3, dtype=sigma_k.dtype))
+    d_sigma, d_dn, d_r = jac[..., 0], jac[..., 1], jac[..., 2]
+    tangent = d_sigma * t_sigma[:, None, None] + d_dn * t_dn + d_r * t_r
+    radii = jnp.broadcast_arrays(radius_um, fillet_um, g.g_ti)[:2]
+    pts = model.fillet_difference_points(g.g_ti, g.g_b2, g.g_layer, *radii)
+    key_geo = g.r_geo[:, 0]  # a key's aperture nodes share its wedge and layer, so its steps
+    for k, t in ((0, t_r), (1, t_rf)):
+        lo, hi = pts[3 + k]
+        at_lo, at_hi = list(radii), list(radii)
+        at_lo[k], at_hi[k] = lo, hi
+        c_hi = _fillet_impl(sigma_k, dn, _fillet_rays(g, *at_hi, cfg), cfg, g)
+        c_lo = _fillet_impl(sigma_k, dn, _fillet_rays(g, *at_lo, cfg), cfg, g)
+        tangent = tangent + (c_hi - c_lo) * model.difference_scale(lo, hi, t)[key_geo, None, None]
+    return value, tangent
+
+
+def filleted_density(p: Params, data: Data, static: Static) -> Array:
+    """Band- and aperture-averaged density (1/rad) of the filleted model at every row
+    (`filleted_grid_density`, then read per row; `p.sigma_rad` one width per wedge). Unlike
+    `stairfit.model.brdf_filleted` the sum is not clipped at 0 per wavelength and node (the
+    rounded part is): the two differ only where the correction's quadrature noise exceeds
+    the density, in far tails."""
+    cfg = (static.aperture, static.resolution, model.FILLET_RAYS, model.FILLET_BOUNCES)
+    dens = filleted_grid_density(
+        p.sigma_rad[data.r_wedge], p.delta_n, p.edge_radius_um, p.fillet_radius_um, cfg, _grid(data)
+    )
+    return dens[data.r_key, data.r_t, data.r_c]
+
+
 def model_values(z: Array, static: Static, data: Data) -> tuple[Array, Params]:
     """(model relative radiance per row, physical parameters) [conventions §9]; the widths in
     the returned `Params` are one per wedge."""
     p = static.layout.unpack(physical(z, static, data), data.sigma_source)
-    if static.rounded:
+    if static.filleted:
+        dens = filleted_density(p, data, static)
+    elif static.rounded:
         dens = rounded_density(p.sigma_rad, p.delta_n, p.edge_radius_um, data, static)
     else:
         dens = sharp_density(p.sigma_rad, p.delta_n, data, static.aperture)

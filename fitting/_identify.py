@@ -14,7 +14,7 @@ import numpy as np
 
 from ._core import CoreFit
 from ._errors import FitWarning, UnconstrainedError
-from ._params import LOG, SIN, Parameter, dx_dz
+from ._params import LOG, SIN, SIN_REST, Parameter, dx_dz
 from ._problem import FreeSpec, Problem
 
 IDENTIFIABILITY_THRESHOLD = 0.5
@@ -33,6 +33,7 @@ eigenvector is at least this fraction of the largest component."""
 
 FIX_ORDER: tuple[tuple[str, bool], ...] = (
     ("model_error_frac", False),
+    ("fillet_radius_um", False),
     ("edge_radius_um", False),
     ("floor", False),
     ("delta_n", False),
@@ -139,7 +140,8 @@ def unidentified(problem: Problem, core: CoreFit, threshold: float) -> Unidentif
             "from the other parameters"
         )
     if cov.z is not None:
-        d = dx_dz(core.z, problem.layout.kinds, problem.r_max_um)
+        r = float(core.ev.x[problem.layout.slot("edge_radius_um")])
+        d = dx_dz(core.z, problem.layout.kinds, problem.r_max_um, r)
         for i, k in enumerate(slots):
             se_z = math.sqrt(max(cov.z[i, i], 0.0))
             se, width, space = _stderr_vs_prior(params[k], se_z, d[k], core.ev.x[k])
@@ -246,7 +248,7 @@ def _bound_found(
     problem: Problem, spec: FreeSpec, core: CoreFit
 ) -> tuple[str, float, str | None] | None:
     """(parameter, bound value, why; None = only near the bound) of the first parameter on its
-    bound, in the order floor, edge radius, model error."""
+    bound, in the order floor, edge radius, fillet radius, model error."""
     lay, z, x = problem.layout, core.z, core.ev.x
     k = lay.slot("floor")
     if "floor" in spec.free and x[k] < 0.0:
@@ -258,6 +260,14 @@ def _bound_found(
             return "edge_radius_um", at, f"the optimum is the bound r = {at:.4g} um"
         if x[k] < NEAR_BOUND * problem.r_max_um:
             return "edge_radius_um", 0.0, None
+    k = lay.slot("fillet_radius_um")
+    if "fillet_radius_um" in spec.free:
+        if abs(math.cos(z[k])) < BOUND_TOL and math.sin(z[k]) < 0:
+            return "fillet_radius_um", 0.0, "the optimum is the bound r_f = 0 um"
+        if abs(math.cos(z[k])) < BOUND_TOL:  # r + r_f = r_max: fixed there, at its value
+            return "fillet_radius_um", float(x[k]), "the optimum is the bound r + r_f = r_max"
+        if x[k] < NEAR_BOUND * problem.r_max_um:
+            return "fillet_radius_um", 0.0, None
     k = lay.slot("model_error_frac")
     if "model_error_frac" in spec.free:
         rel = x[k] * np.abs(core.ev.model) / np.asarray(core.data.stderr)
@@ -271,4 +281,4 @@ def within_stderr_of_bound(p: Parameter, x: float, se: float) -> bool:
     transform, where a Gaussian error bar is not meaningful."""
     if not p.info.on_bound:
         return False
-    return bool(x - p.bounds[0] < se or (p.transform == SIN and p.bounds[1] - x < se))
+    return bool(x - p.bounds[0] < se or (p.transform in (SIN, SIN_REST) and p.bounds[1] - x < se))

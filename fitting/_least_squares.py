@@ -259,7 +259,7 @@ def nested_start(problem: Problem, parent: FitResult) -> np.ndarray:
 
     Slots the parent fitted keep its `z`; the others start at the parent's physical values
     (a per-wedge width at the parent's width of that wedge, a parameter the parent fixed at its
-    fixed value), an edge radius on a bound just inside it (`SIN_NUDGE`).
+    fixed value), an edge or fillet radius on a bound just inside it (`SIN_NUDGE`).
     """
     lay = problem.layout
     p = parent.params
@@ -270,9 +270,12 @@ def nested_start(problem: Problem, parent: FitResult) -> np.ndarray:
         x[lay.slot("sigma_rad", w)] = float(sigma[w] if sigma.size > 1 else sigma[0])
     for name in PARAM_NAMES[1:]:
         x[lay.slot(name)] = float(getattr(p, name))
-    z = np.array([from_physical(v, k, problem.r_max_um) for v, k in zip(x, lay.kinds, strict=True)])
-    k = lay.slot("edge_radius_um")
-    z[k] = float(np.clip(z[k], -0.5 * math.pi + SIN_NUDGE, 0.5 * math.pi - SIN_NUDGE))
+    r = x[lay.slot("edge_radius_um")]
+    z = np.array(
+        [from_physical(v, k, problem.r_max_um, r) for v, k in zip(x, lay.kinds, strict=True)]
+    )
+    for k in (lay.slot("edge_radius_um"), lay.slot("fillet_radius_um")):
+        z[k] = float(np.clip(z[k], -0.5 * math.pi + SIN_NUDGE, 0.5 * math.pi - SIN_NUDGE))
     free = list(parent.free_slots)
     z[free] = np.asarray(parent.z)[free]
     return z

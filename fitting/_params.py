@@ -12,8 +12,14 @@ physical value `x` and is shared by least squares and the posterior (docs/fittin
 | `scale`            | *    | `> 0`         | `x = exp(z)`                                   |
 | `floor`            | *    | `>= 0`        | `x = z` (bound: active set + prior support)    |
 | `model_error_frac` | 1    | `>= 0`        | `x = abs(z)` (the likelihood depends on `x^2`) |
+| `fillet_radius_um` | um   | `[0, r_max-r]`| `x = (r_max - r) (1 + sin z) / 2`, `z` as above |
 
 (*) `scale` and `floor` are in the units of the measured relative radiance [conventions §9].
+`r_max` is the scene's `min(l1, l2)` over the used wedges and `r` the physical edge radius
+(fixed or free), so the tip arc and the fillet always fit together on every wedge
+(`stairfit.model.max_fillet_radius`, docs/rounded.md §1): the fillet's transform is the edge
+radius's, on the room the tips leave. It is the one transform that reads another slot, so
+`to_physical` applies it after the fixed values are in place.
 The table is data here too: `PARAMETERS` holds one `ParamInfo` per row, and `Layout` turns it
 into one `Parameter` record per entry of `z` (a shared width, one width per wedge, then the
 others), so that no code needs to know where in `z` a parameter lives.
@@ -51,9 +57,13 @@ class Transform(enum.StrEnum):
     """`x = r_max (1 + sin z) / 2`, `z in [-pi/2, pi/2]`: the edge radius in `[0, r_max]`."""
     ABS = "abs"
     """`x = abs(z)`: the model-error fraction (the likelihood depends on `x^2` only)."""
+    SIN_REST = "sin_rest"
+    """`x = (r_max - r) (1 + sin z) / 2`, `z in [-pi/2, pi/2]`, `r` the value of the `SIN`
+    slot: the fillet radius in `[0, r_max - r]`."""
 
 
 LOG, IDENTITY, SIN, ABS = Transform.LOG, Transform.IDENTITY, Transform.SIN, Transform.ABS
+SIN_REST = Transform.SIN_REST
 
 
 class ParamInfo(NamedTuple):
@@ -81,6 +91,7 @@ PARAMETERS: tuple[ParamInfo, ...] = (
     ParamInfo("scale", "radiance units x rad", LOG, (0.0, math.inf)),
     ParamInfo("floor", "radiance units", IDENTITY, (0.0, math.inf), on_bound=True, optional=True),
     ParamInfo("model_error_frac", "1", ABS, (0.0, math.inf), on_bound=True),
+    ParamInfo("fillet_radius_um", "um", SIN_REST, (0.0, math.inf), on_bound=True, optional=True),
 )
 """Every physical parameter, in the order of `Params` and of the unconstrained vector.
 `scale` multiplies a density in 1/rad [conventions §4, §9]."""
@@ -93,6 +104,10 @@ PARAM_NAMES: tuple[str, ...] = tuple(PARAM_INFO)
 
 OPTIONAL_FEATURES: tuple[str, ...] = tuple(p.name for p in PARAMETERS if p.optional)
 """The parameters the model-selection ladder switches on and off (besides per-wedge sigma)."""
+
+FILLET = "fillet_radius_um"
+"""The optional parameter the ladder does not combine with every other (its rungs are few and
+explicit: `FILLET_RUNGS`); the others span all combinations."""
 
 ALWAYS_FREE: frozenset[str] = frozenset({"sigma_rad", "scale"})
 """Free in every ladder variant: the simplest model a scene needs is sharp steps, one sigma, the
@@ -124,7 +139,9 @@ class Params(NamedTuple):
     edges in micrometres (0 = sharp steps). `scale` and `floor` convert the density to a relative
     radiance: `value = scale cos(theta_i) rho / cos(theta_o) + floor cos(theta_i)`
     [conventions §9]. `model_error_frac` is the fractional model error added in quadrature to
-    each row's standard error.
+    each row's standard error. `fillet_radius_um` is the radius of the concave fillets between
+    layers in micrometres (0 = sharp concave corners; `r + r_f <= min(l1, l2)` on every wedge,
+    docs/rounded.md §1, §11); last, so that positional construction of the others is unchanged.
     """
 
     sigma_rad: float | np.ndarray = float(np.deg2rad(5.0))
@@ -133,6 +150,7 @@ class Params(NamedTuple):
     scale: float = 1.0
     floor: float = 0.0
     model_error_frac: float = 0.0
+    fillet_radius_um: float = 0.0
 
     def sigma_per_wedge(self, n_wedges: int) -> np.ndarray:
         """`sigma_rad` as an array of one width per wedge."""
@@ -148,7 +166,7 @@ class Params(NamedTuple):
 
 DEFAULTS = Params()
 """Values used for fixed parameters unless the caller gives others: sigma 5 deg (the paper's
-Fig. 8), delta_n 0, sharp edges, scale 1, no floor, no model error."""
+Fig. 8), delta_n 0, sharp edges, scale 1, no floor, no model error, no fillets."""
 
 
 # --- priors ---------------------------------------------------------------------------------
@@ -236,6 +254,8 @@ class Priors(NamedTuple):
     * `scale`: log-uniform on [1e-12, 1e12] (scale-free; no information).
     * `floor`: `None` = half-normal with sd = the largest used measured value.
     * `model_error_frac`: half-normal with sd 0.1 (model errors of a few per cent).
+    * `fillet_radius_um`: `None` = uniform on [0, r_max] of the scene (the joint support with
+      the edge radius is the triangle `r + r_f <= r_max`, which the transform enforces).
     """
 
     sigma_rad: Prior = LogUniform(1e-3, 1.5)
@@ -244,12 +264,14 @@ class Priors(NamedTuple):
     scale: Prior = LogUniform(1e-12, 1e12)
     floor: Prior | None = None
     model_error_frac: Prior = HalfNormal(0.1)
+    fillet_radius_um: Prior | None = None
 
     def resolved(self, r_max_um: float, value_max: float) -> Priors:
-        """Fill the data-derived priors: `edge_radius_um` and `floor`."""
+        """Fill the data-derived priors: `edge_radius_um`, `fillet_radius_um` and `floor`."""
         return self._replace(
             edge_radius_um=self.edge_radius_um or Uniform(0.0, float(r_max_um)),
             floor=self.floor or HalfNormal(float(value_max)),
+            fillet_radius_um=self.fillet_radius_um or Uniform(0.0, float(r_max_um)),
         )
 
 
@@ -347,47 +369,70 @@ class Layout(NamedTuple):
 # --- transforms -------------------------------------------------------------------------------
 
 
-def to_physical(z: Array, kinds: Sequence[str], r_max_um: ArrayLike) -> Array:
-    """Map the unconstrained vector to physical values slot by slot (see the module table)."""
+def _rest_of(kinds: Sequence[str], x: Array, r_max_um: ArrayLike) -> Array:
+    """`r_max - r`, `r` the value of the `SIN` slot in `x` (the room a `SIN_REST` slot gets)."""
+    r = x[list(kinds).index(SIN)] if SIN in kinds else 0.0
+    return jnp.maximum(jnp.asarray(r_max_um) - r, 0.0)
+
+
+def to_physical(
+    z: Array,
+    kinds: Sequence[str],
+    r_max_um: ArrayLike,
+    fixed: tuple[Array, Array] | None = None,
+) -> Array:
+    """Map the unconstrained vector to physical values slot by slot (see the module table).
+
+    `fixed = (free, x_fixed)`: slots not free take their fixed physical value (before the
+    `SIN_REST` slot reads the edge radius, so a fixed radius bounds a free fillet)."""
     out = []
     for k, kind in enumerate(kinds):
         if kind == LOG:
             out.append(jnp.exp(jnp.clip(z[k], -Z_CLIP, Z_CLIP)))
-        elif kind == SIN:
+        elif kind in (SIN, SIN_REST):
             out.append(jnp.asarray(r_max_um) * 0.5 * (1.0 + jnp.sin(z[k])))
         elif kind == ABS:
             out.append(jnp.abs(z[k]))
         else:
             out.append(z[k])
-    return jnp.stack(out)
+    x = jnp.stack(out)
+    if fixed is not None:
+        x = jnp.where(fixed[0], x, fixed[1])
+    if SIN_REST in kinds:
+        k = list(kinds).index(SIN_REST)
+        x_k = _rest_of(kinds, x, r_max_um) * 0.5 * (1.0 + jnp.sin(z[k]))
+        x = x.at[k].set(x_k if fixed is None else jnp.where(fixed[0][k], x_k, fixed[1][k]))
+    return x
 
 
 def in_support(z: Array, kinds: Sequence[str]) -> Array:
     """False where a sine slot leaves its principal branch `[-pi/2, pi/2]` (posterior only)."""
     ok = jnp.asarray(True)
     for k, kind in enumerate(kinds):
-        if kind == SIN:
+        if kind in (SIN, SIN_REST):
             ok = ok & (jnp.abs(z[k]) <= 0.5 * jnp.pi)
     return ok
 
 
-def log_abs_jacobian(z: Array, kinds: Sequence[str], r_max_um: ArrayLike) -> Array:
+def log_abs_jacobian(
+    z: Array, kinds: Sequence[str], r_max_um: ArrayLike, fixed: tuple[Array, Array] | None = None
+) -> Array:
     """`log |dx/dz|` of each slot's transform (the prior's change of variables).
 
-    For `abs` the map is two-to-one; the density of `z` is `p(|z|) / 2`, hence `-log 2`.
+    For `abs` the map is two-to-one; the density of `z` is `p(|z|) / 2`, hence `-log 2`. The
+    `SIN_REST` slot's `x` also depends on the `SIN` slot's `z`, but the Jacobian matrix is then
+    triangular, so its log-determinant is still the sum of these diagonal terms.
     """
     out = []
+    x = to_physical(z, kinds, r_max_um, fixed) if SIN_REST in kinds else None
     for k, kind in enumerate(kinds):
         if kind == LOG:
             out.append(z[k])
-        elif kind == SIN:
+        elif kind in (SIN, SIN_REST):
+            room = jnp.asarray(r_max_um) if kind == SIN else _rest_of(kinds, x, r_max_um)
             c = jnp.cos(z[k])
-            pos = c > 0
-            out.append(
-                jnp.where(
-                    pos, jnp.log(0.5 * jnp.asarray(r_max_um) * jnp.where(pos, c, 1.0)), -jnp.inf
-                )
-            )
+            pos = (c > 0) & (room > 0)
+            out.append(jnp.where(pos, jnp.log(0.5 * jnp.where(pos, room * c, 1.0)), -jnp.inf))
         elif kind == ABS:
             out.append(jnp.full_like(z[k], -math.log(2.0)))
         else:
@@ -395,27 +440,50 @@ def log_abs_jacobian(z: Array, kinds: Sequence[str], r_max_um: ArrayLike) -> Arr
     return jnp.stack(out)
 
 
-def from_physical(x: float, kind: str, r_max_um: float) -> float:
-    """Inverse transform for one value (used for starting points)."""
+def from_physical(x: float, kind: str, r_max_um: float, edge_radius_um: float = 0.0) -> float:
+    """Inverse transform for one value (used for starting points); `edge_radius_um` is the
+    physical edge radius a `SIN_REST` (fillet) value is bounded by."""
     if kind == LOG:
         return float(np.clip(np.log(max(x, np.exp(-Z_CLIP))), -Z_CLIP, Z_CLIP))
-    if kind == SIN:
-        return float(np.arcsin(np.clip(2.0 * x / r_max_um - 1.0, -1.0, 1.0)))
+    if kind in (SIN, SIN_REST):
+        room = r_max_um - (edge_radius_um if kind == SIN_REST else 0.0)
+        if room <= 0:
+            return -0.5 * np.pi
+        return float(np.arcsin(np.clip(2.0 * x / room - 1.0, -1.0, 1.0)))
     if kind == ABS:
         return float(abs(x))
     return float(x)
 
 
-def dx_dz(z: np.ndarray, kinds: Sequence[str], r_max_um: float) -> np.ndarray:
-    """Derivative of each transform at `z` (for the delta method)."""
+def dx_dz(
+    z: np.ndarray, kinds: Sequence[str], r_max_um: float, edge_radius_um: float = 0.0
+) -> np.ndarray:
+    """Derivative of each transform at `z` in its own coordinate (the diagonal of
+    `dx_matrix`); `edge_radius_um` is the physical edge radius bounding a `SIN_REST` slot."""
     out = np.ones(len(kinds))
     for k, kind in enumerate(kinds):
         if kind == LOG:
             out[k] = np.exp(np.clip(z[k], -Z_CLIP, Z_CLIP))
         elif kind == SIN:
             out[k] = 0.5 * r_max_um * np.cos(z[k])
+        elif kind == SIN_REST:
+            out[k] = 0.5 * max(r_max_um - edge_radius_um, 0.0) * np.cos(z[k])
         elif kind == ABS:
             out[k] = 1.0 if z[k] >= 0 else -1.0
+    return out
+
+
+def dx_matrix(
+    z: np.ndarray, kinds: Sequence[str], r_max_um: float, free: np.ndarray, edge_radius_um: float
+) -> np.ndarray:
+    """`dx/dz` as a matrix (for the delta method): `dx_dz` on the diagonal, and the fillet's
+    dependence on a free edge radius, `dx_f / dz_r = -(1 + sin z_f) / 2 * dr / dz_r`."""
+    d = dx_dz(z, kinds, r_max_um, edge_radius_um)
+    out = np.diag(d)
+    if SIN_REST in kinds and SIN in kinds:
+        f, r = list(kinds).index(SIN_REST), list(kinds).index(SIN)
+        if free[r]:
+            out[f, r] = -0.5 * (1.0 + np.sin(z[f])) * d[r]
     return out
 
 
@@ -423,12 +491,19 @@ PriorSpec = tuple[tuple[int, Prior], ...]
 """Hashable (slot, prior) pairs of the free slots: static configuration of a posterior."""
 
 
-def log_prior_z(z: Array, kinds: Sequence[str], r_max_um: ArrayLike, priors: PriorSpec) -> Array:
+def log_prior_z(
+    z: Array,
+    kinds: Sequence[str],
+    r_max_um: ArrayLike,
+    priors: PriorSpec,
+    fixed: tuple[Array, Array] | None = None,
+) -> Array:
     """Log prior density of the free slots in the unconstrained coordinates: `sum over (slot,
     prior) of [log p(x) + log |dx/dz|]` (priors are stated on the physical values). The one
-    home of that sum: the posterior and the Laplace evidence both use it."""
-    x = to_physical(z, kinds, r_max_um)
-    jac = log_abs_jacobian(z, kinds, r_max_um)
+    home of that sum: the posterior and the Laplace evidence both use it. `fixed` as in
+    `to_physical` (needed when a fixed edge radius bounds a free fillet)."""
+    x = to_physical(z, kinds, r_max_um, fixed)
+    jac = log_abs_jacobian(z, kinds, r_max_um, fixed)
     total = jnp.asarray(0.0, dtype=z.dtype)
     for slot, prior in priors:
         total = total + prior.log_pdf(x[slot]) + jac[slot]
@@ -470,16 +545,17 @@ def variant(name: str, *features: str, per_wedge_sigma: bool = False) -> Variant
     return Variant(name, ALWAYS_FREE | frozenset(features), per_wedge_sigma)
 
 
-_SHORT = {"delta_n": "delta_n", "edge_radius_um": "edge", "floor": "floor"}
+_SHORT = {"delta_n": "delta_n", "edge_radius_um": "edge", "floor": "floor", FILLET: "fillet"}
 """How the optional features appear in ladder names."""
 
 
 def _ladder() -> tuple[Variant, ...]:
     """Every combination of the optional features, then per-wedge sigma on top of each."""
     out = []
+    combined = tuple(f for f in OPTIONAL_FEATURES if f != FILLET)
     for per_wedge in (False, True):
-        for mask in range(2 ** len(OPTIONAL_FEATURES)):
-            feats = tuple(f for k, f in enumerate(OPTIONAL_FEATURES) if mask >> k & 1)
+        for mask in range(2 ** len(combined)):
+            feats = tuple(f for k, f in enumerate(combined) if mask >> k & 1)
             parts = ["sharp" if "edge_radius_um" not in feats else "rounded"]
             parts += [_SHORT[f] for f in feats if f != "edge_radius_um"]
             if per_wedge:

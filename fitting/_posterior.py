@@ -37,7 +37,7 @@ from ._diagnostics import (
 )
 from ._errors import FitError, FitInputError, FitWarning, emit, with_overrides
 from ._forward import Data, Static, log_likelihood_z, physical
-from ._params import SIN, Parameter, PriorSpec, in_support, log_prior_z
+from ._params import SIN, SIN_REST, Parameter, PriorSpec, in_support, log_prior_z
 from ._result import FitResult
 
 
@@ -54,7 +54,8 @@ def log_prior(
     values; `-inf` outside their support (and outside the sine's principal branch).
     """
     z = _full_z(theta, base_z, free_slots)
-    total = log_prior_z(z, static.layout.kinds, data.r_max_um, priors)
+    fixed = (data.free, data.x_fixed)
+    total = log_prior_z(z, static.layout.kinds, data.r_max_um, priors, fixed)
     return jnp.where(in_support(z, static.layout.kinds), total, -jnp.inf)
 
 
@@ -350,7 +351,7 @@ def target(fit: FitResult) -> Target:
     # arcsin(sin z).
     z = np.asarray(fit.z, dtype=float).copy()
     for k, kind in enumerate(static.layout.kinds):
-        if kind == SIN:
+        if kind in (SIN, SIN_REST):
             z[k] = float(np.arcsin(np.sin(z[k])))
     priors = tuple((p.slot, p.prior) for p in fit.parameters)
     slots = np.asarray(fit.free_slots, dtype=int)

@@ -67,7 +67,8 @@ class Problem(NamedTuple):
     def static_for(self, spec: FreeSpec) -> Static:
         """The hashable configuration for a variant (which forward, model-error term)."""
         fixed = self.fixed._replace(**dict(spec.overrides))
-        rounded = "edge_radius_um" in spec.free or float(fixed.edge_radius_um) > 0.0
+        filleted = "fillet_radius_um" in spec.free or float(fixed.fillet_radius_um) > 0.0
+        rounded = filleted or "edge_radius_um" in spec.free or float(fixed.edge_radius_um) > 0.0
         model_error = "model_error_frac" in spec.free or float(fixed.model_error_frac) > 0.0
         return Static(
             layout=self.layout,
@@ -76,6 +77,7 @@ class Problem(NamedTuple):
             correlated=self.correlated,
             aperture=self.aperture,
             resolution=self.resolution,
+            filleted=filleted,
         )
 
     @property
@@ -95,7 +97,8 @@ class Problem(NamedTuple):
         _, free = _tying(self.layout, spec)
         out = []
         for p in self.layout.parameters():
-            upper = self.r_max_um if p.param == "edge_radius_um" else p.bounds[1]
+            radius = p.param in ("edge_radius_um", "fillet_radius_um")
+            upper = self.r_max_um if radius else p.bounds[1]
             deg = None if p.wedge is None else float(self.wedge_deg[p.wedge])
             prior = getattr(self.priors, p.param)
             out.append(
@@ -335,6 +338,7 @@ def _check_fixed(fixed: Params, n_wedges: int, r_max: float) -> None:
         ),
         ("delta_n", np.isfinite(fixed.delta_n), "finite"),
         ("edge_radius_um", np.isfinite(fixed.edge_radius_um), "finite"),
+        ("fillet_radius_um", np.isfinite(fixed.fillet_radius_um), "finite"),
     )
     for name, ok, need in checks:
         if not ok:
@@ -346,6 +350,13 @@ def _check_fixed(fixed: Params, n_wedges: int, r_max: float) -> None:
         raise FitInputError(
             f"fixed edge_radius_um = {fixed.edge_radius_um} is outside [0, r_max = {r_max:.4g}] "
             "um (r_max = the finest wedge's min(l1, l2)); choose a smaller radius"
+        )
+    rest = r_max - float(fixed.edge_radius_um)
+    if not 0.0 <= float(fixed.fillet_radius_um) <= rest:
+        raise FitInputError(
+            f"fixed fillet_radius_um = {fixed.fillet_radius_um} is outside [0, r_max - "
+            f"edge_radius_um = {rest:.4g}] um (tip arc and fillet must fit together on the "
+            "finest wedge, r + r_f <= min(l1, l2)); choose a smaller fillet or edge radius"
         )
 
 

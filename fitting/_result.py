@@ -15,7 +15,7 @@ import numpy as np
 from ._core import CoreFit
 from ._errors import FitWarning
 from ._identify import covariance, within_stderr_of_bound
-from ._params import Parameter, Params, Variant, dx_dz, log_prior_z, parameter_label
+from ._params import Parameter, Params, Variant, dx_matrix, log_prior_z, parameter_label
 from ._problem import FreeSpec, Problem
 
 
@@ -140,7 +140,10 @@ class FitResult:
         k = len(self.free_slots)
         spec = tuple((p.slot, p.prior) for p in self.parameters)
         lay = self.problem.layout
-        log_prior = float(log_prior_z(jnp.asarray(self.z), lay.kinds, self.problem.r_max_um, spec))
+        d = self.problem.arrays_for(self.spec) if self.spec is not None else None
+        fixed = None if d is None else (d.free, d.x_fixed)  # a fixed r bounds a free r_f
+        z = jnp.asarray(self.z)
+        log_prior = float(log_prior_z(z, lay.kinds, self.problem.r_max_um, spec, fixed))
         logdet = float(np.linalg.slogdet(self.covariance_z)[1])
         return self.log_likelihood + log_prior + 0.5 * k * math.log(2 * math.pi) + 0.5 * logdet
 
@@ -237,8 +240,12 @@ def _physical_covariance(
     if cov_z is None:
         return None, None, None
     slots = core.free_slots
-    d = dx_dz(core.z, problem.layout.kinds, problem.r_max_um)[slots]
-    cov = cov_z * np.outer(d, d)
+    lay = problem.layout
+    r = float(core.ev.x[lay.slot("edge_radius_um")])
+    free = np.zeros(lay.size, bool)
+    free[slots] = True
+    d = dx_matrix(np.asarray(core.z), lay.kinds, problem.r_max_um, free, r)[np.ix_(slots, slots)]
+    cov = d @ cov_z @ d.T
     sd = np.sqrt(np.diag(cov))
     return cov_z, cov, cov / np.outer(sd, sd)
 

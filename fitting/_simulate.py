@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
@@ -87,14 +88,19 @@ def model_radiance(
     """Model relative radiance at every row of `observations` for physical `params`.
 
     `band_density` + `radiance` of `stairfit.model` [conventions §8, §9], or the rounded-edge
-    model when `params.edge_radius_um > 0`. Evaluated at every row, used or not.
+    model when `params.edge_radius_um > 0`, the filleted model (`stairfit.model.brdf_filleted`,
+    docs/rounded.md §11) when `params.fillet_radius_um > 0` (micrometres, `r + r_f <=
+    min(l1, l2)` on every row's wedge, else a one-line ValueError from
+    `stairfit.model.check_fillet_radius`). Evaluated at every row, used or not.
     """
     obs = observations
     sigma = params.sigma_per_wedge(obs.n_wedges)[obs.wedge_index]
     n = clamp_index(np.asarray(spectral.n_base)[obs.channel_index] + params.delta_n)
     w = np.asarray(spectral.weights)[obs.channel_index]
     ti, to = jnp.asarray(obs.theta_i_rad), jnp.asarray(obs.theta_o_rad)
-    if float(params.edge_radius_um) > 0.0:
+    if float(params.fillet_radius_um) > 0.0:
+        dens = _filleted_rows(params, obs, n, w, sigma, aperture, resolution)
+    elif float(params.edge_radius_um) > 0.0:
         dens = _rounded_rows(params, obs, n, w, sigma, aperture, resolution)
     else:
         dens = model.band_density(
@@ -130,6 +136,55 @@ def _rounded_rows(
         **kwargs,
     )  # (N, M, K)
     return np.einsum("nk,nmk->nm", w, np.asarray(rho)) @ dw
+
+
+def _filleted_rows(
+    params: Params,
+    obs: Observations,
+    n: Array,
+    w: np.ndarray,
+    sigma: np.ndarray,
+    aperture: model.Aperture | None,
+    resolution: int | None,
+) -> np.ndarray:
+    """Filleted-model band density per row, straight from `stairfit.model.brdf_filleted`:
+    the rays are traced once per distinct (theta_i node, wedge, layer) (`fillet_geometry`),
+    each row then finishes with `brdf_filleted_from_geometry` at its views, index and width."""
+    ap = aperture or model.Aperture()
+    di, do, dw = ap.nodes()
+    ti = model.node_angles(obs.theta_i_rad, di)  # (N, M)
+    spread = np.asarray(obs.view_spread)[:, None] * do
+    to = np.asarray(model.node_angles(obs.theta_o_rad, spread, ap.foreshortened))  # (N, M)
+    res = model.ROUNDED_RESOLUTION if resolution is None else resolution
+    keys = np.stack([obs.theta_i_rad, obs.beta2_rad, obs.layer_um], axis=1)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    r, rf = float(params.edge_radius_um), float(params.fillet_radius_um)
+    model.check_fillet_radius(obs.beta2_rad, obs.layer_um, r, rf)  # a one-line ValueError
+    geo = _fillet_geometry(
+        jnp.asarray(ti)[first][:, :, None, None],
+        obs.beta2_rad[first][:, None, None, None],
+        obs.layer_um[first][:, None, None, None],
+        r,
+        rf,
+        res,
+    )  # (G, M, 1, 1): one geometry per distinct row geometry and light node
+    out = np.zeros(obs.n_rows)
+    for g in range(first.size):
+        rows = np.flatnonzero(inverse == g)
+        geo_g = jax.tree_util.tree_map(lambda a, g=g: a[g], geo)
+        rho = _filleted_from_geometry(
+            geo_g, to[rows].T[:, :, None], jnp.asarray(n)[rows][None], sigma[rows][None, :, None]
+        )  # (M, rows, K)
+        out[rows] = np.einsum("nk,mnk,m->n", w[rows], np.asarray(rho), dw)
+    return out
+
+
+_fillet_geometry = jax.jit(
+    lambda ti, b, l1, r, rf, res: model.fillet_geometry(ti, b, l1, r, rf, resolution=res),
+    static_argnums=5,
+)
+_filleted_from_geometry = jax.jit(model.brdf_filleted_from_geometry)
 
 
 def design_observations(design: Design) -> Observations:

@@ -56,9 +56,17 @@ from ._rounded import rounded_total as rounded_total
 # Concave fillets (issue 15; docs/rounded.md §1, §11), appended after the rounded exports.
 from ._fillet import FILLET_BOUNCES as FILLET_BOUNCES
 from ._fillet import FILLET_RAYS as FILLET_RAYS
+from ._fillet import FilletGeometry as FilletGeometry
+from ._fillet import FilletRays as FilletRays
 from ._fillet import brdf_filleted as brdf_filleted
+from ._fillet import brdf_filleted_from_geometry as brdf_filleted_from_geometry
 from ._fillet import check_fillet_radius as check_fillet_radius
+from ._fillet import difference_scale as difference_scale
 from ._fillet import fillet_bounce_bound as fillet_bounce_bound
+from ._fillet import fillet_difference_points as fillet_difference_points
+from ._fillet import fillet_geometry as fillet_geometry
+from ._fillet import fillet_ray_power as fillet_ray_power
+from ._fillet import fillet_rays as fillet_rays
 from ._fillet import filleted_binned as filleted_binned
 from ._fillet import filleted_total as filleted_total
 from ._fillet import max_fillet_radius as max_fillet_radius

@@ -31,11 +31,14 @@ from ._broadening import hemisphere_gaussian
 from ._fresnel import fresnel_sp
 from ._rounded import (
     ROUNDED_RESOLUTION,
+    RoundedGeometry,
     _room_np,
     brdf_rounded,
+    brdf_rounded_from_geometry,
     check_edge_radius,
     max_edge_radius,
     rounded_binned,
+    rounded_geometry,
     rounded_total,
 )
 from ._shapes import same_rank, with_rank
@@ -203,7 +206,7 @@ def _candidates(ray: tuple, b: Array, l1: Array, r: Array, rf: Array) -> _Candid
 
 
 class _Rays(NamedTuple):
-    """The traced rays of one geometry: per bounce (trailing axis) the cosine of the local
+    """The traced rays of one geometry and lane: per bounce (trailing axis) the cosine of the local
     angle of incidence and whether the ray reflected there; whether it escaped, and where to."""
 
     cos: Float[Array, "n_rays bounces"]
@@ -249,17 +252,36 @@ def _trace_one(
 
 
 # --------------------------------------------------------------------------------------------
-# The correction T(r, r_f) - T(r, 0) and the public functions
+# The traced ray pairs, once per geometry
 # --------------------------------------------------------------------------------------------
+
+
+class FilletRays(NamedTuple):
+    """The rays of `T(r, r_f)` and of `T(r, 0)` for each broadcast element of the geometry
+    (`fillet_rays`); the axis `2` is the lane (`r_f`, then 0). Angles in radians.
+
+    `cos`: per bounce the cosine of the local angle of incidence (1 where the ray did not
+    reflect); `hit`: whether it reflected at that bounce; `escaped`: whether it left the surface
+    upwards within `bounces` reflections; `theta_o`: its final direction [conventions §1];
+    `live`: whether the two lanes of the ray differ at all (a ray that meets neither the fillet
+    nor the corner it replaces takes bit-identical steps in both and is left out of every sum;
+    it would cancel exactly).
+    """
+
+    cos: Float[Array, "... 2 n_rays bounces"]
+    hit: Array
+    escaped: Array
+    theta_o: Float[Array, "... 2 n_rays"]
+    live: Array
 
 
 def _pair_rays(
     ti: Array, b: Array, l1: Array, r: Array, rf: Array, rays: int, bounces: int
-) -> _Rays:
+) -> FilletRays:
     """The rays for `r_f` and for 0 on a new axis before the ray axis: `(..., 2, rays[, K])`.
 
     One vectorised computation on both lanes, so a ray that misses the fillet gives the same
-    bits in both and cancels exactly."""
+    bits in both (`live` is False for it)."""
     ti, b, l1, r, rf = jnp.broadcast_arrays(ti, b, l1, r, rf)
     pair = [jnp.stack([a, a], axis=-1) for a in (ti, b, l1, r)]
     pair.append(jnp.stack([rf, jnp.zeros_like(rf)], axis=-1))
@@ -267,26 +289,55 @@ def _pair_rays(
     def one(*args: Array) -> tuple:
         return tuple(_trace_one(*args, rays=rays, bounces=bounces))
 
-    out = jnp.vectorize(one, signature="(),(),(),(),()->(n,k),(n,k),(n),(n)")(*pair)
-    return _Rays(*out)
+    cos, hit, esc, th = jnp.vectorize(one, signature="(),(),(),(),()->(n,k),(n,k),(n),(n)")(*pair)
+    live = (
+        jnp.any((cos[..., 0, :, :] != cos[..., 1, :, :]) | (hit[..., 0, :, :] != hit[..., 1, :, :]),
+                axis=-1)
+        | (esc[..., 0, :] != esc[..., 1, :])
+        | (th[..., 0, :] != th[..., 1, :])
+    )  # fmt: skip
+    return FilletRays(cos, hit, esc, th, live)
 
 
-def _ray_power(traced: _Rays, n: Array) -> Float[Array, "... 2 n_rays"]:
-    """Each escaping ray's unpolarised power per unit incident power, signed `+` for the
-    filleted lane and `-` for the `r_f = 0` lane (Fresnel per polarisation per bounce,
-    [conventions §6]). `n` has the rank of the geometry."""
-    f = fresnel_sp(traced.cos, n[..., None, None, None])
-    p_s = jnp.prod(jnp.where(traced.hit, f.s, 1.0), axis=-1)
-    p_p = jnp.prod(jnp.where(traced.hit, f.p, 1.0), axis=-1)
-    sign = with_rank(jnp.asarray([1.0, -1.0], p_s.dtype)[:, None], p_s.ndim)
-    return 0.5 * (p_s + p_p) * traced.escaped * sign / traced.cos.shape[-2]
+def fillet_ray_power(rays: FilletRays, n: ArrayLike) -> Float[Array, "... 2 n_rays"]:
+    """Each ray's reflected unpolarised power per unit incident power per period, signed `+`
+    for the filleted lane and `-` for the `r_f = 0` lane, 0 for rays whose lanes are identical
+    or that did not escape (Fresnel per polarisation per bounce [conventions §6]).
+
+    `n` (complex allowed) broadcasts with the leading axes of `rays`; pass the index samples on
+    their own axis (e.g. `rays` with leading `(G, 1)`, `n` of shape `(K,)` gives
+    `(G, K, 2, n_rays)`). The product over bounces is accumulated one bounce at a time, so no
+    `(index x rays x bounces)` array is formed."""
+    n_b = jnp.asarray(n)[..., None, None]
+    p_s = p_p = None
+    for k in range(rays.cos.shape[-1]):
+        f = fresnel_sp(rays.cos[..., k], n_b)
+        s = jnp.where(rays.hit[..., k], f.s, 1.0)
+        p = jnp.where(rays.hit[..., k], f.p, 1.0)
+        p_s, p_p = (s, p) if p_s is None else (p_s * s, p_p * p)
+    keep = rays.escaped & rays.live[..., None, :]
+    power = 0.5 * (p_s + p_p) / rays.cos.shape[-2]
+    sign = with_rank(jnp.asarray([1.0, -1.0], power.dtype)[:, None], power.ndim)
+    power = power * sign
+    return jnp.where(keep, power, 0.0)
 
 
-def _pair_sum(x: Array) -> Array:
-    """Sum over the trailing (pair, ray) axes, the pair first: a ray that misses the fillet
-    then contributes `x + (-x) = 0` exactly, so `r_f = 0` is the rounded model to the bit."""
-    # an explicit add, not a reduction: XLA merges consecutive reductions and reorders them
-    return jnp.sum(x[..., 0, :] + x[..., 1, :], axis=-1)
+def _correction_from_rays(kind: str, rays: FilletRays, rest: tuple) -> Array:
+    """`T(r, r_f) - T(r, 0)` for one output kind from traced rays; `rest` is `(n,)`,
+    `(n, edges)` or `(n, theta_o, sigma)`, broadcasting with the rays' leading axes."""
+    w = fillet_ray_power(rays, rest[0])
+    if kind == "total":
+        return jnp.sum(w, axis=(-2, -1))
+    if kind == "brdf":
+        to, sg = jnp.asarray(rest[1]), jnp.asarray(rest[2])
+        kern = hemisphere_gaussian(to[..., None, None], rays.theta_o, sg[..., None, None])
+        return jnp.sum(w * kern, axis=(-2, -1))
+    e = rest[1]
+    th = rays.theta_o[..., None]
+    e_d = with_rank(e, th.ndim)
+    inside = (th >= e_d[..., :-1]) & (th < e_d[..., 1:])
+    inside = inside.at[..., -1].set(inside[..., -1] | (th[..., 0] == e[-1]))
+    return jnp.sum(w[..., None] * inside, axis=(-3, -2))
 
 
 def _args(*arrays: ArrayLike) -> tuple[Array, ...]:
@@ -297,6 +348,100 @@ def _args(*arrays: ArrayLike) -> tuple[Array, ...]:
     return same_rank(*(a if jnp.iscomplexobj(a) else jnp.asarray(a, dtype) for a in arrays))
 
 
+def _geom_args(*arrays: ArrayLike) -> tuple[Array, ...]:
+    """The geometric arguments broadcast to one shape and float dtype [conventions §10]."""
+    return tuple(jnp.broadcast_arrays(*_args(*arrays)))
+
+
+def fillet_rays(
+    theta_i: ArrayLike,
+    beta2: ArrayLike,
+    layer_um: ArrayLike,
+    edge_radius_um: ArrayLike,
+    fillet_radius_um: ArrayLike,
+    *,
+    rays: int = FILLET_RAYS,
+    bounces: int = FILLET_BOUNCES,
+) -> FilletRays:
+    """The traced ray pairs of the fillet correction, one set per broadcast element of the
+    geometry (radians, micrometres) [conventions §1, §2]: what does not depend on `theta_o`,
+    the index or the broadening, so a caller with many of those per geometry (a fit) traces
+    once per distinct geometry and finishes with `fillet_ray_power` and the kernel.
+
+    Not differentiable in the geometry (a `stop_gradient`: the per-ray derivative is
+    heavy-tailed, docs/rounded.md §11); derivatives in the geometry are differences between
+    traces at `fillet_difference_points`, as `brdf_filleted` takes them. Traced radii are not
+    range-checked (`check_fillet_radius`)."""
+    check_fillet_radius(beta2, layer_um, edge_radius_um, fillet_radius_um)
+    geom = jax.lax.stop_gradient(
+        _geom_args(theta_i, beta2, layer_um, edge_radius_um, fillet_radius_um)
+    )
+    return _pair_rays(*geom, rays, bounces)
+
+
+class FilletGeometry(NamedTuple):
+    """What `fillet_geometry` returns: the angles it was computed at (radians), the rounded
+    model's geometry (`rounded_geometry`) and the fillet correction's rays (`fillet_rays`)."""
+
+    theta_i: Array
+    beta2: Array
+    rounded: RoundedGeometry
+    rays: FilletRays
+
+
+def fillet_geometry(
+    theta_i: ArrayLike,
+    beta2: ArrayLike,
+    layer_um: ArrayLike,
+    edge_radius_um: ArrayLike,
+    fillet_radius_um: ArrayLike,
+    *,
+    resolution: int = ROUNDED_RESOLUTION,
+    rays: int = FILLET_RAYS,
+    bounces: int = FILLET_BOUNCES,
+) -> FilletGeometry:
+    """The part of `brdf_filleted` that depends on the geometry only (not on `theta_o`, `n`,
+    `sigma`), one set per broadcast element: the rounded geometry and the traced ray pairs.
+    Finish with `brdf_filleted_from_geometry` (or `filleted_*_from_geometry`). Derivatives in
+    the geometry: see `fillet_rays` (the rounded part keeps its analytic ones)."""
+    ti, b, l1, r, rf = _geom_args(theta_i, beta2, layer_um, edge_radius_um, fillet_radius_um)
+    rounded = rounded_geometry(ti, b, l1, r, resolution=resolution)
+    return FilletGeometry(ti, b, rounded, fillet_rays(ti, b, l1, r, rf, rays=rays, bounces=bounces))
+
+
+def _with_lead_rank(tree: FilletRays, lead: int, ndim: int) -> FilletRays:
+    """Unit axes prepended to every leaf so that the `lead` leading axes number `ndim`."""
+    return jax.tree_util.tree_map(lambda a: a.reshape((1,) * (ndim - lead) + a.shape), tree)
+
+
+def _rest_rank(geo: FilletGeometry, *arrays: ArrayLike) -> tuple[FilletRays, tuple[Array, ...]]:
+    """The rays and `arrays` at one rank (the rays' leading axes against the arrays')."""
+    lead = geo.theta_i.ndim
+    out = same_rank(*arrays, jnp.zeros((1,) * lead, geo.theta_i.dtype))[:-1]
+    return _with_lead_rank(geo.rays, lead, out[0].ndim), out
+
+
+def brdf_filleted_from_geometry(
+    geo: FilletGeometry, theta_o: ArrayLike, n: ArrayLike, sigma: ArrayLike
+) -> Float[Array, "..."]:
+    """`brdf_filleted` from a precomputed `fillet_geometry` (1/rad) [conventions §4, §5, §6]:
+    `brdf_rounded_from_geometry` plus the correction, clipped at 0. `geo`'s leading axes must
+    broadcast with `theta_o`, `n` and `sigma`."""
+    base = brdf_rounded_from_geometry(geo.rounded, geo.theta_i, theta_o, geo.beta2, n, sigma)
+    dtype = geo.theta_i.dtype
+    rays, (n_, to, sg) = _rest_rank(
+        geo, n if jnp.iscomplexobj(n) else jnp.asarray(n, dtype), jnp.asarray(theta_o, dtype),
+        jnp.asarray(sigma, dtype),
+    )  # fmt: skip
+    rho = base + _correction_from_rays("brdf", rays, (n_, to, sg))
+    return jnp.where(rho >= 0, rho, 0.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Derivatives in the geometry: differences between traces
+# --------------------------------------------------------------------------------------------
+
+
 class _Static(NamedTuple):
     """The static knobs of a correction (hashable: a `custom_jvp` non-differentiable arg)."""
 
@@ -305,39 +450,20 @@ class _Static(NamedTuple):
     bounces: int
 
 
-def _correction(
-    static: _Static, rf: Array, ti: Array, b: Array, l1: Array, r: Array, *rest: Array
-) -> Array:
-    """`T(r, r_f) - T(r, 0)` for one output kind; `rest` is `(n,)`, `(n, edges)` or
-    `(n, theta_o, sigma)`."""
-    traced = _pair_rays(ti, b, l1, r, rf, static.rays, static.bounces)
-    w = _ray_power(traced, rest[0])
-    if static.kind == "total":
-        return _pair_sum(w)
-    if static.kind == "brdf":
-        to, sg = rest[1], rest[2]
-        return _pair_sum(
-            w * hemisphere_gaussian(to[..., None, None], traced.theta_o, sg[..., None, None])
-        )
-    e = rest[1]
-    th = traced.theta_o[..., None]
-    e_d = with_rank(e, th.ndim)
-    inside = (th >= e_d[..., :-1]) & (th < e_d[..., 1:])
-    inside = inside.at[..., -1].set(inside[..., -1] | (th[..., 0] == e[-1]))
-    return _pair_sum(jnp.moveaxis(w[..., None] * inside, -1, -3))
-
-
 def _cap(b: Array, l1: Array) -> Array:
     """`min(l1, l2)`, the room for `r + r_f` [conventions §2]."""
     return max_edge_radius(b, l1)
 
 
-def _fd_points(geom: tuple) -> list[tuple[Array, Array]]:
-    """For each geometric argument `(ti, b, l1, r, rf)`, the two values the difference uses:
-    `+-` a step (`FILLET_FD_STEP` of 15 deg for the angles, of `l1` for the layer, of
+def fillet_difference_points(
+    theta_i: ArrayLike, beta2: ArrayLike, layer_um: ArrayLike, r: ArrayLike, rf: ArrayLike
+) -> list[tuple[Array, Array]]:
+    """For each geometric argument `(theta_i, beta2, layer_um, r, r_f)` (radians,
+    micrometres), the two values the correction's derivative differences (docs/rounded.md
+    §11): `+-` a step (`FILLET_FD_STEP` of 15 deg for the angles, of `l1` for the layer, of
     `min(l1, l2)` for the radii), one-sided where a side would leave the domain (grazing
     incidence, a wedge or layer on which `r + r_f` no longer fits, a radius below 0)."""
-    ti, b, l1, r, rf = geom
+    ti, b, l1, r, rf = (jnp.asarray(a) for a in (theta_i, beta2, layer_um, r, rf))
     cap = _cap(b, l1)
     fits = lambda b_, l1_: r + rf <= _cap(b_, l1_) * (1 + 1e-12)  # noqa: E731
     h_angle, h_len = FILLET_FD_STEP * np.pi / 12, FILLET_FD_STEP * cap
@@ -354,35 +480,60 @@ def _fd_points(geom: tuple) -> list[tuple[Array, Array]]:
     ]
 
 
+def difference_scale(lo: Array, hi: Array, tangent: Array) -> Array:
+    """`tangent / (hi - lo)`, 0 where the two points coincide (no room either side)."""
+    span = hi - lo
+    ok = span > 0
+    return jnp.where(ok, tangent / jnp.where(ok, span, 1.0), 0.0)
+
+
 @partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _fd_correction(static: _Static, geom: tuple, rest: tuple) -> Array:
-    """`_correction(static, rf, ti, b, l1, r, *rest)` for `geom = (ti, b, l1, r, rf)`,
-    differentiated in the geometry by differences (`_fd_points`) and in `rest` (index,
-    viewing angle, broadening: they do not move a ray) through the rays. docs/rounded.md §11:
-    rays grazing a tip arc make the per-ray derivative in the geometry heavy-tailed, so its
-    sum is not a usable derivative (0.7-1.7 times the slope in `r_f`, up to 12 in `theta_i`)."""
-    ti, b, l1, r, rf = geom
-    return _correction(static, rf, ti, b, l1, r, *rest)
+    """`T(r, r_f) - T(r, 0)` for `geom = (ti, b, l1, r, rf)` (broadcast), differentiated in the
+    geometry by differences (`fillet_difference_points`) and in `rest` (index, viewing angle,
+    broadening: they do not move a ray) through the rays. docs/rounded.md §11: rays grazing a
+    tip arc make the per-ray derivative in the geometry heavy-tailed, so its sum is not a
+    usable derivative (0.7-1.7 times the slope in `r_f`, up to 12 in `theta_i`). Only the
+    arguments with a (symbolically) non-zero tangent are differenced: in a fit, `r` and `r_f`."""
+    return _correction_from_rays(static.kind, _pair_rays(*geom, static.rays, static.bounces), rest)
 
 
-@_fd_correction.defjvp
+def _is_zero(t: object) -> bool:
+    return type(t) is jax.custom_derivatives.SymbolicZero
+
+
 def _fd_correction_jvp(static: _Static, primals: tuple, tangents: tuple) -> tuple:
     geom, rest = primals
     d_geom, d_rest = tangents
-    ti, b, l1, r, rf = geom
-    out, d_out = jax.jvp(lambda *a: _correction(static, rf, ti, b, l1, r, *a), rest, d_rest)
-    for k, (lo, hi) in enumerate(_fd_points(geom)):
-        span = hi - lo
-        ok = span > 0
+    rays = _pair_rays(*geom, static.rays, static.bounces)
+    if all(_is_zero(t) for t in d_rest):
+        out = _correction_from_rays(static.kind, rays, rest)
+        d_out = jnp.zeros_like(out)
+    else:
+        d_rest = tuple(
+            jnp.zeros_like(p) if _is_zero(t) else t for p, t in zip(rest, d_rest, strict=True)
+        )
+        out, d_out = jax.jvp(lambda *a: _correction_from_rays(static.kind, rays, a), rest, d_rest)
+    for k, (lo, hi) in enumerate(fillet_difference_points(*geom)):
+        if _is_zero(d_geom[k]):
+            continue
         at = [list(geom), list(geom)]
         at[0][k], at[1][k] = lo, hi
         slope = _fd_correction(static, tuple(at[1]), rest) - _fd_correction(
             static, tuple(at[0]), rest
         )
         d = d_geom[k]
-        scale = jnp.where(ok, d / jnp.where(ok, span, 1.0), 0.0)
+        scale = difference_scale(lo, hi, d)
         d_out = d_out + slope * scale.reshape(d.shape + (1,) * (out.ndim - d.ndim))
     return out, d_out
+
+
+_fd_correction.defjvp(_fd_correction_jvp, symbolic_zeros=True)
+
+
+# --------------------------------------------------------------------------------------------
+# The public functions
+# --------------------------------------------------------------------------------------------
 
 
 def _filleted(static: _Static, base: Array, ti, b, l1, r, rf, *rest) -> Array:  # noqa: ANN001
@@ -411,7 +562,10 @@ def brdf_filleted(
     spread by the same hemisphere-truncated Gaussian of width `sigma` (radians, > 0)
     [conventions §4, §5]. `fillet_radius_um` is `r_f` (micrometres,
     `0 <= r_f <= max_fillet_radius`); at 0 this is `brdf_rounded`. `rays` and `bounces`
-    (static) are the correction's rays per period and reflections per ray.
+    (static) are the correction's rays per period and reflections per ray. The rays are traced
+    once per broadcast element of the geometry (theta_i, beta2, layer_um, radii): give several
+    viewing angles, indices or widths per geometry on their own axes (or use
+    `fillet_geometry` + `brdf_filleted_from_geometry` on distinct geometries).
     """
     check_fillet_radius(beta2, layer_um, edge_radius_um, fillet_radius_um)
     ti, to, b, n, sg, l1, r, rf = _args(
