@@ -122,7 +122,7 @@ def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
     fit = outcome.selection.fit
     free = set(fit.variant.free)
     out: dict[str, Any] = {}
-    for name in ("delta_n", "edge_radius_um", "floor", "model_error_frac"):
+    for name in ("delta_n", "edge_radius_um", "fillet_radius_um", "floor", "model_error_frac"):
         if name not in free:
             out[name] = float(getattr(fit.params, name))
     if "sigma_rad" not in free and not fit.variant.per_wedge_sigma:
