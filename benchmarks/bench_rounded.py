@@ -14,7 +14,16 @@ With `--tracer`, also the unbroadened structure against the brute-force ray trac
 beta2 in {10, 30, 45, 60}, r / l1 in {0.05, 0.2, 0.4}, 25 angles of incidence, 100 000 rays.
 Timings are medians of `--repeats` calls after compilation; compilation is reported apart.
 
+With `--fillet` (issue 15, docs/rounded.md §11), instead: the filleted model (fillet radius
+15 um) against the rounded one in the same run, both with the geometry once per wedge (the
+six distinct geometries on their own axis, as a fit evaluates them), on (1) the case above,
+Jacobian by `jax.jacfwd` in (sigma, delta_n, r[, r_f], scale); (2) the fit-side grid density of
+the standard scene (6 wedges x 19 views x 3 channels, `fitting._forward.rounded_grid_density`
+against `filleted_grid_density`), value and value + Jacobian in (widths, delta_n, r[, r_f]).
+Medians of `--repeats` (at least 3) interleaved rounds; state the machine's load.
+
     python benchmarks/bench_rounded.py [--repeats 20] [--tracer] [--out results.md]
+    python benchmarks/bench_rounded.py --fillet [--repeats 5] [--out results.md]
 """
 
 from __future__ import annotations
@@ -28,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _timing import first_call_seconds, fmt_ms, median_seconds
+from _timing import first_call_seconds, fmt_ms, interleaved_medians, median_seconds
 
 from stairfit import model
 
@@ -180,13 +189,124 @@ def run_tracer(resolutions: tuple[int, ...]) -> list[tuple[str, str, str]]:
     return rows
 
 
+FILLET_UM = 15.0
+
+
+def _wedge_case() -> dict[str, jax.Array]:
+    """The case of `make_case` with the wedge on its own axis: (6, 1, 1) geometry, (181, 1)
+    viewing angles, (31,) indices."""
+    lam = np.linspace(400, 700, 31)
+    return {
+        "beta2": jnp.asarray(np.array([10, 20, 30, 40, 45, 60])[:, None, None] * DEG),
+        "theta_o": jnp.asarray(np.linspace(-90, 90, 181)[:, None] * DEG),
+        "n_base": jnp.asarray(np.asarray(model.materials.PLA_BODUROV_2016(lam))),
+    }
+
+
+def _wedge_value(p: jax.Array, c: dict[str, jax.Array], filleted: bool) -> jax.Array:
+    """Radiance (6, 181) for p = (sigma, delta_n, r, r_f, scale); r_f unused when rounded."""
+    ti = 20 * DEG
+    args = (ti, c["theta_o"], c["beta2"], c["n_base"] + p[1], p[0], LAYER_UM, p[2])
+    rho = model.brdf_filleted(*args, p[3]) if filleted else model.brdf_rounded(*args)
+    return model.radiance(jnp.mean(rho, axis=-1), ti, c["theta_o"][:, 0], p[4])
+
+
+def _standard_grid():
+    """(grid, widths per key, delta_n, aperture) of the standard scene's fit-side evaluation."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    import zoo
+
+    from stairfit import fitting
+    from stairfit.fitting import _forward, _problem
+
+    truth = fitting.Params(sigma_rad=4 * DEG, edge_radius_um=RADIUS_UM, scale=2.0)
+    scene = zoo.standard(truth, seed=0, noise=0.01)
+    data = _problem.prepare(scene.obs, scene.spec).data
+    grid = _forward._grid(data)
+    sigma_k = jnp.full(data.r_ti.shape, 4 * DEG)
+    return grid, sigma_k, data.r_ti.shape[0], _forward
+
+
+def run_fillet(repeats: int) -> list[tuple[str, ...]]:
+    """Rounded against filleted, same run: compile, value, value + Jacobian, and ratios."""
+    jax.config.update("jax_enable_x64", True)
+    repeats = max(3, repeats)
+    rows = []
+    c = _wedge_case()
+    p = jnp.array([5 * DEG, 0.01, RADIUS_UM, FILLET_UM, 2.0])
+    fns = {}
+    for name, fil in (("rounded", False), ("filleted", True)):
+        v = jax.jit(lambda q, c, fil=fil: _wedge_value(q, c, fil))
+        jac = jax.jit(lambda q, c, fil=fil: jax.jacfwd(lambda x: _wedge_value(x, c, fil))(q))
+        b = jax.jit(lambda q, c, v=v, jac=jac: (v(q, c), jac(q, c)))
+        fns[name] = (v, b, first_call_seconds(lambda v=v: v(p, c)),
+                     first_call_seconds(lambda b=b: b(p, c)))  # fmt: skip
+    t = interleaved_medians(
+        {f"{k} {w}": (lambda f=f[i]: f(p, c)) for k, f in fns.items()
+         for i, w in ((0, "value"), (1, "both"))},
+        repeats,
+    )  # fmt: skip
+    for k, f in fns.items():
+        rows.append((f"model, 6 wedges x 181 views x 31 indices: {k}", fmt_ms(f[2]), fmt_ms(f[3]),
+                     fmt_ms(t[f"{k} value"]), fmt_ms(t[f"{k} both"])))  # fmt: skip
+    rows.append(("  ratio filleted / rounded", "", "",
+                 f"{t['filleted value'] / t['rounded value']:.2f}",
+                 f"{t['filleted both'] / t['rounded both']:.2f}"))  # fmt: skip
+    grid, sigma_k, n_keys, fwd = _standard_grid()
+    cfg = (model.Aperture(), None)
+    cfg_f = (*cfg, model.FILLET_RAYS, model.FILLET_BOUNCES)
+    q = jnp.array([0.0, RADIUS_UM, FILLET_UM])
+
+    def rounded(x: jax.Array) -> jax.Array:
+        return fwd.rounded_grid_density(sigma_k * jnp.exp(x[0]), x[1], x[2], cfg, grid)
+
+    def filleted(x: jax.Array) -> jax.Array:
+        return fwd.filleted_grid_density(sigma_k * jnp.exp(x[0]), x[1], x[2], x[3], cfg_f, grid)
+
+    x_r, x_f = jnp.array([0.0, 0.0, RADIUS_UM]), jnp.concatenate([jnp.zeros(1), q])
+    grid_fns = {}
+    for name, fn, x in (("rounded", rounded, x_r), ("filleted", filleted, x_f)):
+        v = jax.jit(fn)
+        b = jax.jit(lambda x, fn=fn: (fn(x), jax.jacfwd(fn)(x)))
+        grid_fns[name] = (v, b, x, first_call_seconds(lambda v=v, x=x: v(x)),
+                          first_call_seconds(lambda b=b, x=x: b(x)))  # fmt: skip
+    t = interleaved_medians(
+        {f"{k} {w}": (lambda f=f, i=i: f[i](f[2])) for k, f in grid_fns.items()
+         for i, w in ((0, "value"), (1, "both"))},
+        repeats,
+    )  # fmt: skip
+    label = f"fit grid, standard scene ({n_keys} keys x 19 views x 3 channels)"
+    for k, f in grid_fns.items():
+        rows.append((f"{label}: {k}", fmt_ms(f[3]), fmt_ms(f[4]), fmt_ms(t[f"{k} value"]),
+                     fmt_ms(t[f"{k} both"])))  # fmt: skip
+    rows.append(("  ratio filleted / rounded (aim: value + Jacobian <= 3)", "", "",
+                 f"{t['filleted value'] / t['rounded value']:.2f}",
+                 f"{t['filleted both'] / t['rounded both']:.2f}"))  # fmt: skip
+    return rows
+
+
 def main() -> None:
     """Command line entry."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--tracer", action="store_true", help="also compare with the ray tracer")
     ap.add_argument("--out", type=Path, default=None, help="also write the tables here (markdown)")
+    ap.add_argument("--fillet", action="store_true", help="the filleted model against the rounded")
     args = ap.parse_args()
+    if args.fillet:
+        import os
+
+        load = os.getloadavg()[0]
+        table = (
+            f"Load average at the start: {load:.1f} (2 cores)\n\n"
+            "| case | compile: value | compile: value + Jacobian | value | value + Jacobian |\n"
+            "|---|---|---|---|---|\n"
+        ) + "\n".join("| " + " | ".join(r) + " |" for r in run_fillet(args.repeats))
+        table += f"\n\nLoad average at the end: {os.getloadavg()[0]:.1f}"
+        print(table)
+        if args.out:
+            args.out.write_text(table + "\n")
+        return
     rows = run(args.repeats)
     head = (
         "| model | compile: value | compile: value + Jacobian | value | value + Jacobian "

@@ -41,6 +41,7 @@ from ._observations import Spectral as Spectral
 from ._observations import spectral_setup as spectral_setup
 from ._params import DEFAULT_LADDER as DEFAULT_LADDER
 from ._params import DEFAULTS as DEFAULTS
+from ._params import FILLET_RUNGS as FILLET_RUNGS
 from ._params import PARAM_NAMES as PARAM_NAMES
 from ._params import PARAMETERS as PARAMETERS
 from ._params import SIMPLEST as SIMPLEST
@@ -67,6 +68,7 @@ from ._selection import ROUNDED_RUNGS as ROUNDED_RUNGS
 from ._selection import ComparisonRow as ComparisonRow
 from ._selection import Rounding as Rounding
 from ._selection import Selection as Selection
+from ._selection import fillet_needed as fillet_needed
 from ._selection import not_fitted_row as not_fitted_row
 from ._selection import parents_of as parents_of
 from ._selection import rounding_needed as rounding_needed

@@ -564,10 +564,22 @@ def _ladder() -> tuple[Variant, ...]:
     return tuple(sorted(out, key=lambda v: (v.per_wedge_sigma, len(v.free))))
 
 
-DEFAULT_LADDER: tuple[Variant, ...] = _ladder()
+FILLET_RUNGS: tuple[Variant, ...] = (
+    variant("rounded+fillet", "edge_radius_um", FILLET),
+    variant("rounded+floor+fillet", "edge_radius_um", "floor", FILLET),
+)
+"""The fillet rungs (docs/fitting.md §4): the tip radius and the fillet radius free, without
+and with a floor, one shared sigma, the material's index. Two, not the eight combinations:
+each costs a filleted compilation (shared by both) and solves several times slower than a
+rounded one; the fillet refines the rounded profile, so it is offered on the rounded variants
+the sharp-or-rounded ladder most often ends on (an unresolved floor is the other common
+misfit), and `rounded+fillet` is the parent of `rounded+floor+fillet`."""
+
+DEFAULT_LADDER: tuple[Variant, ...] = _ladder() + FILLET_RUNGS
 """The default model ladder: the 8 combinations of {delta_n, edge radius, floor} with one
-shared sigma, then the same 8 with one sigma per wedge, ordered from simple to rich. Names
-look like `sharp`, `sharp+delta_n`, `rounded+floor`, `sharp+delta_n+sigma_per_wedge`."""
+shared sigma, then the same 8 with one sigma per wedge, ordered from simple to rich, then the
+two `FILLET_RUNGS`. Names look like `sharp`, `sharp+delta_n`, `rounded+floor`,
+`sharp+delta_n+sigma_per_wedge`, `rounded+floor+fillet`."""
 
 SIMPLEST = DEFAULT_LADDER[0]
 """`sharp`: sharp steps, one sigma, the material's index, a scale."""

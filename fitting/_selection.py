@@ -21,7 +21,7 @@ from ._errors import FitError, FitInputError, UnconstrainedError, emit
 from ._least_squares import LeastSquaresOptions, fit_least_squares
 from ._misfit import P_VALUE_LIMIT, Assessment, Status, chi2_p_value, chi2_text, describe_fit
 from ._observations import Observations, Spectral
-from ._params import DEFAULT_LADDER, DEFAULTS, Params, Priors, Variant
+from ._params import DEFAULT_LADDER, DEFAULTS, FILLET, Params, Priors, Variant
 from ._problem import Problem, as_problem
 from ._result import FitResult
 
@@ -85,13 +85,20 @@ def not_fitted_row(
 class Rounding(NamedTuple):
     """Whether the rounded-edge rungs were fitted (`select_model(rounded_rungs=...)`):
     `policy` (`always`, `when_needed`), `fitted`, `reason` (in words), `n_variants` rounded
-    variants in the ladder, `elapsed_s` spent fitting them."""
+    variants in the ladder, `elapsed_s` spent fitting them. The same for the fillet rungs
+    (variants with `fillet_radius_um` free, gated by the same policy on the best variant
+    without fillets): `fillet_fitted`, `fillet_reason`, `fillet_n_variants` (0 when the ladder
+    has none), `fillet_elapsed_s`."""
 
     policy: str
     fitted: bool
     reason: str
     n_variants: int
     elapsed_s: float
+    fillet_fitted: bool = False
+    fillet_reason: str = ""
+    fillet_n_variants: int = 0
+    fillet_elapsed_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -228,7 +235,11 @@ def _select_ladder(
     threshold: float,
     opts: _Settings,
 ) -> Selection:
-    """The sharp rungs, then (always, or when they do not describe the data) the rounded ones."""
+    """The sharp rungs, then (always, or when they do not describe the data) the rounded ones,
+    then in the same way the fillet rungs."""
+    filleted = tuple(v for v in ladder if _is_filleted(v))
+    if filleted:
+        return _select_fillets(problem, ladder, filleted, policy, criterion, threshold, opts)
     rounded = tuple(v for v in ladder if _is_rounded(v))
     if not rounded:
         return _choose(ladder, _fit_ladder(problem, ladder, opts), criterion, threshold)
@@ -262,6 +273,81 @@ def _with_rounding(sel: Selection, rounding: Rounding) -> Selection:
 
 def _is_rounded(v: Variant) -> bool:
     return "edge_radius_um" in v.free
+
+
+def _is_filleted(v: Variant) -> bool:
+    return FILLET in v.free
+
+
+def _select_fillets(
+    problem: Problem,
+    ladder: tuple[Variant, ...],
+    filleted: tuple[Variant, ...],
+    policy: str,
+    criterion: str,
+    threshold: float,
+    opts: _Settings,
+) -> Selection:
+    """The ladder without its fillet rungs (`_select_ladder`), then the fillet rungs: always,
+    or (`when_needed`) only when the variant chosen without them misfits (`rounding_needed`'s
+    rule). Each fillet rung starts from its fitted parents' optima (a rounded variant's)."""
+    rest = tuple(v for v in ladder if not _is_filleted(v))
+    base = _select_ladder(problem, rest, policy, criterion, threshold, opts) if rest else None
+    fits = dict(base.fits) if base else {}
+    rows = {r.name: r for r in base.table} if base else {}
+    needed, why = (True, "the preset fits them always") if base is None else (False, "")
+    if base is not None:
+        needed, why = (
+            fillet_needed(base)
+            if policy == "when_needed"
+            else (True, "the preset fits them always")
+        )
+    rounding = (
+        base.rounding
+        if base is not None and base.rounding is not None
+        else Rounding(policy, False, "the ladder has no rounded variants", 0, 0.0)
+    )
+    if not needed:
+        skipped = {
+            v.name: not_fitted_row(v, Status.NOT_FITTED, "fillets not needed") for v in filleted
+        }
+        sel = _choose(ladder, _Runs(fits, {**rows, **skipped}), criterion, threshold)
+        return _with_fillets(
+            sel, rounding._replace(fillet_reason=why, fillet_n_variants=len(filleted))
+        )
+    t0 = time.perf_counter()
+    runs = _fit_ladder(problem, filleted, opts, _Runs(fits, rows))
+    sel = _choose(ladder, runs, criterion, threshold)
+    elapsed = time.perf_counter() - t0
+    return _with_fillets(
+        sel, rounding._replace(fillet_fitted=True, fillet_reason=why,
+                               fillet_n_variants=len(filleted), fillet_elapsed_s=elapsed)
+    )  # fmt: skip
+
+
+def _with_fillets(sel: Selection, rounding: Rounding) -> Selection:
+    """The selection with its rounding record (fillets included) and the reason."""
+    sel = _with_rounding(sel, rounding) if rounding.n_variants else sel
+    sel = dataclasses.replace(sel, rounding=rounding)
+    what = "were fitted" if rounding.fillet_fitted else "were not fitted"
+    took = f" (in {rounding.fillet_elapsed_s:.0f} s)" if rounding.fillet_fitted else ""
+    reason = f"{sel.reason}; the fillet variants {what}{took} because {rounding.fillet_reason}"
+    return dataclasses.replace(sel, reason=reason)
+
+
+def fillet_needed(selection: Selection) -> tuple[bool, str]:
+    """Whether the variant chosen without fillets leaves a misfit that fillets could explain:
+    the misfit rule of `rounding_needed` (and `describe_fit`) applied to it. Returns (needed,
+    the reason in words). docs/fitting.md §4."""
+    fit = selection.fit
+    a = selection.assessment if selection.assessment is not None else describe_fit(fit)
+    if a.misfits:
+        reasons = "; ".join(a.reasons)
+        return True, f"the best variant without fillets {selection.chosen!r} misfits: it {reasons}"
+    return False, (
+        f"the best variant without fillets {selection.chosen!r} describes the data "
+        f"({chi2_text(fit.chi2, fit.dof)})"
+    )
 
 
 def rounding_needed(selection: Selection) -> tuple[bool, str]:
@@ -303,8 +389,12 @@ def _forced(
     v = v.with_free(model_error=True) if model_error else v
     parents: tuple[FitResult, ...] = ()
     if _is_rounded(v):  # start from the sharp counterpart: r near 0 if the data are sharp
-        sharp = v._replace(free=v.free - {"edge_radius_um"})
+        sharp = v._replace(free=v.free - {"edge_radius_um", FILLET})
         parent = fit_least_squares(problem, variant=sharp, options=opts)
+        parents = (parent,) if parent.success else ()
+    if _is_filleted(v):  # then from the rounded counterpart: r_f near 0 if the data are rounded
+        rounded = v._replace(free=v.free - {FILLET})
+        parent = fit_least_squares(problem, variant=rounded, options=opts, start_from=parents)
         parents = (parent,) if parent.success else ()
     t0 = time.perf_counter()
     fit = fit_least_squares(problem, variant=v, options=opts, start_from=parents)

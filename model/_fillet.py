@@ -331,7 +331,9 @@ def _correction_from_rays(kind: str, rays: FilletRays, rest: tuple) -> Array:
     if kind == "brdf":
         to, sg = jnp.asarray(rest[1]), jnp.asarray(rest[2])
         kern = hemisphere_gaussian(to[..., None, None], rays.theta_o, sg[..., None, None])
-        return jnp.sum(w * kern, axis=(-2, -1))
+        # a contraction, not a product and a sum: unit axes (e.g. the index of `kern`, the
+        # viewing angle of `w`) stay unbroadcast
+        return jnp.einsum("...pr,...pr->...", w, kern)
     e = rest[1]
     th = rays.theta_o[..., None]
     e_d = with_rank(e, th.ndim)

@@ -104,18 +104,40 @@ def test_fitting_forward_grid_shares_geometry_between_channels():
 def test_transforms_round_trip_and_jacobian():
     kinds = _params.Layout(2).kinds
     r_max = 86.6
-    x = np.array([0.1, 0.05, 0.2, 0.03, 12.0, 2.5, 0.004, 0.05])
-    z = np.array([_params.from_physical(xi, k, r_max) for xi, k in zip(x, kinds, strict=True)])
+    x = np.array([0.1, 0.05, 0.2, 0.03, 12.0, 2.5, 0.004, 0.05, 30.0])  # last: r_f <= 74.6
+    r = x[kinds.index("sin")]
+    z = np.array([_params.from_physical(xi, k, r_max, r) for xi, k in zip(x, kinds, strict=True)])
     back = np.asarray(_params.to_physical(jnp.asarray(z), kinds, r_max))
     np.testing.assert_allclose(back, x, rtol=1e-12)
-    # dx/dz and log|dx/dz| against autodiff of the forward transform
-    jac = jax.jacfwd(lambda zz: _params.to_physical(zz, kinds, r_max))(jnp.asarray(z))
-    np.testing.assert_allclose(np.abs(np.diag(jac)), np.abs(_params.dx_dz(z, kinds, r_max)),
+    # dx/dz (the full matrix: the fillet's bound moves with the edge radius) and log|det| against
+    # autodiff of the forward transform
+    jac = np.asarray(jax.jacfwd(lambda zz: _params.to_physical(zz, kinds, r_max))(jnp.asarray(z)))
+    np.testing.assert_allclose(np.abs(np.diag(jac)), np.abs(_params.dx_dz(z, kinds, r_max, r)),
                                rtol=1e-12)  # fmt: skip
+    free = np.ones(len(kinds), bool)
+    np.testing.assert_allclose(_params.dx_matrix(z, kinds, r_max, free, r), jac, rtol=1e-12,
+                               atol=1e-15)  # fmt: skip
+    assert jac[kinds.index("sin_rest"), kinds.index("sin")] < 0  # a larger tip leaves less room
     logj = np.asarray(_params.log_abs_jacobian(jnp.asarray(z), kinds, r_max))
     expected = np.log(np.abs(np.diag(jac)))
     expected[kinds.index("abs")] -= np.log(2.0)  # two-to-one map: density of z is p(|z|) / 2
     np.testing.assert_allclose(logj, expected, rtol=1e-12)
+    # triangular: the log-determinant is the sum of the diagonal's (abs aside)
+    _, logdet = np.linalg.slogdet(jac)
+    np.testing.assert_allclose(logdet, np.sum(expected) + np.log(2.0), rtol=1e-12)
+
+
+def test_fillet_transform_fits_beside_a_fixed_edge_radius():
+    kinds = _params.Layout(1).kinds
+    k_r, k_f = kinds.index("sin"), kinds.index("sin_rest")
+    free = np.ones(len(kinds), bool)
+    free[k_r] = False
+    x_fixed = np.zeros(len(kinds))
+    x_fixed[k_r] = 60.0
+    z = jnp.zeros(len(kinds)).at[k_f].set(np.pi / 2)  # the top of the fillet's range
+    x = np.asarray(_params.to_physical(z, kinds, 86.6, (jnp.asarray(free), jnp.asarray(x_fixed))))
+    assert x[k_r] == 60.0
+    np.testing.assert_allclose(x[k_f], 86.6 - 60.0, rtol=1e-12)
 
 
 def test_sine_transform_reaches_both_bounds_at_finite_z():

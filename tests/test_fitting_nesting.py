@@ -118,3 +118,18 @@ def test_a_misfit_hidden_by_a_large_model_error_is_a_misfit_not_unidentified():
     assert a.chi2_measurement > 10 * a.chi2  # without the term the misfit is plain
     assert sel.table[0].status == fitting.Status.MISFITS
     assert a.headline().startswith("MISFIT") and "wedge" in a.pattern
+
+
+@pytest.mark.slow
+def test_the_fillet_rungs_never_end_worse_than_their_rounded_parents():
+    """Issue 15: `rounded+fillet` starts from `rounded`'s optimum, `rounded+floor+fillet` from
+    `rounded+floor`'s and `rounded+fillet`'s; on data with a floor and fillets (all four
+    misfit or fit, each must reach at least its parents' likelihood)."""
+    truth = fitting.Params(sigma_rad=4 * DEG, scale=2.0, edge_radius_um=20.0,
+                           fillet_radius_um=15.0, floor=0.01)  # fmt: skip
+    obs, spec, _ = zoo.standard(truth, seed=1, noise=0.01)
+    ladder = tuple(zoo.LADDER[n] for n in ("rounded", "rounded+floor")) + fitting.FILLET_RUNGS
+    sel = fitting.select_model(obs, spec, ladder, rounded_rungs="always")
+    assert sel.rounding is not None and sel.rounding.fillet_fitted, sel.report()
+    assert sel.rounding.fillet_n_variants == 2 and sel.rounding.fillet_elapsed_s > 0
+    assert not _violations(sel, ladder), sel.report()
