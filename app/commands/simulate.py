@@ -392,17 +392,20 @@ def face_radiance(settings: SimulationSettings) -> np.ndarray:
 
 
 def _sampling(settings: SimulationSettings) -> str:
-    """The spectral sampling of the render: every 5 nm ("full"), except for fillets on a
-    material of constant index, where one sample per channel ("effective") is exact.
+    """The spectral sampling of the render: every 5 nm ("full"), except for rounded edges or
+    fillets on a material of constant index, where one sample per channel ("effective") is
+    exact.
 
     With a constant index the density is the same at every wavelength, and a channel's band
-    average of a constant is that constant [conventions §8]; the filleted model's cost and
-    memory grow with the samples (81 at 5 nm: 7 GB and 2 minutes for one face's 33 nodes).
+    average of a constant is that constant [conventions §8]. The rounded and filleted models'
+    memory grows with the samples (81 at 5 nm): one face's 33 nodes took 7.3 GB with fillets,
+    and 4 views x 6 wedges of the rounded model more than 8 GB (measured, loaded).
     """
     from stairfit.model import materials
 
+    t = settings.truth
     constant = isinstance(materials.get_material(settings.material), materials.ConstantIndex)
-    return "effective" if settings.truth.fillet_radius_um > 0 and constant else "full"
+    return "effective" if (t.edge_radius_um > 0 or t.fillet_radius_um > 0) and constant else "full"
 
 
 def face_mean(profile: np.ndarray) -> np.ndarray:
