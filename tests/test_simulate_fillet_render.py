@@ -139,7 +139,10 @@ def test_truth_json_and_scene_truth_carry_the_fillet(folders):
 def test_a_fit_with_the_fillet_rung_recovers_the_fillet(folders, tmp_path):
     """`stairfit fit --model rounded+fillet` on the filleted folder: the fitted r_f (and r)
     within 3 of their standard errors of the truth, as results.json's `truth` records them
-    (3 rather than 2: one seed, a 0.3% false alarm instead of 5%)."""
+    (3 rather than 2: one seed, a 0.3% false alarm instead of 5%).
+
+    Not yet seen to pass: on 3 December 2026 (loaded, load 5-8 on 2 cores) the forced fit had
+    not finished after 24 minutes (two 2-minute compilations of the solver) and was stopped."""
     _, filleted = folders
     out = tmp_path / "fit"
     argv = ["fit", str(filleted), "-o", str(out), "--quiet", "--no-posterior"]
