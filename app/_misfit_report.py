@@ -85,11 +85,25 @@ def rounding_sentence(outcome: FitOutcome) -> str:
             return f"only the forced variant {outcome.selection.chosen!r} was fitted"
         return "the ladder has no rounded-edge variants (this preset)"
     if r.fitted:
-        return (
+        text = (
             f"the {r.n_variants} rounded-edge variants were fitted ({r.policy}) in "
             f"{r.elapsed_s:.0f} s, because {r.reason}"
         )
-    return f"the {r.n_variants} rounded-edge variants were not fitted ({r.policy}): {r.reason}"
+    else:
+        text = f"the {r.n_variants} rounded-edge variants were not fitted ({r.policy}): {r.reason}"
+    return text + _fillet_clause(r)
+
+
+def _fillet_clause(r: Any) -> str:
+    """The fillet rungs' part of `rounding_sentence` ("" when the ladder has none)."""
+    if not r.fillet_n_variants:
+        return ""
+    if r.fillet_fitted:
+        return (
+            f"; the {r.fillet_n_variants} fillet variants were fitted in "
+            f"{r.fillet_elapsed_s:.0f} s, because {r.fillet_reason}"
+        )
+    return f"; the {r.fillet_n_variants} fillet variants were not fitted: {r.fillet_reason}"
 
 
 def rounding_record(outcome: FitOutcome) -> dict[str, Any] | None:
@@ -103,6 +117,12 @@ def rounding_record(outcome: FitOutcome) -> dict[str, Any] | None:
         "reason": r.reason,
         "n_variants": r.n_variants,
         "elapsed_s": r.elapsed_s,
+        "fillet": {
+            "fitted": r.fillet_fitted,
+            "reason": r.fillet_reason,
+            "n_variants": r.fillet_n_variants,
+            "elapsed_s": r.fillet_elapsed_s,
+        },
         "sentence": rounding_sentence(outcome),
     }
 

@@ -122,11 +122,61 @@ def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
     fit = outcome.selection.fit
     free = set(fit.variant.free)
     out: dict[str, Any] = {}
-    for name in ("delta_n", "edge_radius_um", "floor", "model_error_frac"):
+    for name in ("delta_n", "edge_radius_um", "fillet_radius_um", "floor", "model_error_frac"):
         if name not in free:
             out[name] = float(getattr(fit.params, name))
     if "sigma_rad" not in free and not fit.variant.per_wedge_sigma:
         out["sigma_deg"] = float(np.mean(fit.params.sigma_rad)) / DEG
+    return out
+
+
+def truth_records(outcome: FitOutcome, records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The scene's `[truth]` beside the fit (results.json's `truth`; [] without a truth table).
+
+    One record per fitted parameter that has a true value (each wedge's own width against the
+    one true `sigma_deg`), then one per remaining true value: fixed by the chosen model
+    (`fitted` is the value it was fixed at), or not a parameter of this fit (`fitted` None).
+    `records` are `parameter_records(outcome)`; display units throughout.
+    """
+    truth = getattr(outcome.scene, "truth", None)
+    if truth is None:
+        return []
+    given = dict(truth.items())
+    out: list[dict[str, Any]] = []
+    for rec in records:
+        key = display_param(rec["parameter"])
+        if key in given:
+            ls, po = rec["least_squares"], rec.get("posterior")
+            out.append(
+                {
+                    "name": rec["name"],
+                    "parameter": key,
+                    "true": given[key],
+                    "status": "fitted",
+                    "fitted": ls["value"],
+                    "stderr": ls["stderr"],
+                    "posterior_median": None if po is None else po["median"],
+                    "p2_5": None if po is None else po["p2_5"],
+                    "p97_5": None if po is None else po["p97_5"],
+                }
+            )
+    fitted = {r["parameter"] for r in out}
+    fixed = fixed_parameters(outcome)
+    for key, true in given.items():
+        if key not in fitted:
+            out.append(
+                {
+                    "name": key,
+                    "parameter": key,
+                    "true": true,
+                    "status": "fixed" if key in fixed else "not a parameter of this fit",
+                    "fitted": fixed.get(key),
+                    "stderr": None,
+                    "posterior_median": None,
+                    "p2_5": None,
+                    "p97_5": None,
+                }
+            )
     return out
 
 
@@ -277,6 +327,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
     sel, fit, post = outcome.selection, outcome.selection.fit, outcome.posterior
     names = [display_name(e)[0] for e in fit.estimates]
     corr = None if fit.correlation is None else np.round(fit.correlation, 6)
+    records = parameter_records(outcome)
     result = {
         "stairfit_version": __version__,
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
@@ -303,8 +354,9 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         },
         "assessment": assessment_record(outcome),
         "accuracy": None if outcome.accuracy is None else outcome.accuracy.record(),
-        "parameters": parameter_records(outcome),
+        "parameters": records,
         "fixed_parameters": fixed_parameters(outcome),
+        "truth": truth_records(outcome, records),
         "spectral": spectral_record(outcome),
         "correlation": {"names": names, "matrix": corr},
         "diagnostics": {
@@ -621,6 +673,33 @@ def _parameter_rows_html(results: dict[str, Any]) -> list[str]:
     return rows
 
 
+def _truth_html(results: dict[str, Any]) -> str:
+    """The report's truth table (the scene's `[truth]` beside the fit); "" without one."""
+    e = html.escape
+    rows = []
+    for t in results.get("truth", []):
+        if t["status"] == "fitted":
+            se = "n/a" if t["stderr"] is None else f"{t['stderr']:.4g}"
+            fit = f"{t['fitted']:.5g} &plusmn; {se}"
+            if t["posterior_median"] is not None:
+                fit += (
+                    f"; posterior {t['posterior_median']:.5g} (95%: {t['p2_5']:.5g} .. "
+                    f"{t['p97_5']:.5g})"
+                )
+        elif t["status"] == "fixed":
+            fit = f"fixed at {t['fitted']:.5g}"
+        else:
+            fit = e(t["status"])
+        rows.append(f"<tr><td>{e(t['name'])}</td><td>{t['true']:.5g}</td><td>{fit}</td></tr>")
+    if not rows:
+        return ""
+    return (
+        "<h2>Truth</h2><p>From the scene file's [truth] (a synthetic scene's parameters, or "
+        "values measured independently); the fit does not use them.</p><table><tr><th>parameter"
+        f"</th><th>true</th><th>fitted (least squares)</th></tr>{''.join(rows)}</table>"
+    )
+
+
 def report_html(
     outcome: FitOutcome, results: dict[str, Any], figures: dict[str, str], out: Path
 ) -> str:
@@ -678,6 +757,7 @@ table{{border-collapse:collapse}}tr:nth-child(even){{background:#f3f3f3}}</style
 </table><p>R-hat: rank-normalised split R-hat over the emcee walkers; ESS: effective sample
 sizes (ArviZ). In red: outside R-hat &lt; {RHAT_MAX:g}, ESS &ge; {ESS_MIN:g}.</p>
 <p>Fixed:</p><ul>{fixed}</ul>
+{_truth_html(results)}
 <h2>Model selection ({e(sel.criterion.upper())}, threshold {sel.threshold:g})</h2>
 <table><tr><th></th><th>variant</th><th>k</th><th>chi2</th><th>BIC</th><th>delta</th>
 <th>status / notes</th></tr>{table}</table>

@@ -199,6 +199,39 @@ class Extraction:
     max_saturated_fraction: float = 0.5
 
 
+TRUTH_FIELDS: tuple[str, ...] = (
+    "sigma_deg",
+    "delta_n",
+    "edge_radius_um",
+    "fillet_radius_um",
+    "scale",
+    "floor",
+)
+"""The fields of `[truth]`: the physical parameters `stairfit simulate` renders from, named and
+in the units of truth.json and results.json (`sigma_deg` in degrees, radii in micrometres)."""
+
+
+@dataclass(frozen=True)
+class SceneTruth:
+    """Known values of the physical parameters (the optional `[truth]` table; docs/scene.md).
+
+    The truth of a synthetic scene (`stairfit simulate` writes it) or values measured
+    independently (a micrograph's tip and fillet radii). The fit does not use them; the report
+    and results.json show them beside the fitted values. None where not given.
+    """
+
+    sigma_deg: float | None = None
+    delta_n: float | None = None
+    edge_radius_um: float | None = None
+    fillet_radius_um: float | None = None
+    scale: float | None = None
+    floor: float | None = None
+
+    def items(self) -> tuple[tuple[str, float], ...]:
+        """The given values as (field, value), in `TRUTH_FIELDS` order."""
+        return tuple((k, v) for k in TRUTH_FIELDS if (v := getattr(self, k)) is not None)
+
+
 @dataclass(frozen=True)
 class Scene:
     """A validated scene file. `angles_relative_to` says how photo angles are given."""
@@ -214,6 +247,7 @@ class Scene:
     extraction: Extraction = field(default_factory=Extraction)
     patches: tuple[Patch, ...] = ()
     calibration: CalibrationFrames | None = None
+    truth: SceneTruth | None = None
 
     @property
     def folder(self) -> Path:
@@ -315,6 +349,7 @@ def parse_scene(raw: dict[str, Any], path: Path, measure_only: bool = False) -> 
             "extraction",
             "patches",
             "calibration",
+            "truth",
         ],
     )
     version = r.get(top, "version", int, "", default=SCENE_VERSION)
@@ -335,9 +370,10 @@ def parse_scene(raw: dict[str, Any], path: Path, measure_only: bool = False) -> 
     patches = _patches(r, top, specimen, reference, markers) if "patches" in top else ()
     photos = _photos(r, top, specimen, tuple(x.name for x in patches))
     calibration = _calibration(r, top["calibration"]) if "calibration" in top else None
+    truth = _truth(r, top["truth"], specimen) if "truth" in top else None
     scene = Scene(
         path, relative, specimen, light, camera, photos, markers, reference, extraction, patches,
-        calibration,
+        calibration, truth,
     )  # fmt: skip
     _check_input_paths(r, scene)
     if specimen is not None:
@@ -473,6 +509,59 @@ def _specimen(r: _Reader, d: dict[str, Any]) -> Specimen:
         r.fail(f"{w}.wedges", f"duplicate wedge name(s) {sorted(dup)}; names must be unique")
     metadata = _metadata(r, d.get("metadata", {}), f"{w}.metadata")
     return Specimen(layer, index, tuple(wedges), metadata)
+
+
+def _truth(r: _Reader, d: Any, specimen: Specimen | None) -> SceneTruth:
+    """`[truth]`: known parameter values, each optional and checked like the simulator's
+    options; the radii must fit every wedge of the specimen (docs/rounded.md §1)."""
+    w = "truth"
+    if specimen is None:
+        r.fail(w, "the truth describes a specimen; add [specimen] or remove [truth]")
+    r.table(d, w, list(TRUTH_FIELDS))
+    v = {k: r.get(d, k, float, w, default=None) for k in TRUTH_FIELDS}
+    if v["sigma_deg"] is not None and not 0.0 < v["sigma_deg"] <= 90.0:
+        r.fail(f"{w}.sigma_deg", f"{v['sigma_deg']!r} is outside (0, 90] deg; fix the value")
+    if v["scale"] is not None and not v["scale"] > 0.0:
+        r.fail(f"{w}.scale", f"{v['scale']!r} must be > 0; fix the value")
+    for key, meaning in (
+        ("floor", "0 = no diffuse floor"),
+        ("edge_radius_um", "0 = sharp layer edges"),
+        ("fillet_radius_um", "0 = sharp concave corners"),
+    ):
+        if v[key] is not None and v[key] < 0.0:
+            r.fail(f"{w}.{key}", f"{v[key]!r} is negative; give a value >= 0 ({meaning})")
+    _check_truth_radii(r, specimen, v["edge_radius_um"] or 0.0, v["fillet_radius_um"] or 0.0)
+    return SceneTruth(**v)
+
+
+def _check_truth_radii(r: _Reader, specimen: Specimen, tip_um: float, fillet_um: float) -> None:
+    """Tip arcs and fillets must fit the cell of every wedge: `r <= min(l1, l2)` and
+    `r_f <= min(l1, l2) - r`, `l2 = l1 cot beta2` [conventions §2] (`model.max_edge_radius`,
+    `model.max_fillet_radius`), with the model's relative slack of 1e-12."""
+    if tip_um == 0.0 and fillet_um == 0.0:
+        return
+    import numpy as np
+
+    from stairfit import model
+
+    beta2 = np.deg2rad([x.angle_deg for x in specimen.wedges])
+    room = np.asarray(model.max_edge_radius(beta2, specimen.layer_um), float)
+    k = int(np.argmin(room))  # the finest cell limits both radii
+    wedge, cap = specimen.wedges[k], float(room[k])
+    cell = (
+        f"wedge {wedge.name!r} ({wedge.angle_deg:g} deg, layer_um {specimen.layer_um:g}), "
+        f"whose min(l1, l2) = {cap:.6g} um"
+    )
+    if tip_um > cap * (1 + 1e-12):
+        r.fail("truth.edge_radius_um", f"{tip_um:g} um does not fit {cell}; give at most {cap:.6g}")
+    rf_max = float(np.asarray(model.max_fillet_radius(beta2, specimen.layer_um, tip_um))[k])
+    if fillet_um > rf_max + cap * 1e-12:
+        r.fail(
+            "truth.fillet_radius_um",
+            f"{fillet_um:g} um does not fit beside truth.edge_radius_um = {tip_um:g} um on "
+            f"{cell}: r + r_f must not exceed it; give at most {rf_max:.6g} um (or a smaller "
+            "edge_radius_um)",
+        )
 
 
 def _metadata(r: _Reader, d: Any, w: str) -> tuple[tuple[str, MetadataValue], ...]:

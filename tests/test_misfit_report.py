@@ -131,3 +131,17 @@ def test_a_good_fit_shows_no_misfit_and_the_rounding_is_accounted_for():
     assert "were fitted (always) in 83 s, because the preset" in rounding_sentence(
         SimpleNamespace(selection=SimpleNamespace(rounding=fitted, forced=False))
     )
+    # the fillet rungs (issue 15) add their own clause only when the ladder has them
+    assert "fillet" not in rounding_sentence(
+        SimpleNamespace(selection=SimpleNamespace(rounding=fitted, forced=False))
+    )
+    with_fillets = fitted._replace(fillet_n_variants=2, fillet_reason="the rounded misfits")
+    assert rounding_sentence(
+        SimpleNamespace(selection=SimpleNamespace(rounding=with_fillets, forced=False))
+    ).endswith("; the 2 fillet variants were not fitted: the rounded misfits")
+    fitted_fillets = with_fillets._replace(fillet_fitted=True, fillet_elapsed_s=240.2)
+    assert "; the 2 fillet variants were fitted in 240 s, because the rounded" in (
+        rounding_sentence(
+            SimpleNamespace(selection=SimpleNamespace(rounding=fitted_fillets, forced=False))
+        )
+    )

@@ -4,7 +4,9 @@ physical parameters.
 The model predicts each wedge face's relative radiance in every photo
 (`stairfit.fitting.model_radiance` at the face angles of the scene geometry, conventions §1 and
 §9); `stairfit.imaging.synthetic` renders and writes the RAW photos. The truth goes to
-`truth.json`, apart from the photos.
+`truth.json` (with the noise-free face radiances and the settings) and its parameters to the
+scene file's `[truth]` table, which the fit does not use and the report shows beside the fitted
+values (docs/scene.md).
 """
 
 from __future__ import annotations
@@ -60,6 +62,7 @@ class Truth:
     sigma_deg: float = 6.0
     delta_n: float = 0.0
     edge_radius_um: float = 0.0
+    fillet_radius_um: float = 0.0  # concave fillets between the layers (docs/rounded.md §1)
     scale: float = 2.0e6  # relative radiance per unit density: exposures of about a second
     floor: float = 4000.0  # a Lambertian body reflection of about 1/1000 of scale
 
@@ -138,6 +141,13 @@ def add_truth_options(p: argparse.ArgumentParser, seed_and_workers: bool = True)
     p.add_argument("--delta-n", type=float, default=t.delta_n, help="true index offset")
     p.add_argument(
         "--edge-radius-um", type=float, default=t.edge_radius_um, help="true edge radius (um)"
+    )
+    p.add_argument(
+        "--fillet-radius-um",
+        type=float,
+        default=t.fillet_radius_um,
+        help="true radius of the concave fillets between the layers (um; edge + fillet radius "
+        "must fit the finest cell, docs/rounded.md)",
     )
     p.add_argument("--floor", type=float, default=t.floor, help="true diffuse floor")
     p.add_argument("--megapixels", type=float, default=s.megapixels, help="photo size")
@@ -219,7 +229,9 @@ def effects_from_args(args: argparse.Namespace) -> SessionEffects:
 
 def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
     """Validated settings from command-line options (user mistakes raise UserError)."""
-    for option in ("sigma_deg", "delta_n", "edge_radius_um", "floor", "megapixels"):
+    for option in (
+        "sigma_deg", "delta_n", "edge_radius_um", "fillet_radius_um", "floor", "megapixels",
+    ):  # fmt: skip
         value = getattr(args, option)
         if not math.isfinite(value):
             raise UserError(f"--{option.replace('_', '-')}: must be a finite number, not {value}")
@@ -240,7 +252,14 @@ def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
     if args.seed < 0:
         raise UserError(f"--seed: {args.seed} is negative; give an integer >= 0")
     base = SimulationSettings()
-    truth = Truth(args.sigma_deg, args.delta_n, args.edge_radius_um, base.truth.scale, args.floor)
+    truth = Truth(
+        sigma_deg=args.sigma_deg,
+        delta_n=args.delta_n,
+        edge_radius_um=args.edge_radius_um,
+        fillet_radius_um=args.fillet_radius_um,
+        scale=base.truth.scale,
+        floor=args.floor,
+    )
     views = tuple(float(v) for v in np.linspace(-80.0, 20.0, args.views))
     settings = SimulationSettings(
         megapixels=args.megapixels,
@@ -253,6 +272,7 @@ def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
         effects=effects_from_args(args),
     )
     _check_edge_radius(settings)
+    _check_fillet_radius(settings)
     return settings
 
 
@@ -268,6 +288,29 @@ def _check_edge_radius(s: SimulationSettings) -> None:
             raise UserError(
                 f"--edge-radius-um: {r} um does not fit the finest cell; the maximum for these "
                 f"wedges and {s.layer_um} um layers is {r_max:.1f} um"
+            )
+
+
+def _check_fillet_radius(s: SimulationSettings) -> None:
+    """The fillets fit beside the tip arcs in every wedge's cell: `0 <= r_f <= min(l1, l2) - r`
+    (`model.max_fillet_radius`, docs/rounded.md §1); checked after the tip radius."""
+    rf, r = s.truth.fillet_radius_um, s.truth.edge_radius_um
+    if rf < 0:
+        raise UserError(
+            f"--fillet-radius-um: {rf:g} is negative; give a radius >= 0 (0 = sharp concave "
+            "corners)"
+        )
+    if rf > 0:
+        from stairfit import model
+
+        room = model.max_fillet_radius(np.asarray(s.wedges_deg) * DEG, s.layer_um, r)
+        k = int(np.argmin(np.asarray(room)))
+        rf_max = float(np.asarray(room)[k])
+        if rf > rf_max + (rf_max + r) * 1e-12:
+            raise UserError(
+                f"--fillet-radius-um: {rf:g} um does not fit beside --edge-radius-um {r:g} in "
+                f"the {s.wedges_deg[k]:g} deg wedge's cell ({s.layer_um:g} um layers; r + r_f "
+                f"<= min(l1, l2) = {rf_max + r:.6g} um); give at most {rf_max:.6g} um"
             )
 
 
@@ -327,22 +370,42 @@ def face_radiance(settings: SimulationSettings) -> np.ndarray:
         stderr=np.ones(len(a)),
         photo_index=a[:, 0].astype(int),
     )
-    spectral = fitting.spectral_setup(settings.material, settings.camera, settings.illuminant)
     t = settings.truth
+    spectral = fitting.spectral_setup(
+        settings.material, settings.camera, settings.illuminant, _sampling(settings)
+    )
     params = fitting.Params(
         sigma_rad=t.sigma_deg * DEG,
         delta_n=t.delta_n,
         edge_radius_um=t.edge_radius_um,
         scale=t.scale,
         floor=t.floor,
+        fillet_radius_um=t.fillet_radius_um,
     )
     aperture = model.Aperture(0.5 * settings.light_angular_diameter_deg * DEG, 0.0, 5)
-    if t.edge_radius_um > 0:
+    if t.edge_radius_um > 0 or t.fillet_radius_um > 0:  # rounded, filleted (docs/rounded.md)
         values = fitting.model_radiance(params, obs, spectral, aperture=aperture)
     else:  # the same model, compiled once: about 10x faster than evaluating op by op
         values = np.asarray(_sharp_values(obs, spectral, params, aperture))
     shape = (len(settings.views_deg), len(settings.wedges_deg), nodes.size, 3)
     return np.asarray(values).reshape(shape)
+
+
+def _sampling(settings: SimulationSettings) -> str:
+    """The spectral sampling of the render: every 5 nm ("full"), except for rounded edges or
+    fillets on a material of constant index, where one sample per channel ("effective") is
+    exact.
+
+    With a constant index the density is the same at every wavelength, and a channel's band
+    average of a constant is that constant [conventions §8]. The rounded and filleted models'
+    memory grows with the samples (81 at 5 nm): one face's 33 nodes took 7.3 GB with fillets,
+    and 4 views x 6 wedges of the rounded model more than 8 GB (measured, loaded).
+    """
+    from stairfit.model import materials
+
+    t = settings.truth
+    constant = isinstance(materials.get_material(settings.material), materials.ConstantIndex)
+    return "effective" if (t.edge_radius_um > 0 or t.fillet_radius_um > 0) and constant else "full"
 
 
 def face_mean(profile: np.ndarray) -> np.ndarray:
@@ -397,6 +460,7 @@ def simulate(folder: Path, settings: SimulationSettings, progress: bool = False)
             "sigma_deg": settings.truth.sigma_deg,
             "delta_n": settings.truth.delta_n,
             "edge_radius_um": settings.truth.edge_radius_um,
+            "fillet_radius_um": settings.truth.fillet_radius_um,
             "scale": settings.truth.scale,
             "floor": settings.truth.floor,
         },
@@ -652,6 +716,7 @@ def _scene_dict(
         },
         "photos": [{**p, "light_deg": s.light_deg} for p in photos],
         **({"calibration": calibration} if calibration else {}),
+        "truth": asdict(s.truth),  # scene.TRUTH_FIELDS: not used by the fit, shown in its report
     }
 
 
@@ -660,6 +725,7 @@ _SCENE_HEADER = """\
 # Angles are in degrees, relative to the specimen base: a positive light_deg puts the light on
 # the downhill side of the wedges, a positive view_deg the camera on the uphill side.
 # Each photo lists its wedge ROIs in pixels (x right, y down); face_mm + [markers] would place
-# them automatically instead.
+# them automatically instead. [truth] holds the parameters the photos were rendered from: the
+# fit does not use it, its report shows it beside the fitted values.
 
 """
