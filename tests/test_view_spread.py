@@ -183,10 +183,15 @@ def test_the_fit_takes_a_pinhole_rois_own_spread() -> None:
     """`stairfit fit`'s row spread: a pinhole-placed ROI's own half-width over the one the
     aperture gives its row, `angular_extent_deg / 2 x cos(theta_o)` (1 deg over 0.5 x 0.5 at 60
     deg: 4); without one, the eroded ROI's share; an undefined share: the whole face."""
+    from types import SimpleNamespace
+
     from stairfit.commands.fit import _spread
 
-    assert _spread(0.8, 1.0, 1.0, 60.0) == pytest.approx(4.0, rel=1e-12)
-    assert _spread(0.8, None, 1.0, 60.0) == 0.8
-    assert _spread(0.8, math.nan, 1.0, 60.0) == 0.8
-    assert _spread(0.8, 1.0, 0.0, 60.0) == 0.8  # no scene extent: nothing to scale
-    assert _spread(math.nan, None, 1.0, 0.0) == 1.0
+    def row(share: float, half_width: float | None) -> SimpleNamespace:
+        return SimpleNamespace(view_spread=share, view_half_width_deg=half_width)
+
+    assert _spread(row(0.8, 1.0), 1.0, 60.0) == pytest.approx(4.0, rel=1e-12)
+    assert _spread(row(0.8, None), 1.0, 60.0) == 0.8
+    assert _spread(row(0.8, math.nan), 1.0, 60.0) == 0.8
+    assert _spread(row(0.8, 1.0), 0.0, 60.0) == 0.8  # no scene extent: nothing to scale
+    assert _spread(row(math.nan, None), 1.0, 0.0) == 1.0

@@ -264,12 +264,14 @@ def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
     return table
 
 
-def _spread(value: float, half_width_deg: float | None, extent_deg: float, to_deg: float) -> float:
-    """A row's `view_spread` for the fit [conventions §9]: for an ROI placed through a pinhole
-    with its own spread of viewing angles (`view_half_width_deg`), that spread over the one the
-    aperture gives the row, `extent / 2 x cos(theta_o)` (it may exceed 1: a face longer along
-    its slope than `angular_extent_deg` assumes; docs/imaging.md §Viewing spread); else the
-    eroded ROI's share `value`; 1 (the whole face) where neither is defined."""
+def _spread(row: Any, extent_deg: float, to_deg: float) -> float:
+    """A measurement row's `view_spread` for the fit [conventions §9]: for an ROI placed through
+    a pinhole with its own spread of viewing angles (`view_half_width_deg`), that spread over
+    the one the aperture gives the row, `extent / 2 x cos(theta_o)` (it may exceed 1: a face
+    longer along its slope than `angular_extent_deg` assumes; docs/imaging.md §Viewing
+    spread); else the eroded ROI's share `view_spread`; 1 (the whole face) where neither is
+    defined."""
+    value, half_width_deg = row.view_spread, row.view_half_width_deg
     if half_width_deg is not None and np.isfinite(half_width_deg) and extent_deg > 0:
         seen = 0.5 * extent_deg * float(np.cos(np.deg2rad(to_deg)))
         if seen > 0:
@@ -323,9 +325,7 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
                 "saturated": saturated,
                 "roi_index": rois.setdefault((r.photo, r.wedge), len(rois)),
                 **roi_correlations(r),
-                "view_spread": _spread(
-                    r.view_spread, r.view_half_width_deg, scene.camera.angular_extent_deg, to
-                ),
+                "view_spread": _spread(r, scene.camera.angular_extent_deg, to),
             }
         )
         info.append(
