@@ -150,7 +150,8 @@ def _rounded_impl(
     )  # (R, M, T, C K)
     rho = rho.reshape(*rho.shape[:-1], *g.r_w.shape)
     band = jnp.einsum("ck,rmtck->rmtc", g.r_w, rho)
-    return jnp.einsum("rmtc,rm->rtc", band, dw)
+    dw = dw[:, :, None] * model.view_conversion(g.r_to[:, None, :], to)  # (R, M, T)
+    return jnp.einsum("rmtc,rmt->rtc", band, dw)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
@@ -219,7 +220,8 @@ def _sharp_grid_impl(
     else:
         fresnel = model.lobe_fresnel(g.g_ti[:, None, None], g.g_b2[:, None, None], n)  # (G,C,K,3)
         band = jnp.einsum("ck,gckl->gcl", g.r_w, fresnel)[g.r_geo]  # (R, M, C, 3)
-    return jnp.einsum("rml,rtml,rmcl,rm->rtc", weight, kernel, band, dw)
+    dw = dw[:, None, :] * model.view_conversion(g.r_to[..., None], to)  # (R, T, M)
+    return jnp.einsum("rml,rtml,rmcl,rtm->rtc", weight, kernel, band, dw)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
@@ -303,7 +305,9 @@ def _fillet_impl(
     rho = jnp.einsum("rmkpn,rmtpn->rmtk", w, kern)
     rho = rho.reshape(*rho.shape[:-1], *g.r_w.shape)
     band = jnp.einsum("ck,rmtck->rmtc", g.r_w, rho)
-    return jnp.einsum("rmtc,rm->rtc", band, dw)
+    conv = model.view_conversion(g.r_to[..., None], to)  # (R|1, T, M)
+    dw = dw[:, :, None] * jnp.swapaxes(conv, -1, -2)  # (R, M, T)
+    return jnp.einsum("rmtc,rmt->rtc", band, dw)
 
 
 def _fillet_rays(

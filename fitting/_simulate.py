@@ -136,7 +136,8 @@ def _rounded_rows(
         float(params.edge_radius_um),
         **kwargs,
     )  # (N, M, K)
-    return np.einsum("nk,nmk,nm->n", w, np.asarray(rho), np.asarray(dw))
+    dw = np.asarray(dw) * np.asarray(model.view_conversion(obs.theta_o_rad[:, None], to[..., 0]))
+    return np.einsum("nk,nmk,nm->n", w, np.asarray(rho), dw)
 
 
 def _filleted_rows(
@@ -156,6 +157,7 @@ def _filleted_rows(
     ti, dw = model.light_nodes(obs.theta_i_rad, obs.beta2_rad, ap)  # (N, M) each
     spread = np.asarray(obs.view_spread)[:, None] * do
     to = np.asarray(model.node_angles(obs.theta_o_rad, spread, ap.foreshortened))  # (N, M)
+    dw = np.asarray(dw) * np.asarray(model.view_conversion(obs.theta_o_rad[:, None], to))
     res = model.ROUNDED_RESOLUTION if resolution is None else resolution
     keys = np.stack([obs.theta_i_rad, obs.beta2_rad, obs.layer_um], axis=1)
     _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)

@@ -29,6 +29,7 @@ from ._measurement import band_ratio as band_ratio
 from ._measurement import light_nodes as light_nodes
 from ._measurement import node_angles as node_angles
 from ._measurement import radiance as radiance
+from ._measurement import view_conversion as view_conversion
 from .materials import MATERIALS as MATERIALS
 from .materials import get_material as get_material
 from .materials import refractive_index as refractive_index

@@ -266,6 +266,19 @@ def _aperture_angles(
     return ti, to, dw
 
 
+def view_conversion(theta_o: ArrayLike, theta_o_nodes: ArrayLike) -> Array:
+    """`cos(theta_o) / cos(theta_o_node)`, both floored at `COS_THETA_O_FLOOR`: the weight of a
+    viewing node's density in an aperture average [conventions §9].
+
+    `radiance` converts a density at the patch centre's `theta_o`; each pixel of a patch
+    converts its own at its own angle (`1 / cos(theta_o_node)`). Weighting each node's density
+    by this factor makes `radiance(band_density(...), theta_i, theta_o, ...)` the patch's mean
+    radiance. 1 at a point aperture. `theta_o` broadcasts against `theta_o_nodes`.
+    """
+    cos_o = jnp.maximum(jnp.cos(jnp.asarray(theta_o)), COS_THETA_O_FLOOR)
+    return cos_o / jnp.maximum(jnp.cos(jnp.asarray(theta_o_nodes)), COS_THETA_O_FLOOR)
+
+
 def band_ratio(
     theta_i: ArrayLike,
     beta2: ArrayLike,
@@ -314,7 +327,9 @@ def band_density(
     aperture: Aperture | None = None,
     view_spread: ArrayLike = 1.0,
 ) -> Float[Array, " n_obs"]:
-    """Band- and aperture-averaged reflectance density (1/rad) for each observation.
+    """Band- and aperture-averaged reflectance density (1/rad) for each observation: over the
+    viewing nodes, each node's density weighted by `view_conversion`, so that `radiance` at
+    `theta_o` gives the patch's mean radiance [conventions §9].
 
     `theta_i`, `theta_o`, `beta2`, `sigma` have shape `(n_obs,)` (or broadcast to it);
     `n` and `spectral_weight` have shape `(n_obs, n_lambda)`: the index (delta_n included) at
@@ -328,7 +343,8 @@ def band_density(
     theta_i, theta_o, beta2, sigma = same_rank(theta_i, theta_o, beta2, sigma)
     ratio = band_ratio(theta_i, beta2, n, spectral_weight, aperture)
     kernel = band_kernel(theta_i, theta_o, beta2, sigma, aperture, view_spread)
-    _, _, dw = _aperture_angles(theta_i, theta_o, beta2, aperture)
+    _, to, dw = _aperture_angles(theta_i, theta_o, beta2, aperture, view_spread)
+    dw = dw * view_conversion(jnp.asarray(theta_o)[..., None], to)
     return jnp.sum(jnp.sum(ratio * kernel, axis=-1) * dw, axis=-1)
 
 

@@ -27,14 +27,17 @@ def _density(theta_o, aperture):
 
 def test_foreshortened_aperture_is_the_face_on_width_times_cos_theta_o() -> None:
     """Against the aperture average written out: Gauss-Legendre nodes over +-0.3 deg of light
-    and +-0.64 cos(theta_o) deg of view, `model.brdf` at each."""
+    and +-0.64 cos(theta_o) deg of view, `model.brdf` at each, each view node's density
+    weighted by cos(theta_o) / cos(its theta_o) (its own radiance conversion, conventions
+    §9)."""
     theta_o = np.array([-80.0, 0.0, 70.0]) * DEG
     got = np.asarray(_density(jnp.asarray(theta_o), model.Aperture(0.3 * DEG, 0.64 * DEG, 4, True)))
     x, w = np.polynomial.legendre.leggauss(4)
     ti = x[:, None, None] * 0.3 * DEG
     to = theta_o[None, None, :] + x[None, :, None] * 0.64 * DEG * np.cos(theta_o)
     rho = np.asarray(model.brdf(ti, to, 40 * DEG, 1.46, 6 * DEG))  # (light, view, obs)
-    want = np.einsum("i,j,ijk->k", w, w, rho) / 4
+    conversion = np.cos(theta_o)[None, None, :] / np.cos(to)
+    want = np.einsum("i,j,ijk->k", w, w, rho * conversion) / 4
     np.testing.assert_allclose(got, want, rtol=1e-12)
 
 

@@ -53,7 +53,9 @@ def test_eroded_rectangle_keeps_its_eroded_width(axis: tuple[float, float]) -> N
 
 def test_band_density_narrows_the_view_spread_like_a_quadrature_by_hand() -> None:
     """`view_spread` f: the average over theta_o +- f h cos(theta_o), done here with point
-    evaluations at Gauss-Legendre nodes."""
+    evaluations at Gauss-Legendre nodes, each converted to radiance at its own viewing angle
+    (a pixel's radiance is its own density over its own cos theta_o, conventions §9): the
+    patch's mean radiance is `radiance` of the aperture's density at the centre's theta_o."""
     ti, b2 = np.full(3, 10 * DEG), np.full(3, 30 * DEG)
     to = np.array([-40.0, 5.0, 35.0]) * DEG
     f = np.array([0.3, 0.7, 1.0])
@@ -63,11 +65,23 @@ def test_band_density_narrows_the_view_spread_like_a_quadrature_by_hand() -> Non
     ap = model.Aperture(0.0, h, 9, foreshortened=True)
     got = np.asarray(model.band_density(ti, to, b2, n, w, sigma, ap, f))
     x, wt = np.polynomial.legendre.leggauss(9)
+    nodes = [to + xk * f * h * np.cos(to) for xk in x]
     ref = sum(
-        0.5 * wk * np.asarray(model.band_density(ti, to + xk * f * h * np.cos(to), b2, n, w, sigma))
-        for xk, wk in zip(x, wt, strict=True)
+        0.5 * wk * np.asarray(model.band_density(ti, tk, b2, n, w, sigma)) / np.cos(tk)
+        for tk, wk in zip(nodes, wt, strict=True)
+    )  # the mean over the patch of density / cos(theta_o): radiance up to its constant factors
+    np.testing.assert_allclose(got / np.cos(to), ref, rtol=1e-10)
+    point = [model.band_density(ti, tk, b2, n, w, sigma) for tk in nodes]
+    mean_radiance = sum(
+        0.5 * wk * np.asarray(model.radiance(d, ti, tk, 1.3, 0.0))
+        for d, tk, wk in zip(point, nodes, wt, strict=True)
     )
-    np.testing.assert_allclose(got, ref, rtol=1e-10)
+    np.testing.assert_allclose(model.radiance(got, ti, to, 1.3, 0.0), mean_radiance, rtol=1e-10)
+    plain = sum(
+        0.5 * wk * np.asarray(model.band_density(ti, tk, b2, n, w, sigma))
+        for tk, wk in zip(nodes, wt, strict=True)
+    )
+    assert np.max(np.abs(got / plain - 1)) > 1e-6  # the conversion per node is not a no-op
     whole = np.asarray(model.band_density(ti, to, b2, n, w, sigma, ap))
     assert abs(got[0] / whole[0] - 1) > 1e-4  # a narrower spread is not the whole face's
     np.testing.assert_allclose(got[2], whole[2], rtol=1e-12)
