@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._core import CoreFit
+from ._core import MODEL_ERROR_RISE, CoreFit, model_error_rise
 from ._errors import FitWarning, UnconstrainedError
 from ._params import LOG, SIN, SIN_REST, Parameter, dx_dz
 from ._problem import FreeSpec, Problem
@@ -273,6 +273,17 @@ def _bound_found(
         rel = x[k] * np.abs(core.ev.model) / np.asarray(core.data.stderr)
         if float(np.max(rel * np.asarray(core.data.use))) < BOUND_TOL:
             return "model_error_frac", 0.0, "the data need no model-error term"
+        if not core.success:  # the solver stopped short while the term crept to 0
+            rise = model_error_rise(core.ev, core.data, float(x[k]))
+            if rise < MODEL_ERROR_RISE:
+                return (
+                    "model_error_frac",
+                    0.0,
+                    (
+                        f"the data need no model-error term: removing it raises -2 log L by "
+                        f"{rise:.2g} < {MODEL_ERROR_RISE:g}"
+                    ),
+                )
     return None
 
 
