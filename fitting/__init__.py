@@ -86,6 +86,7 @@ _LAZY = {
     "ChainInfo": "._chain",
     "load_chain": "._chain",
     "MOVES": "._posterior",
+    "LaplaceMove": "._posterior",
     "PosteriorOptions": "._posterior",
     "PosteriorResult": "._posterior",
     "log_likelihood": "._posterior",
@@ -117,6 +118,7 @@ if TYPE_CHECKING:
     from ._chain import ChainInfo as ChainInfo
     from ._chain import load_chain as load_chain
     from ._posterior import MOVES as MOVES
+    from ._posterior import LaplaceMove as LaplaceMove
     from ._posterior import PosteriorOptions as PosteriorOptions
     from ._posterior import PosteriorResult as PosteriorResult
     from ._posterior import log_likelihood as log_likelihood
