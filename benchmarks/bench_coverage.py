@@ -19,8 +19,10 @@ intervals and the pull `(fit - truth) / se` of every parameter, the reduced chi^
 `fitting.select_model` over the 8 sharp variants (shared and per-wedge sigma; the rounded rungs
 cost minutes of compilation each and are left out) and how often it chooses the true variant;
 on the first `--posterior` datasets of the standard design, `fitting.sample_posterior`
-(tau_factor 20 checked every 100 steps, the balanced preset's; the R-hat / ESS extension of the
-chain off, see docs/fitting.md §5) with its 16-84% and 2.5-97.5% intervals.
+(tau_factor 20 checked every 100 steps and R-hat < 1.01, ESS >= 400: the balanced preset's
+rule; docs/fitting.md §5; moves `--moves`, default the library's default "laplace"; runs before
+5 December 2026 used "de" or the stretch move with the R-hat / ESS extension off) with its
+16-84% and 2.5-97.5% intervals.
 All datasets of one design share their shapes, so every fit reuses one compiled program.
 
 **Photo level** (tests/independent_photos.py, the second renderer, which imports nothing of
@@ -245,7 +247,9 @@ def posterior_record(post: Any) -> dict[str, Any]:
     return out
 
 
-def one_dataset(obs: Any, spec: Any, posterior_seed: int | None) -> dict[str, Any]:
+def one_dataset(
+    obs: Any, spec: Any, posterior_seed: int | None, moves: str = "laplace"
+) -> dict[str, Any]:
     """The true variant's fit, the selection, and (with a seed) the posterior of one dataset."""
     from stairfit import fitting
 
@@ -269,8 +273,7 @@ def one_dataset(obs: Any, spec: Any, posterior_seed: int | None) -> dict[str, An
                 tau_factor=20,
                 chunk_steps=100,
                 max_steps=20_000,
-                rhat_max=np.inf,
-                ess_min=0,
+                moves=moves,
                 emit_warnings=False,
             )
             rec["posterior"] = posterior_record(post)
@@ -290,6 +293,7 @@ def observations_level(
     log: Callable[[str], None],
     design_names: Sequence[str] = ("standard", "custom"),
     noise_levels: Sequence[float] = NOISE_LEVELS,
+    moves: str = "laplace",
 ) -> dict[str, dict[str, list[dict[str, Any]]]]:
     """Every dataset's record, by design and noise level (keys `f"{rel:g}"`)."""
     from stairfit import fitting
@@ -305,7 +309,8 @@ def observations_level(
             t0 = time.perf_counter()
             for s in range(n_datasets):
                 post_seed = s if (name == "standard" and s < n_posterior) else None
-                recs.append(one_dataset(simulate(design, spec, rel, seed + s), spec, post_seed))
+                data = simulate(design, spec, rel, seed + s)
+                recs.append(one_dataset(data, spec, post_seed, moves))
             out[name][f"{rel:g}"] = recs
             log(
                 f"observations {name} {100 * rel:g}%: {n_datasets} datasets "
@@ -649,6 +654,7 @@ class Settings:
     photos: int
     designs: tuple[str, ...] = ("standard", "custom")
     noise_levels: tuple[float, ...] = NOISE_LEVELS
+    moves: str = "laplace"
 
 
 def settings_from(args: argparse.Namespace) -> Settings:
@@ -664,6 +670,7 @@ def settings_from(args: argparse.Namespace) -> Settings:
         pick(args.photos, 20, 1),
         tuple(args.designs or ("standard", "custom")),
         tuple(args.noise or NOISE_LEVELS),
+        args.moves,
     )
 
 
@@ -688,7 +695,7 @@ def run(st: Settings, out_dir: Path, command: str) -> dict[str, Any]:
 
     load = os.getloadavg()[0]
     raw_obs = (
-        observations_level(st.datasets, st.posterior, log, st.designs, st.noise_levels)
+        observations_level(st.datasets, st.posterior, log, st.designs, st.noise_levels, st.moves)
         if st.datasets
         else {}
     )
@@ -759,6 +766,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--noise", nargs="+", type=float, help="relative noise levels (0.02 0.005 0.0005)"
     )
     ap.add_argument("--out-dir", type=Path, default=None, help="where to write the results")
+    ap.add_argument(
+        "--moves", default="laplace", help="the posterior's proposal (fitting.MOVES; laplace)"
+    )
     ap.add_argument(
         "--photos-only",
         action="store_true",
