@@ -19,6 +19,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array
 
+from . import _export
 from ._errors import FitError, FitInputError
 from ._forward import (
     Data,
@@ -52,6 +53,11 @@ def make_solver(name: str, rtol: float, atol: float) -> optx.AbstractLeastSquare
     if name == "gauss_newton":
         return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=linear)
     raise FitInputError(f"solver = {name!r}; choose one of {', '.join(SOLVERS)}")
+
+
+def solver_key(solver: optx.AbstractLeastSquaresSolver) -> str:
+    """A deterministic description of a `make_solver` solver (part of a program's key)."""
+    return f"{type(solver).__name__}(rtol={solver.rtol!r}, atol={solver.atol!r})"
 
 
 def fisher_information(jacobian: Array, sd: Array, use: Array | None = None) -> Array:
@@ -402,7 +408,13 @@ class CoreFit(NamedTuple):
 
 def _run(z0: np.ndarray, static: Static, data: Data, solver: optx.AbstractLeastSquaresSolver,
          max_steps: int) -> StartRun:  # fmt: skip
-    z, codes, steps, ev = _solve_one(jnp.asarray(z0), static, data, solver, max_steps)
+    z, codes, steps, ev = _export.call(
+        "solve_one",
+        lambda z, d: _solve_one(z, static, d, solver, max_steps),
+        repr((static, solver_key(solver), max_steps)),
+        (jnp.asarray(z0), data),
+        lambda out: (out[0], out[1], out[2], Evaluation(*out[3:])),
+    )
     ev = Evaluation(*(np.asarray(a) for a in ev))
     z = np.asarray(z)
     name, msg = _result_string(codes)

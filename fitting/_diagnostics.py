@@ -139,14 +139,18 @@ def inference_data(
     `burn_in`), and the file attributes `attrs` (labels, seed ...)."""
     az = _arviz()
     lp = np.ascontiguousarray(log_prob.T)
-    idata = az.from_dict(
-        posterior=_dataset(chain[burn_in:], names),
-        warmup_posterior=_dataset(chain[:burn_in], names),
-        sample_stats={"lp": lp[:, burn_in:]},
-        warmup_sample_stats={"lp": lp[:, :burn_in]},
-        save_warmup=True,
-        attrs=attrs,
-    )
+    with warnings.catch_warnings():
+        # ArviZ guesses that a group with more chains than draws was passed transposed; a short
+        # burn-in (7 steps of 32 walkers for the "laplace" moves) is such a group, correctly.
+        warnings.filterwarnings("ignore", "More chains", UserWarning)
+        idata = az.from_dict(
+            posterior=_dataset(chain[burn_in:], names),
+            warmup_posterior=_dataset(chain[:burn_in], names),
+            sample_stats={"lp": lp[:, burn_in:]},
+            warmup_sample_stats={"lp": lp[:, :burn_in]},
+            save_warmup=True,
+            attrs=attrs,
+        )
     for group in (idata.posterior, idata.warmup_posterior):
         for name, unit in zip(names, units, strict=True):
             group[name].attrs["units"] = unit

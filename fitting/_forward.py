@@ -26,6 +26,10 @@ from stairfit import model
 from ._params import Layout, Params, clamp_index, to_physical
 from ._whiten import group_cholesky, log_diag, scatter, whiten
 
+light_nodes = jax.jit(model.light_nodes, static_argnums=2)
+"""`stairfit.model.light_nodes` as one compiled program per aperture, for the concrete grids the
+fit and the simulator prepare (evaluated op by op it dispatched about 40 small programs)."""
+
 
 class Static(NamedTuple):
     """Hashable configuration of a forward evaluation (part of the compilation key).
@@ -486,10 +490,13 @@ def mean_and_log_variance(z: Array, static: Static, data: Data) -> tuple[Array, 
     return m, jnp.log(variance(m, p, static, data))
 
 
+@functools.partial(jax.jit, static_argnums=2)
 def measurement_whitened(resid: Array, data: Data, correlated: bool) -> Array:
     """Per row, `resid` (e.g. value - model) whitened with the measurement covariance alone
     (no model-error term): `resid / stderr` for independent rows, each row's component of
-    `L0^-1 resid` (`S R S = L0 L0^T` per group) for correlated ones; 0 for unused rows."""
+    `L0^-1 resid` (`S R S = L0 L0^T` per group) for correlated ones; 0 for unused rows. Called
+    on concrete arrays (reports, the accuracy check), so compiled once here rather than op by
+    op."""
     if not correlated:
         return jnp.where(data.use > 0, resid / data.stderr, 0.0)
     w = whitened(resid, cholesky(None, data), data)

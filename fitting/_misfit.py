@@ -13,7 +13,9 @@ import enum
 import math
 from typing import NamedTuple
 
+import jax
 import numpy as np
+from jaxtyping import Array
 
 from ._forward import measurement_whitened
 from ._result import FitResult
@@ -47,11 +49,18 @@ class Status(enum.StrEnum):
 
 def chi2_p_value(chi2: float, dof: int) -> float:
     """Upper tail probability of chi^2 with `dof` degrees of freedom (`dof` at least 1)."""
-    from jax.scipy.special import gammaincc
-
     if not math.isfinite(chi2):
         return math.nan
-    return float(gammaincc(0.5 * max(int(dof), 1), 0.5 * max(float(chi2), 0.0)))
+    return float(_gammaincc(0.5 * max(int(dof), 1), 0.5 * max(float(chi2), 0.0)))
+
+
+@jax.jit
+def _gammaincc(a: Array, x: Array) -> Array:
+    """`jax.scipy.special.gammaincc` as one compiled program (eagerly, each call dispatched its
+    conversions and the incomplete gamma function as separate programs)."""
+    from jax.scipy.special import gammaincc
+
+    return gammaincc(a, x)
 
 
 def p_text(p: float) -> str:

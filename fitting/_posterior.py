@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from . import _export
 from ._chain import ChainBackend, ChainInfo
 from ._diagnostics import (
     ESS_MIN,
@@ -406,10 +407,13 @@ class Target(NamedTuple):
 
     def log_prob(self, theta: np.ndarray) -> np.ndarray:
         """Log posterior of walkers `theta` `(n_walkers, p)`, a writable numpy array."""
-        out = _batched_log_probability(
-            jnp.asarray(theta), self.static, self.priors, self.data,
-            jnp.asarray(self.base_z), jnp.asarray(self.slots),
-        )  # fmt: skip
+        out = _export.call(
+            "log_probability",
+            lambda th, d, z, s: _batched_log_probability(th, self.static, self.priors, d, z, s),
+            repr((self.static, self.priors)),
+            (jnp.asarray(theta), self.data, jnp.asarray(self.base_z), jnp.asarray(self.slots)),
+            lambda leaves: leaves[0],
+        )
         return np.array(out)  # a writable copy: walkers outside the support are re-drawn
 
     def physical(self, kept_z: np.ndarray) -> np.ndarray:

@@ -14,7 +14,7 @@ import numpy as np
 from stairfit import model
 
 from ._errors import FitInputError
-from ._forward import Data, Static
+from ._forward import Data, Static, light_nodes
 from ._observations import Observations, Spectral, check_compatible
 from ._params import DEFAULTS, PARAM_NAMES, Layout, Parameter, Params, Priors, Variant
 from ._whiten import group_arrays
@@ -306,7 +306,7 @@ def _geometry_keys(grid: dict, aperture: model.Aperture) -> dict:
     """Distinct (theta_i at each aperture node, beta2, layer_um) of the keys: the rounded
     geometry depends on nothing else, so a fit computes it once per entry."""
     r_ti, r_b2 = (np.asarray(grid[k], float) for k in ("r_ti", "r_b2"))
-    ti = np.asarray(model.light_nodes(r_ti, r_b2, aperture)[0])
+    ti = np.asarray(light_nodes(r_ti, r_b2, aperture)[0])
     shape = ti.shape  # (R, M)
     b2 = np.broadcast_to(np.asarray(grid["r_b2"], float)[:, None], shape)
     layer = np.broadcast_to(np.asarray(grid["r_layer"], float)[:, None], shape)

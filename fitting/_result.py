@@ -9,6 +9,7 @@ import math
 import time
 from dataclasses import dataclass, field
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -17,6 +18,10 @@ from ._errors import FitWarning
 from ._identify import covariance, within_stderr_of_bound
 from ._params import Parameter, Params, Variant, dx_matrix, log_prior_z, parameter_label
 from ._problem import FreeSpec, Problem
+
+_log_prior_z = jax.jit(log_prior_z, static_argnums=(1, 3))
+"""`log_prior_z` as one compiled program per layout and prior specification (evaluated op by
+op it dispatched about 50 small programs per fitted variant)."""
 
 
 @dataclass(frozen=True)
@@ -143,7 +148,8 @@ class FitResult:
         d = self.problem.arrays_for(self.spec) if self.spec is not None else None
         fixed = None if d is None else (d.free, d.x_fixed)  # a fixed r bounds a free r_f
         z = jnp.asarray(self.z)
-        log_prior = float(log_prior_z(z, lay.kinds, self.problem.r_max_um, spec, fixed))
+        r_max = self.problem.r_max_um
+        log_prior = float(_log_prior_z(z, tuple(lay.kinds), r_max, spec, fixed))
         logdet = float(np.linalg.slogdet(self.covariance_z)[1])
         return self.log_likelihood + log_prior + 0.5 * k * math.log(2 * math.pi) + 0.5 * logdet
 

@@ -18,6 +18,7 @@ from jaxtyping import Array
 from stairfit import model
 
 from ._errors import FitInputError
+from ._forward import light_nodes
 from ._observations import Observations, Spectral
 from ._params import Params, clamp_index
 
@@ -103,7 +104,7 @@ def model_radiance(
     elif float(params.edge_radius_um) > 0.0:
         dens = _rounded_rows(params, obs, n, w, sigma, aperture, resolution)
     else:
-        dens = model.band_density(
+        dens = _band_density(
             ti, to, jnp.asarray(obs.beta2_rad), n, w, sigma, aperture, obs.view_spread
         )
     return np.asarray(model.radiance(dens, ti, to, params.scale, params.floor))
@@ -121,20 +122,22 @@ def _rounded_rows(
     """Rounded-model band density per row, straight from `stairfit.model.brdf_rounded`."""
     ap = aperture or model.Aperture()
     _, do, _ = ap.nodes()
-    ti, dw = model.light_nodes(obs.theta_i_rad, obs.beta2_rad, ap)  # (N, M) each
+    ti, dw = light_nodes(obs.theta_i_rad, obs.beta2_rad, ap)  # (N, M) each
     ti = ti[..., None]  # (N, M, 1)
     spread = np.asarray(obs.view_spread)[:, None] * do  # the ROI's share of the view spread
     to = model.node_angles(obs.theta_o_rad, spread, ap.foreshortened)[..., None]
-    kwargs = {} if resolution is None else {"resolution": resolution}
-    rho = model.brdf_rounded(
+    res = model.ROUNDED_RESOLUTION if resolution is None else resolution
+    r = float(params.edge_radius_um)
+    model.check_edge_radius(obs.beta2_rad, obs.layer_um, r)  # a one-line ValueError (not in jit)
+    rho = _brdf_rounded(
         ti,
         to,
         obs.beta2_rad[:, None, None],
         n[:, None, :],
         sigma[:, None, None],
         obs.layer_um[:, None, None],
-        float(params.edge_radius_um),
-        **kwargs,
+        r,
+        res,
     )  # (N, M, K)
     dw = np.asarray(dw) * np.asarray(model.view_conversion(obs.theta_o_rad[:, None], to[..., 0]))
     return np.einsum("nk,nmk,nm->n", w, np.asarray(rho), dw)
@@ -154,7 +157,7 @@ def _filleted_rows(
     each row then finishes with `brdf_filleted_from_geometry` at its views, index and width."""
     ap = aperture or model.Aperture()
     _, do, _ = ap.nodes()
-    ti, dw = model.light_nodes(obs.theta_i_rad, obs.beta2_rad, ap)  # (N, M) each
+    ti, dw = light_nodes(obs.theta_i_rad, obs.beta2_rad, ap)  # (N, M) each
     spread = np.asarray(obs.view_spread)[:, None] * do
     to = np.asarray(model.node_angles(obs.theta_o_rad, spread, ap.foreshortened))  # (N, M)
     dw = np.asarray(dw) * np.asarray(model.view_conversion(obs.theta_o_rad[:, None], to))
@@ -183,6 +186,17 @@ def _filleted_rows(
     return out
 
 
+_band_density = jax.jit(model.band_density, static_argnums=6)
+"""`stairfit.model.band_density` as one compiled program per aperture (evaluated op by op it
+dispatched about 60 small programs, e.g. in every fit's accuracy check)."""
+_brdf_rounded = jax.jit(
+    lambda ti, to, b, n, sigma, l1, r, res: model.brdf_rounded(
+        ti, to, b, n, sigma, l1, r, resolution=res
+    ),
+    static_argnums=7,
+)
+"""`stairfit.model.brdf_rounded` as one compiled program: evaluated op by op it compiled about
+500 small programs on a new scene (tens of seconds of a forced rounded fit's accuracy check)."""
 _fillet_geometry = jax.jit(
     lambda ti, b, l1, r, rf, res: model.fillet_geometry(ti, b, l1, r, rf, resolution=res),
     static_argnums=5,

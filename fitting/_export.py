@@ -1,0 +1,167 @@
+"""Traced programs kept on disk (issue 14: a warm fit re-traced its solver every run).
+
+JAX's persistent compilation cache keeps compiled XLA programs, but every new process still
+traces and lowers each jitted function before it can look one up: for the least-squares solver
+(optimistix around the whole model) that was seconds of every warm `stairfit fit`. `jax.export`
+serialises a traced and lowered program (StableHLO); a later process deserialises it and calls
+it without tracing the Python again.
+
+`call(name, fn, static_key, args, unflatten)` does that for one program: where JAX's persistent
+compilation cache is configured (`jax.config.jax_compilation_cache_dir`, which the CLI sets,
+app/_jaxcache.py) the exported program is kept in its subfolder `EXPORT_SUBDIR`, keyed by
+
+* the program's name and `static_key` (the caller's deterministic description of everything
+  static: layout, flags, solver, step limit);
+* the arguments' tree structure, shapes and dtypes;
+* `code_fingerprint()`: the source of the stairfit package and the versions of jax, jaxlib,
+  optimistix, equinox and lineax, so an edited or upgraded checkout never reuses a stale
+  program;
+
+and written atomically. Where no cache folder is configured (library use, the tests), or with
+`STAIRFIT_EXPORTED=off`, `fn` is called as it is. A program that cannot be exported (a custom call JAX will not serialise) or a
+file that cannot be read falls back to `fn`; the result is the same either way (tested).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import re
+import secrets
+from collections.abc import Callable, Sequence
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+EXPORT_SUBDIR = "stairfit-exported"
+"""Subfolder of JAX's persistent compilation cache that holds the exported programs."""
+
+_PACKAGE_ROOT = Path(__file__).resolve().parents[1]
+_SOURCE_DIRS = ("model", "fitting")
+_VERSIONED = ("jax", "jaxlib", "optimistix", "equinox", "lineax")
+
+
+@functools.cache
+def code_fingerprint() -> str:
+    """Hash of the source that traced programs are made of (`model/`, `fitting/` and their
+    package data) and of the versions of the libraries that trace them."""
+    h = hashlib.sha256()
+    for sub in _SOURCE_DIRS:
+        for path in sorted((_PACKAGE_ROOT / sub).rglob("*")):
+            if path.is_file() and path.suffix in (".py", ".json"):
+                h.update(str(path.relative_to(_PACKAGE_ROOT)).encode())
+                h.update(path.read_bytes())
+    for name in _VERSIONED:
+        try:
+            h.update(f"{name}={metadata.version(name)}".encode())
+        except metadata.PackageNotFoundError:
+            h.update(f"{name}=absent".encode())
+    h.update(f"x64={jax.config.jax_enable_x64}".encode())
+    return h.hexdigest()
+
+
+OFF_VAR = "STAIRFIT_EXPORTED"
+"""Environment variable: `off` keeps no exported programs (every process traces again)."""
+
+
+def export_folder() -> Path | None:
+    """Where exported programs are kept: beside JAX's persistent compilation cache; None
+    without one, or with `STAIRFIT_EXPORTED=off`."""
+    if os.environ.get(OFF_VAR, "").strip().lower() in ("off", "0", "no", "false"):
+        return None
+    base = jax.config.jax_compilation_cache_dir
+    return Path(base) / EXPORT_SUBDIR if base else None
+
+
+def _spec(leaf: Any) -> jax.ShapeDtypeStruct:
+    a = np.asarray(leaf) if not hasattr(leaf, "dtype") else leaf
+    return jax.ShapeDtypeStruct(np.shape(a), a.dtype)
+
+
+def program_key(name: str, static_key: str, treedef: Any, leaves: Sequence[Any]) -> str:
+    """The file name of a program (module doc)."""
+    h = hashlib.sha256()
+    for part in (name, static_key, str(treedef), code_fingerprint()):
+        h.update(part.encode())
+        h.update(b"\0")
+    for leaf in leaves:
+        s = _spec(leaf)
+        h.update(f"{s.shape}:{s.dtype};".encode())
+    return f"{re.sub(r'[^A-Za-z0-9_]', '_', name)}-{h.hexdigest()[:32]}"
+
+
+_PROGRAMS: dict[Path, jax.export.Exported] = {}
+"""The programs this process has loaded or exported, by file (a memo: the posterior calls its
+program hundreds of times)."""
+
+
+def _load(path: Path) -> jax.export.Exported | None:
+    """The exported program in `path` (None if absent or unreadable)."""
+    if path in _PROGRAMS:
+        return _PROGRAMS[path]
+    try:
+        exported = jax.export.deserialize(bytearray(path.read_bytes()))
+    except Exception:  # a missing, damaged or foreign file is a missed saving, not an error
+        return None
+    _PROGRAMS[path] = exported
+    return exported
+
+
+_CUSTOM_CALL = re.compile(r"stablehlo\.custom_call @([A-Za-z0-9_.]+)")
+
+
+def _export(flat: Callable[..., Any], specs: list[jax.ShapeDtypeStruct]) -> jax.export.Exported:
+    """Trace and lower `flat` once; LAPACK and other custom calls are allowed (the file is only
+    read back by this installation: `code_fingerprint` holds the jaxlib version)."""
+    jitted = jax.jit(flat)
+    text = jitted.trace(*specs).lower().as_text()
+    targets = sorted(set(_CUSTOM_CALL.findall(text)))
+    checks = [jax.export.DisabledSafetyCheck.custom_call(t) for t in targets]
+    return jax.export.export(jitted, disabled_checks=checks)(*specs)
+
+
+def _save(exported: jax.export.Exported, path: Path) -> None:
+    """Write atomically (a temporary file in the same folder, then `os.replace`)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
+    try:
+        tmp.write_bytes(exported.serialize())
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+
+
+def call(
+    name: str,
+    fn: Callable[..., Any],
+    static_key: str,
+    args: tuple[Any, ...],
+    unflatten: Callable[[list[Any]], Any],
+) -> Any:
+    """`fn(*args)`, through an exported program kept on disk where a cache folder is set.
+
+    `fn` takes the dynamic arguments only (static configuration closed over and described by
+    `static_key`); `unflatten` rebuilds its output from the flat list of output arrays (the
+    order of `jax.tree.leaves(fn(*args))`)."""
+    folder = export_folder()
+    if folder is None:
+        return fn(*args)
+    leaves, treedef = jax.tree.flatten(args)
+    path = folder / f"{program_key(name, static_key, treedef, leaves)}.bin"
+    exported = _load(path)
+    if exported is None:
+
+        def flat(*lv: Any) -> tuple[Any, ...]:
+            return tuple(jax.tree.leaves(fn(*jax.tree.unflatten(treedef, lv))))
+
+        try:
+            exported = _export(flat, [_spec(leaf) for leaf in leaves])
+        except (ValueError, TypeError, ImportError):  # not exportable: trace as usual
+            return fn(*args)
+        _save(exported, path)
+        _PROGRAMS[path] = exported
+    return unflatten(list(exported.call(*leaves)))
