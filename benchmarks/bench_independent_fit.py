@@ -78,6 +78,24 @@ def criteria(results: dict[str, Any], truth: dict[str, float]) -> dict[str, Any]
         out[f"{name}_pull"] = (ls["value"] - truth[name]) / ls["stderr"]
     mef = est.get("model_error_frac")
     out["model_error_frac"] = mef["least_squares"]["value"] if mef else 0.0
+    # issue 13's "Done when": reduced chi^2 in [0.8, 1.25], every true parameter inside its
+    # posterior 95% interval, R-hat and ESS reported
+    ls = results["diagnostics"]["least_squares"]
+    out["reduced_chi2"] = ls["reduced_chi2"]
+    inside, rhat, ess = {}, [], []
+    for name, p in est.items():
+        po = p.get("posterior") or {}
+        if po:
+            rhat.append(po["rhat"])
+            ess.append(min(po["ess_bulk"], po["ess_tail"]))
+        if name in truth and po:
+            inside[name] = bool(po["p2_5"] <= truth[name] <= po["p97_5"])
+    out["truth_in_posterior_95"] = inside
+    out["rhat_max"] = max(rhat) if rhat else None
+    out["ess_min"] = min(ess) if ess else None
+    out["issue13_done_when"] = bool(
+        0.8 <= ls["reduced_chi2"] <= 1.25 and inside and all(inside.values()) and rhat
+    )
     return out
 
 
