@@ -18,8 +18,8 @@ app/_jaxcache.py) the exported program is kept in its subfolder `EXPORT_SUBDIR`,
   program;
 
 and written atomically. Where no cache folder is configured (library use, the tests), or with
-`STAIRFIT_EXPORTED=off`, `fn` is called as it is. A program that cannot be exported (a custom call JAX will not serialise) or a
-file that cannot be read falls back to `fn`; the result is the same either way (tested).
+`STAIRFIT_EXPORTED=off`, `fn` is called as it is. A program that cannot be exported or a file
+that cannot be read falls back to `fn`; the result is the same either way (tested).
 """
 
 from __future__ import annotations
@@ -112,13 +112,26 @@ def _load(path: Path) -> jax.export.Exported | None:
 
 
 _CUSTOM_CALL = re.compile(r"stablehlo\.custom_call @([A-Za-z0-9_.]+)")
+_LAPACK = tuple(
+    f"lapack_{t}{op}_ffi"
+    for t in "sdcz"
+    for op in ("geqrf", "orgqr", "ungqr", "ormqr", "unmqr", "potrf", "trsm", "getrf", "syevd",
+               "heevd", "gesdd", "gesvd", "geqp3")
+)  # fmt: skip
+"""The CPU LAPACK custom calls linear solves and decompositions lower to (JAX does not promise
+their stability across versions; `code_fingerprint` holds the jaxlib version)."""
 
 
 def _export(flat: Callable[..., Any], specs: list[jax.ShapeDtypeStruct]) -> jax.export.Exported:
-    """Trace and lower `flat` once; LAPACK and other custom calls are allowed (the file is only
-    read back by this installation: `code_fingerprint` holds the jaxlib version)."""
+    """Trace and lower `flat` once, allowing the LAPACK custom calls; a program with another
+    custom call is lowered once more to find them (the file is only read back by this
+    installation: `code_fingerprint` holds the jaxlib version)."""
     jitted = jax.jit(flat)
-    text = jitted.trace(*specs).lower().as_text()
+    checks = [jax.export.DisabledSafetyCheck.custom_call(t) for t in _LAPACK]
+    try:
+        return jax.export.export(jitted, disabled_checks=checks)(*specs)
+    except ValueError:
+        text = jitted.trace(*specs).lower().as_text()
     targets = sorted(set(_CUSTOM_CALL.findall(text)))
     checks = [jax.export.DisabledSafetyCheck.custom_call(t) for t in targets]
     return jax.export.export(jitted, disabled_checks=checks)(*specs)
