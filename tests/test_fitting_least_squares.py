@@ -212,10 +212,16 @@ def _calibration(n_sets: int, seed0: int) -> dict[str, np.ndarray]:
             "all68": np.mean(pulls < 1.0), "all95": np.mean(pulls < 1.959964)}  # fmt: skip
 
 
+@pytest.mark.slow  # 120 fits, 15 s; covered in the default suite's stead below
 def test_least_squares_intervals_are_calibrated():
-    # 120 datasets x 4 parameters. Pooled over parameters: the issue's bounds (68% intervals
-    # cover 60-76%, 95% intervals 90-99%). Per parameter, 120 datasets give a binomial sd of
-    # 4.3% (68%) and 2% (95%), so the per-parameter bounds are wider: 55-81% and 88-100%.
+    """120 datasets x 4 parameters. Pooled over parameters: the issue's bounds (68% intervals
+    cover 60-76%, 95% intervals 90-99%). Per parameter, 120 datasets give a binomial sd of
+    4.3% (68%) and 2% (95%), so the per-parameter bounds are wider: 55-81% and 88-100%.
+
+    Slow (issue 14): the same calibration is checked more strictly by
+    `test_least_squares_intervals_are_calibrated_long` (500 datasets, slow) and by
+    `benchmarks/bench_coverage.py` (1200 datasets against binomial limits); in the default
+    suite `test_least_squares_recovers_truth_within_3_sigma` checks the pulls of every fit."""
     cov = _calibration(120, seed0=1000)
     assert 0.60 <= cov["all68"] <= 0.76, cov
     assert 0.90 <= cov["all95"] <= 0.99, cov
