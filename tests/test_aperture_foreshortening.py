@@ -8,6 +8,8 @@ cos(theta_o); checked here against the aperture average written out with `model.
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,8 +17,10 @@ import numpy as np
 from stairfit import model
 
 DEG = np.pi / 180
+_BRDF = jax.jit(model.brdf)
 
 
+@partial(jax.jit, static_argnums=1)  # one program per aperture (eager: one per operation)
 def _density(theta_o, aperture):
     return model.band_density(
         jnp.zeros_like(theta_o), theta_o, jnp.full_like(theta_o, 40 * DEG),
@@ -35,7 +39,7 @@ def test_foreshortened_aperture_is_the_face_on_width_times_cos_theta_o() -> None
     x, w = np.polynomial.legendre.leggauss(4)
     ti = x[:, None, None] * 0.3 * DEG
     to = theta_o[None, None, :] + x[None, :, None] * 0.64 * DEG * np.cos(theta_o)
-    rho = np.asarray(model.brdf(ti, to, 40 * DEG, 1.46, 6 * DEG))  # (light, view, obs)
+    rho = np.asarray(_BRDF(ti, to, 40 * DEG, 1.46, 6 * DEG))  # (light, view, obs)
     conversion = np.cos(theta_o)[None, None, :] / np.cos(to)
     want = np.einsum("i,j,ijk->k", w, w, rho * conversion) / 4
     np.testing.assert_allclose(got, want, rtol=1e-12)

@@ -47,16 +47,21 @@ def _density(x: jax.Array, c: dict, aperture: model.Aperture | None, n_base=None
     )
 
 
+# One compiled program per shape and dtype (an eager call compiles each operation on its own).
+_DENSITY = jax.jit(_density, static_argnums=2)
+_JACOBIAN = jax.jit(jax.jacfwd(_density), static_argnums=2)
+
+
 def test_agrees_with_central_finite_differences():
     c = _case(n_lambda=3)
     x = np.array([3.0 * DEG, 0.01])
-    jac = np.asarray(jax.jacfwd(_density)(jnp.asarray(x), c, None))
+    jac = np.asarray(_JACOBIAN(jnp.asarray(x), c, None))
     for k in range(2):
         h = 1e-6
         up, dn = x.copy(), x.copy()
         up[k] += h
         dn[k] -= h
-        fd = (np.asarray(_density(up, c, None)) - np.asarray(_density(dn, c, None))) / (2 * h)
+        fd = (np.asarray(_DENSITY(up, c, None)) - np.asarray(_DENSITY(dn, c, None))) / (2 * h)
         js = np.abs(fd).max()
         assert js > 0
         np.testing.assert_allclose(jac[:, k], fd, rtol=1e-5, atol=1e-6 * js)
@@ -71,8 +76,8 @@ def test_finite_at_the_extremes(sigma, n_const):
     c = _case(n_lambda=3, extreme=True)
     n = c["n_base"] if n_const is None else np.full(c["n_base"].shape, n_const)
     x = jnp.array([sigma, 0.0])
-    value = _density(x, c, None, n_base=n)
-    jac = jax.jacfwd(_density)(x, c, None, n)
+    value = _DENSITY(x, c, None, n)
+    jac = _JACOBIAN(x, c, None, n)
     assert np.all(np.isfinite(np.asarray(value))) and np.all(np.isfinite(np.asarray(jac)))
 
 
@@ -86,6 +91,31 @@ def _plain_fresnel(c: jax.Array, n: jax.Array) -> jax.Array:
     return jnp.stack([jnp.abs(r_s) ** 2, jnp.abs(r_p) ** 2])
 
 
+@jax.jit
+def _fresnel_rule_and_plain(c: jax.Array, n: jax.Array) -> tuple:
+    """Values, jvps (in the cosine, in the index, in both) and gradients in the cosine of
+    `model.fresnel_sp` (hand-arranged derivative rule) and of the independent formula."""
+
+    def ours(cc: jax.Array, dn: jax.Array) -> jax.Array:
+        r = model.fresnel_sp(cc, n + dn)
+        return jnp.stack([r.s, r.p])
+
+    def plain(cc: jax.Array, dn: jax.Array) -> jax.Array:
+        return _plain_fresnel(cc, n + dn)
+
+    values = (ours(c, 0.0), plain(c, 0.0))
+    jvps = [
+        (jax.jvp(ours, (c, 0.0), tangents)[1], jax.jvp(plain, (c, 0.0), tangents)[1])
+        for tangents in [(jnp.ones_like(c), 0.0), (jnp.zeros_like(c), 1.0), (c, 0.3)]
+    ]
+    # reverse mode goes through the transposed rule
+    grads = (
+        jax.grad(lambda cc: ours(cc, 0.0).sum())(c),
+        jax.grad(lambda cc: plain(cc, 0.0).sum())(c),
+    )
+    return values, jvps, grads
+
+
 @pytest.mark.parametrize(
     "n", [1.46, 1.0001, 2.4, 1.5 + 0.05j], ids=["pla", "n-near-1", "high", "absorbing"]
 )
@@ -95,30 +125,24 @@ def test_fresnel_derivative_rule_matches_plain_autodiff(n):
     c = jnp.array(
         [0.05, 0.2, 0.5, 0.8, 0.99]
     )  # away from c = 0, 1 where the plain form has sqrt(0)
-    n = jnp.asarray(n)
-
-    def ours(cc: jax.Array, dn: jax.Array) -> jax.Array:
-        r = model.fresnel_sp(cc, n + dn)
-        return jnp.stack([r.s, r.p])
-
-    def plain(cc: jax.Array, dn: jax.Array) -> jax.Array:
-        return _plain_fresnel(cc, n + dn)
-
-    np.testing.assert_allclose(ours(c, 0.0), plain(c, 0.0), rtol=1e-12, atol=1e-15)
-    for tangents in [(jnp.ones_like(c), 0.0), (jnp.zeros_like(c), 1.0), (c, 0.3)]:
-        _, d_ours = jax.jvp(ours, (c, 0.0), tangents)
-        _, d_plain = jax.jvp(plain, (c, 0.0), tangents)
+    (v_ours, v_plain), jvps, (g_ours, g_plain) = _fresnel_rule_and_plain(c, jnp.asarray(n))
+    np.testing.assert_allclose(v_ours, v_plain, rtol=1e-12, atol=1e-15)
+    for d_ours, d_plain in jvps:
         assert np.abs(d_plain).max() > 1e-3
         np.testing.assert_allclose(d_ours, d_plain, rtol=1e-9, atol=1e-12)
-    # reverse mode goes through the transposed rule
-    g_ours = jax.grad(lambda cc: ours(cc, 0.0).sum())(c)
-    g_plain = jax.grad(lambda cc: plain(cc, 0.0).sum())(c)
     np.testing.assert_allclose(g_ours, g_plain, rtol=1e-9, atol=1e-12)
+
+
+@jax.jit
+def _fresnel_derivatives(c: jax.Array, n: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """d(s, p) / d cos at every cosine, and d(sum of s and p) / d n."""
+    g = jax.jacfwd(lambda cc: jnp.stack(model.fresnel_sp(cc, n)))(c)
+    gn = jax.grad(lambda dn: sum(model.fresnel_sp(c, n + dn)).sum())(0.0)
+    return g, gn
 
 
 def test_fresnel_derivatives_finite_at_normal_and_grazing_incidence():
     c = jnp.array([0.0, 1e-9, 1.0 - 1e-12, 1.0])
     for n in (1.0001, 1.46, 1.5 + 0.05j):
-        g = jax.jacfwd(lambda cc, nn=n: jnp.stack(model.fresnel_sp(cc, nn)))(c)
-        gn = jax.grad(lambda dn, nn=n: sum(model.fresnel_sp(c, nn + dn)).sum())(0.0)
+        g, gn = _fresnel_derivatives(c, jnp.asarray(n))
         assert np.all(np.isfinite(np.asarray(g))) and np.isfinite(float(gn))

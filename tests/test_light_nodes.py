@@ -9,7 +9,9 @@ the light's interval, for both light shapes. The bounds are benchmarks/results/a
 
 from __future__ import annotations
 
+import functools
 import math
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -76,6 +78,22 @@ def dense_average(ti: float, to: float, b2: float, sigma: float, hw: float, shap
     return float(reference_density(ti + hw * mid, to, b2, sigma) @ w)
 
 
+@partial(jax.jit, static_argnums=(4, 5))
+def _average(
+    ti: jax.Array, to: jax.Array, b2: jax.Array, sigma: jax.Array, ap: model.Aperture, plain: bool
+) -> jax.Array:
+    """One compiled program per (aperture, rule, shape); eager calls would compile every
+    operation of the model on its own."""
+    one = jnp.ones((ti.size, 1))
+    if not plain:
+        return model.band_density(ti, to, b2, INDEX * one, one, sigma, ap)
+    di, _, dw = ap.nodes()
+    t, b2 = ti[:, None] + jnp.asarray(di)[None, :], b2[:, None]
+    ratio = model.lobe_weights(t, b2) * model.lobe_fresnel(t, b2, INDEX)
+    kern = model.hemisphere_gaussian(to[:, None, None], model.lobe_directions(t, b2), sigma)
+    return jnp.sum(ratio * kern, axis=-1) @ jnp.asarray(dw)
+
+
 def model_average(
     ti: object,
     to: object,
@@ -90,14 +108,10 @@ def model_average(
     rule before issue 12 (`Aperture.nodes()`'s offsets on every row), by hand."""
     ap = model.Aperture(hw, 0.0, n, light_shape=shape)
     ti, to, b2 = (jnp.asarray(np.atleast_1d(a), float) for a in (ti, to, b2))
-    one = jnp.ones((ti.size, 1))
-    if not plain:
-        return np.asarray(model.band_density(ti, to, b2, INDEX * one, one, sigma, ap))
-    di, _, dw = ap.nodes()
-    t, b2 = ti[:, None] + jnp.asarray(di)[None, :], b2[:, None]
-    ratio = model.lobe_weights(t, b2) * model.lobe_fresnel(t, b2, INDEX)
-    kern = model.hemisphere_gaussian(to[:, None, None], model.lobe_directions(t, b2), sigma)
-    return np.asarray(jnp.sum(ratio * kern, axis=-1) @ jnp.asarray(dw))
+    return np.asarray(_average(ti, to, b2, jnp.asarray(sigma), ap, plain))
+
+
+_LIGHT_NODES = jax.jit(model.light_nodes, static_argnums=2)
 
 
 # Rows with a kink inside the light: beta2 20 and 45 deg, theta_i at each kink of the lobe
@@ -113,12 +127,20 @@ HALF_WIDTH = 0.3 * DEG  # the paper's 0.6-deg light
 SIGMA = 6 * DEG
 
 
+@functools.cache
+def _dense_references(shape: str) -> tuple[np.ndarray, ...]:
+    """The dense average at every KINK_ROWS x THETA_O (computed once per light shape)."""
+    return tuple(
+        np.array([dense_average(ti, to, b2, SIGMA, HALF_WIDTH, shape) for to in THETA_O])
+        for b2, ti in KINK_ROWS
+    )
+
+
 def _errors(shape: str, n: int, plain: bool = False) -> np.ndarray:
     """Relative density errors over KINK_ROWS x THETA_O (rows at least 1e-3 of their curve's
     maximum)."""
     errs = []
-    for b2, ti in KINK_ROWS:
-        ref = np.array([dense_average(ti, to, b2, SIGMA, HALF_WIDTH, shape) for to in THETA_O])
+    for (b2, ti), ref in zip(KINK_ROWS, _dense_references(shape), strict=True):
         got = model_average(
             np.full(len(THETA_O), ti), np.array(THETA_O), np.full(len(THETA_O), b2), SIGMA,
             HALF_WIDTH, shape, n, plain,
@@ -161,7 +183,7 @@ def test_rows_without_a_kink_keep_the_plain_rule(shape: str) -> None:
     """Away from every kink the nodes are `Aperture.nodes()`'s, the same on every row."""
     ap = model.Aperture(HALF_WIDTH, 0.2 * DEG, 5, light_shape=shape)
     ti = jnp.asarray([10 * DEG, 20 * DEG])
-    t, w = model.light_nodes(ti, jnp.asarray([30 * DEG, 30 * DEG]), ap)
+    t, w = _LIGHT_NODES(ti, jnp.asarray([30 * DEG, 30 * DEG]), ap)
     di, _, dw = ap.nodes()
     np.testing.assert_allclose(np.asarray(t), np.asarray(ti)[:, None] + di, rtol=0, atol=1e-15)
     np.testing.assert_allclose(np.asarray(w), np.broadcast_to(dw, (2, dw.size)), rtol=1e-14)
@@ -189,11 +211,23 @@ def test_values_and_gradients_are_finite_at_kinks_and_interval_ends(
     with respect to theta_i, beta2 and sigma are finite."""
     ap = model.Aperture(hw_deg * DEG, 0.0, 4, light_shape=shape)
     b2 = 45 * DEG
-    t, w = model.light_nodes(jnp.asarray([ti_deg * DEG]), jnp.asarray([b2]), ap)
+    t, w = _LIGHT_NODES(jnp.asarray([ti_deg * DEG]), jnp.asarray([b2]), ap)
     assert np.all(np.isfinite(np.asarray(t))) and np.all(np.asarray(w) >= 0)
     assert float(jnp.sum(w)) == pytest.approx(1.0, abs=1e-14)
     lo, hi = (ti_deg - hw_deg) * DEG - 1e-15, min((ti_deg + hw_deg) * DEG, math.pi / 2) + 1e-15
     assert np.all((np.asarray(t) >= lo) & (np.asarray(t) <= hi))
+
+    args = (jnp.asarray(ti_deg * DEG), jnp.asarray(b2), jnp.asarray(SIGMA))
+    value, grads = _density_and_gradient(*args, ap)
+    assert np.isfinite(float(value)) and all(np.isfinite(float(g)) for g in grads)
+
+
+@partial(jax.jit, static_argnums=3)
+def _density_and_gradient(
+    ti: jax.Array, beta2: jax.Array, sigma: jax.Array, ap: model.Aperture
+) -> tuple[jax.Array, tuple[jax.Array, ...]]:
+    """The density of one row seen at 80 deg, and its gradient with respect to theta_i, beta2
+    and sigma."""
 
     def f(ti: jax.Array, beta2: jax.Array, sigma: jax.Array) -> jax.Array:
         one = jnp.ones((1, 1))
@@ -201,9 +235,7 @@ def test_values_and_gradients_are_finite_at_kinks_and_interval_ends(
             ti[None], jnp.asarray([80 * DEG]), beta2[None], INDEX * one, one, sigma[None], ap
         )[0]
 
-    args = (jnp.asarray(ti_deg * DEG), jnp.asarray(b2), jnp.asarray(SIGMA))
-    value, grads = jax.value_and_grad(f, argnums=(0, 1, 2))(*args)
-    assert np.isfinite(float(value)) and all(np.isfinite(float(g)) for g in grads)
+    return jax.value_and_grad(f, argnums=(0, 1, 2))(ti, beta2, sigma)
 
 
 def _fit_grid_and_rows(shape: str, rounded: bool) -> tuple[np.ndarray, np.ndarray]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -10,6 +11,11 @@ from stairfit import model
 
 DEG = np.pi / 180
 PAPER_WEDGES_DEG = (10, 20, 30, 40, 45, 60)
+# One compiled program per shape (an eager call compiles each operation on its own).
+_LOBE_WEIGHTS = jax.jit(model.lobe_weights)
+_SHARP_LOBES = jax.jit(model.sharp_lobes)
+_BRDF = jax.jit(model.brdf)
+_DIFFUSE_SHARP = jax.jit(model.diffuse_sharp, static_argnames="cosine_weighted")
 
 
 def test_flat_surface_normal_incidence_is_0_0350():
@@ -38,10 +44,10 @@ def test_30_deg_cell_is_about_1_7_times_the_60_deg_cell():
 @pytest.mark.parametrize("beta2_deg", PAPER_WEDGES_DEG)
 def test_weights_are_fractions_that_sum_to_one(beta2_deg):
     theta_i = np.linspace(-90, 90, 3601) * DEG
-    w = np.asarray(model.lobe_weights(theta_i, beta2_deg * DEG))
+    w = np.asarray(_LOBE_WEIGHTS(theta_i, beta2_deg * DEG))
     assert np.all(w >= 0) and np.all(w <= 1)
     np.testing.assert_allclose(w.sum(-1), 1.0, atol=1e-12)
-    lobes = model.sharp_lobes(theta_i, beta2_deg * DEG, 1.46)
+    lobes = _SHARP_LOBES(theta_i, beta2_deg * DEG, 1.46)
     ratio = np.asarray(lobes.ratio)
     assert np.all(ratio >= 0) and np.all(ratio <= 1)
 
@@ -51,12 +57,12 @@ def test_retroreflection_only_between_minus_beta2_and_beta1(beta2_deg):
     b2 = beta2_deg * DEG
     b1 = np.pi / 2 - b2
     theta_i = np.linspace(-90, 90, 7201) * DEG
-    retro = np.asarray(model.lobe_weights(theta_i, b2))[:, 2]
+    retro = np.asarray(_LOBE_WEIGHTS(theta_i, b2))[:, 2]
     inside = (theta_i > -b2 + 1e-9) & (theta_i < b1 - 1e-9)
     assert np.all(retro[~inside] <= 1e-12)
     assert np.all(retro[inside] > 0)
     # maximal (everything retro) where the groove is seen symmetrically: theta_i = beta1 - beta2
-    w = np.asarray(model.lobe_weights(b1 - b2, b2))
+    w = np.asarray(_LOBE_WEIGHTS(b1 - b2, b2))
     np.testing.assert_allclose(w, [0, 0, 1], atol=1e-12)
 
 
@@ -64,9 +70,9 @@ def test_45_deg_wedge_is_symmetric_about_theta_o_0():
     theta_i = np.linspace(-89, 89, 179) * DEG
     theta_o = np.linspace(-90, 90, 181) * DEG
     T, Th_o = np.meshgrid(theta_i, theta_o, indexing="ij")
-    rho = np.asarray(model.brdf(T, Th_o, 45 * DEG, 1.46, 5 * DEG))
+    rho = np.asarray(_BRDF(T, Th_o, 45 * DEG, 1.46, 5 * DEG))
     np.testing.assert_allclose(rho, rho[::-1, ::-1], rtol=1e-10, atol=1e-14)
-    d = np.asarray(model.diffuse_sharp(theta_o, 45 * DEG, 1.46))
+    d = np.asarray(_DIFFUSE_SHARP(theta_o, 45 * DEG, 1.46))
     np.testing.assert_allclose(d, d[::-1], rtol=1e-10, atol=1e-14)
 
 
@@ -74,8 +80,8 @@ def test_30_and_60_deg_wedges_are_mirror_images():
     theta_i = np.linspace(-89, 89, 179) * DEG
     theta_o = np.linspace(-90, 90, 181) * DEG
     T, Th_o = np.meshgrid(theta_i, theta_o, indexing="ij")
-    rho30 = np.asarray(model.brdf(T, Th_o, 30 * DEG, 1.46, 5 * DEG))
-    rho60 = np.asarray(model.brdf(T, Th_o, 60 * DEG, 1.46, 5 * DEG))
+    rho30 = np.asarray(_BRDF(T, Th_o, 30 * DEG, 1.46, 5 * DEG))
+    rho60 = np.asarray(_BRDF(T, Th_o, 60 * DEG, 1.46, 5 * DEG))
     np.testing.assert_allclose(rho30, rho60[::-1, ::-1], rtol=1e-10, atol=1e-14)
     assert not np.allclose(rho30, rho60, rtol=1e-3)  # but they are not identical
 
@@ -88,7 +94,7 @@ def test_fig5_minimum_at_minus_90_plus_2_beta2(beta2_deg):
     # vanishes on the other side. Without a cosine weight the curve jumps there.
     edge = (-90 + 2 * beta2_deg) * DEG
     eps = 1e-7
-    d = np.asarray(model.diffuse_sharp(jnp.array([edge - eps, edge + eps]), beta2_deg * DEG, 1.46))
+    d = np.asarray(_DIFFUSE_SHARP(jnp.array([edge - eps, edge + eps]), beta2_deg * DEG, 1.46))
 
     def fresnel(gamma_deg):  # unpolarised, computed independently of the model
         c = np.cos(gamma_deg * DEG)
@@ -100,11 +106,11 @@ def test_fig5_minimum_at_minus_90_plus_2_beta2(beta2_deg):
     assert d[1] - d[0] == pytest.approx(fresnel(90 - beta2_deg) - fresnel(beta2_deg), rel=1e-4)
     # The grid point where the curve changes fastest is the edge.
     grid = np.linspace(edge - 10 * DEG, edge + 10 * DEG, 2001)
-    dg = np.asarray(model.diffuse_sharp(grid, beta2_deg * DEG, 1.46))
+    dg = np.asarray(_DIFFUSE_SHARP(grid, beta2_deg * DEG, 1.46))
     assert abs(grid[np.argmax(np.diff(dg)) + 1] - edge) < 0.011 * DEG
     # With the physical cos(theta_i) weight the contribution from theta_i -> -90 vanishes
     # continuously, and the edge is a true local minimum of the curve.
-    dc = np.asarray(model.diffuse_sharp(grid, beta2_deg * DEG, 1.46, cosine_weighted=True))
+    dc = np.asarray(_DIFFUSE_SHARP(grid, beta2_deg * DEG, 1.46, cosine_weighted=True))
     assert abs(grid[np.argmin(dc)] - edge) < 0.011 * DEG
     assert dc.min() < 0.8 * dc[0] and dc.min() < 0.8 * dc[-1]
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import colour
 import jax
 import jax.numpy as jnp
@@ -91,6 +93,7 @@ def test_reflected_colour_is_warmer_under_a_and_differentiable():
     theta_o = jnp.array([0.0])
     lam = spectral.VISIBLE_NM
 
+    @partial(jax.jit, static_argnums=1)  # one program (eager: one per operation)
     def xyz(delta_n, illuminant):
         n = model.refractive_index(materials.PLA_BODUROV_2016, lam, delta_n)
         d = model.diffuse_broadened(theta_o[:, None], 20 * DEG, n[None, :], 5 * DEG)

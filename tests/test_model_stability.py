@@ -22,6 +22,11 @@ def _extreme_angles(beta2: float) -> list[float]:
 
 BETAS = [0.5 * DEG, 10 * DEG, 45 * DEG, 60 * DEG, 89.5 * DEG]
 INDICES = [1.46, 1.0001, 3.0]
+# One compiled program per shape (an eager call compiles each operation on its own).
+_BRDF = jax.jit(model.brdf)
+_LOBES = jax.jit(model.sharp_lobes)
+_DIFFUSE_SHARP = jax.jit(model.diffuse_sharp, static_argnames="cosine_weighted")
+_DIFFUSE = jax.jit(model.diffuse_broadened, static_argnames=("cosine_weighted", "n_nodes"))
 
 
 def _finite(tree) -> bool:
@@ -98,17 +103,23 @@ def test_complex_index_values_and_gradients():
 )
 def test_brdf_jvp_matches_central_finite_differences(point):
     x0 = np.array(point, dtype=np.float64)
-
-    def f(x):
-        return model.brdf(x[0], x[1], x[2], x[3], x[4])
-
     for k in range(5):
         v = np.zeros(5)
         v[k] = 1.0
-        _, tangent = jax.jvp(f, (jnp.asarray(x0),), (jnp.asarray(v),))
+        tangent = _brdf_jvp(jnp.asarray(x0), jnp.asarray(v))
         h = 1e-6 * max(1.0, abs(x0[k])) if x0[4] > 1e-3 else 1e-9
-        fd = (float(f(x0 + h * v)) - float(f(x0 - h * v))) / (2 * h)
+        fd = (float(_brdf_at(x0 + h * v)) - float(_brdf_at(x0 - h * v))) / (2 * h)
         assert float(tangent) == pytest.approx(fd, rel=2e-5, abs=1e-7 * max(1.0, abs(fd))), k
+
+
+@jax.jit
+def _brdf_at(x: jax.Array) -> jax.Array:
+    return model.brdf(x[0], x[1], x[2], x[3], x[4])
+
+
+@jax.jit
+def _brdf_jvp(x: jax.Array, v: jax.Array) -> jax.Array:
+    return jax.jvp(_brdf_at, (x,), (v,))[1]
 
 
 @jax.jit
@@ -141,22 +152,22 @@ def test_broadening_conserves_each_lobes_energy():
     theta_o = np.linspace(-HALF, HALF, 200001)
     for ti in (-1.5, -0.3, 0.0, 0.7, 1.55):
         for sigma in (0.01, 0.1, 0.5):
-            rho = np.asarray(model.brdf(ti, theta_o, 20 * DEG, 1.46, sigma))
+            rho = np.asarray(_BRDF(ti, theta_o, 20 * DEG, 1.46, sigma))
             total = np.trapezoid(rho, theta_o)
-            expected = float(jnp.sum(model.sharp_lobes(ti, 20 * DEG, 1.46).ratio))
+            expected = float(jnp.sum(_LOBES(ti, 20 * DEG, 1.46).ratio))
             assert total == pytest.approx(expected, rel=1e-6)
 
 
 def test_small_sigma_density_tends_to_the_sharp_lobes():
     # integrating the density over a window around each lobe recovers that lobe's ratio
     ti, b2 = -0.1, 30 * DEG
-    lobes = model.sharp_lobes(ti, b2, 1.46)
+    lobes = _LOBES(ti, b2, 1.46)
     for k in range(3):
         if float(lobes.weight[k]) == 0:
             continue
         mu = float(lobes.theta_o[k])
         grid = np.linspace(mu - 1e-4, mu + 1e-4, 20001)
-        rho = np.asarray(model.brdf(ti, grid, b2, 1.46, 1e-6))
+        rho = np.asarray(_BRDF(ti, grid, b2, 1.46, 1e-6))
         assert np.trapezoid(rho, grid) == pytest.approx(float(lobes.ratio[k]), rel=1e-6)
 
 
@@ -166,8 +177,8 @@ def test_continuity_across_regime_boundaries(beta2_deg):
     b1 = HALF - b2
     for edge in (-b2, b1 - b2, b1):
         for eps in (1e-6, 1e-9):
-            lo = model.sharp_lobes(edge - eps, b2, 1.46)
-            hi = model.sharp_lobes(edge + eps, b2, 1.46)
+            lo = _LOBES(edge - eps, b2, 1.46)
+            hi = _LOBES(edge + eps, b2, 1.46)
             # weights are Lipschitz in theta_i with a constant below 1 / cos(theta_i) <= 60 here
             np.testing.assert_allclose(lo.ratio, hi.ratio, atol=200 * eps)
 
@@ -178,11 +189,11 @@ def test_diffuse_broadened_quadrature_converges_to_dense_reference(sigma):
     theta_i = np.linspace(-HALF, HALF, 200001)
     ref = np.array(
         [
-            np.trapezoid(np.asarray(model.brdf(theta_i, t, 10 * DEG, 1.46, sigma)), theta_i)
+            np.trapezoid(np.asarray(_BRDF(theta_i, t, 10 * DEG, 1.46, sigma)), theta_i)
             for t in theta_o
         ]
     )
-    got = np.asarray(model.diffuse_broadened(theta_o, 10 * DEG, 1.46, sigma, n_nodes=8))
+    got = np.asarray(_DIFFUSE(theta_o, 10 * DEG, 1.46, sigma, n_nodes=8))
     # the dense trapezoid reference is itself good to ~1e-7 relative (kinks at the regime
     # boundaries); 2e-6 leaves room for that, the quadrature's own error is below 1e-8
     np.testing.assert_allclose(got, ref, rtol=2e-6)
@@ -191,10 +202,8 @@ def test_diffuse_broadened_quadrature_converges_to_dense_reference(sigma):
 def test_diffuse_broadened_tends_to_sharp_as_sigma_vanishes():
     grid = np.linspace(-85, 85, 35) * DEG
     for beta2 in (10 * DEG, 45 * DEG, 60 * DEG):
-        theta_o = grid[np.abs(grid - (2 * beta2 - HALF)) > 1e-3]  # away from the Fig. 5 jump
+        away = np.abs(grid - (2 * beta2 - HALF)) > 1e-3  # away from the Fig. 5 jump
         for cw in (False, True):
-            sharp = np.asarray(model.diffuse_sharp(theta_o, beta2, 1.46, cosine_weighted=cw))
-            small = np.asarray(
-                model.diffuse_broadened(theta_o, beta2, 1.46, 1e-7, cosine_weighted=cw)
-            )
-            np.testing.assert_allclose(small, sharp, rtol=1e-5, atol=1e-9)
+            sharp = np.asarray(_DIFFUSE_SHARP(grid, beta2, 1.46, cosine_weighted=cw))
+            small = np.asarray(_DIFFUSE(grid, beta2, 1.46, 1e-7, cosine_weighted=cw))
+            np.testing.assert_allclose(small[away], sharp[away], rtol=1e-5, atol=1e-9)

@@ -91,13 +91,18 @@ def test_complex_index_finite_and_differentiable(ti, to, b2, nr, k, s):
     assert _finite(grads)
 
 
+# one compiled program per dtype (an eager call compiles each operation on its own)
+_SHARP_LOBES = jax.jit(model.sharp_lobes)
+_BRDF = jax.jit(model.brdf)
+
+
 @SETTINGS
 @given(data=st.data(), b2=beta2s, n=real_n)
 def test_continuity_across_regime_boundaries(data, b2, n):
     edge = data.draw(angle_near_boundary(b2))
     step = 1e-7
-    lo = np.asarray(model.sharp_lobes(max(edge - step, -HALF), b2, n).ratio)
-    hi = np.asarray(model.sharp_lobes(min(edge + step, HALF), b2, n).ratio)
+    lo = np.asarray(_SHARP_LOBES(max(edge - step, -HALF), b2, n).ratio)
+    hi = np.asarray(_SHARP_LOBES(min(edge + step, HALF), b2, n).ratio)
     # weights change at most at rate 2 / cos(theta_i) (and Fresnel slower); cos(theta_i) is at
     # least sin(beta2) or cos(beta2) inside regime B, so the jump is bounded by the step times
     # 4 / min(sin, cos)(beta2) (with room for the Fresnel factor's own slope)
@@ -130,7 +135,7 @@ def test_diffuse_integrals_finite_bounded_and_differentiable(to, b2, n, s):
 def test_float32_within_documented_bound(ti, to, b2, n, s):
     # tests/test_float32.py: |rho32 - rho64| <= 5e-5 x max rho for sigma >= 0.5 deg; the peak
     # density of one lobe is at most 1 / (sqrt(2 pi) sigma mass) with mass >= 1/2
-    f64 = float(model.brdf(ti, to, b2, n, s))
-    f32 = float(model.brdf(*(jnp.float32(x) for x in (ti, to, b2, n, s))))
+    f64 = float(_BRDF(ti, to, b2, n, s))
+    f32 = float(_BRDF(*(jnp.float32(x) for x in (ti, to, b2, n, s))))
     peak = 3 * 2 / (np.sqrt(2 * np.pi) * s)
     assert abs(f32 - f64) <= 5e-5 * peak

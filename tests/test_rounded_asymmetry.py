@@ -113,7 +113,8 @@ def _tracer_split(beta2_deg: float, radius: float) -> dict[str, float]:
 
 
 def _model_split(beta2_deg: float, radius: float) -> dict[str, float]:
-    p = PATHS(0.0, beta2_deg * DEG, N, L1, radius)
+    # theta_i = 0 among 37 angles: the compiled program of test_zero_radius_paths_are_mirror_images
+    p = jax.tree_util.tree_map(lambda a: a[0], PATHS(jnp.zeros(37), beta2_deg * DEG, N, L1, radius))
     facet = model.PATH_NAMES.index("tread" if beta2_deg < 45 else "riser")
     return {
         "total": float(jnp.sum(p.ratio)),

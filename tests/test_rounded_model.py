@@ -21,11 +21,26 @@ DEG = np.pi / 180
 HALF = np.pi / 2
 L1 = 150.0
 
-# One compilation per argument shape for the whole module (eager calls would re-dispatch op by
-# op, and new lambdas would recompile).
+# One compilation per argument shape for the whole module (eager calls would compile and
+# dispatch op by op, and new lambdas would recompile). Each program of the rounded model takes
+# seconds to compile, so the tests share a few argument shapes: a scalar theta_i with the 73
+# viewing angles `_TO` below for `BRDF`, 361 angles of incidence for `PATHS` (`_paths_weight`).
 BRDF = jax.jit(model.brdf_rounded, static_argnames=("resolution",))
 PATHS = jax.jit(model.rounded_paths, static_argnames=("resolution",))
 TOTAL = jax.jit(model.rounded_total, static_argnames=("resolution",))
+SHARP = jax.jit(model.brdf)
+LOBE_WEIGHTS = jax.jit(model.lobe_weights)
+_N_PATHS = 361
+
+
+def _paths_weight(theta_i, beta2: float, radius: float) -> jax.Array:
+    """`rounded_paths(theta_i, beta2, 1.46, L1, radius).weight`, (n_theta_i, n_paths), through
+    the one compiled program for 361 angles (padded with normal incidence; each angle's paths
+    depend on that angle alone)."""
+    ti = np.atleast_1d(np.asarray(theta_i, float))
+    padded = np.zeros(_N_PATHS)
+    padded[: ti.size] = ti
+    return PATHS(jnp.asarray(padded), beta2, 1.46, L1, radius).weight[: ti.size]
 
 
 def _finite(tree) -> bool:
@@ -46,10 +61,10 @@ def test_zero_radius_is_the_sharp_model(beta2_deg, sigma):
     to = np.linspace(-HALF, HALF, 181)
     t_i, t_o = np.meshgrid(ti, to, indexing="ij")
     rounded = BRDF(t_i, t_o, b2, 1.46, sigma, L1, 0.0)
-    sharp = model.brdf(t_i, t_o, b2, 1.46, sigma)
+    sharp = SHARP(t_i, t_o, b2, 1.46, sigma)
     np.testing.assert_allclose(rounded, sharp, rtol=1e-10, atol=1e-12 * float(np.max(sharp)))
-    w = PATHS(ti, b2, 1.46, L1, 0.0).weight
-    np.testing.assert_allclose(w[:, :3], model.lobe_weights(ti, b2), atol=1e-12)
+    w = _paths_weight(ti, b2, 0.0)
+    np.testing.assert_allclose(w[:, :3], LOBE_WEIGHTS(ti, b2), atol=1e-12)
     np.testing.assert_array_equal(w[:, 3:], 0.0)
 
 
@@ -57,19 +72,24 @@ def _rho(p, to, b2):  # p = (sigma, n, r, theta_i)
     return model.brdf_rounded(p[3], to, b2, p[1], p[0], L1, p[2])
 
 
-_VALUE = jax.jit(_rho)
-
-
 @jax.jit
+def _rho_jac_dto(p, to, b2):
+    """rho, its Jacobian with respect to (sigma, n, r, theta_i) (shape (n_theta_o, 4)) and
+    d rho / d theta_o at each theta_o (rho at theta_o[k] depends on theta_o[k] only): one
+    compiled program for the three."""
+    value = _rho(p, to, b2)
+    jac = jax.jacfwd(_rho)(p, to, b2)
+    d_theta_o = jax.jvp(lambda t: _rho(p, t, b2), (to,), (jnp.ones_like(to),))[1]
+    return value, jac, d_theta_o
+
+
+def _value(p, to, b2):
+    return _rho_jac_dto(p, to, b2)[0]
+
+
 def _jac(p, to, b2):
     """Jacobian with respect to (sigma, n, r, theta_i), shape (n_theta_o, 4)."""
-    return jax.jacfwd(_rho)(p, to, b2)
-
-
-@jax.jit
-def _d_theta_o(p, to, b2):
-    """d rho / d theta_o at each theta_o (rho at theta_o[k] depends on theta_o[k] only)."""
-    return jax.jvp(lambda t: _rho(p, t, b2), (to,), (jnp.ones_like(to),))[1]
+    return _rho_jac_dto(p, to, b2)[1]
 
 
 _JAC_SHARP = jax.jit(jax.jacfwd(lambda p, to, b2: model.brdf(p[3], to, b2, p[1], p[0])))
@@ -93,11 +113,11 @@ def test_value_and_gradient_continuous_as_radius_goes_to_zero(beta2_deg):
         np.testing.assert_allclose(j0[:, [0, 1, 3]], js[:, [0, 1, 3]], atol=1e-12 * scale)
         j6 = _jac(p0.at[2].set(1e-6), _TO, b2)
         assert float(jnp.max(jnp.abs(j6 - j0))) <= 1e-6 * float(jnp.max(jnp.abs(j0)))
-        v6, v0 = _VALUE(p0.at[2].set(1e-6), _TO, b2), _VALUE(p0, _TO, b2)
+        v6, v0 = _value(p0.at[2].set(1e-6), _TO, b2), _value(p0, _TO, b2)
         assert float(jnp.max(jnp.abs(v6 - v0))) <= 1e-6 * float(jnp.max(v0))
         # d rho / d r at r = 0 against a second-order one-sided difference
         h = 1e-3
-        fd = 4 * _VALUE(p0.at[2].set(h), _TO, b2) - _VALUE(p0.at[2].set(2 * h), _TO, b2) - 3 * v0
+        fd = 4 * _value(p0.at[2].set(h), _TO, b2) - _value(p0.at[2].set(2 * h), _TO, b2) - 3 * v0
         fd = fd / (2 * h)
         np.testing.assert_allclose(j0[:, 2], fd, atol=1e-5 * float(jnp.max(jnp.abs(j0[:, 2]))))
 
@@ -113,15 +133,15 @@ def test_radius_derivative_matches_finite_differences(beta2_deg):
             p = jnp.array([3 * DEG, 1.46, radius, ti_deg * DEG])
             jr = _jac(p, _TO, b2)[:, 2]
             h = 1e-2
-            fd = (_VALUE(p.at[2].add(h), _TO, b2) - _VALUE(p.at[2].add(-h), _TO, b2)) / (2 * h)
+            fd = (_value(p.at[2].add(h), _TO, b2) - _value(p.at[2].add(-h), _TO, b2)) / (2 * h)
             np.testing.assert_allclose(jr, fd, atol=2e-4 * float(jnp.max(jnp.abs(jr))) + 1e-12)
 
 
 def _scan(b2, ti, rs):
     """rho and d rho / d r on a grid of radii, and the trapezoid residual of each step."""
-    ps = [jnp.array([3 * DEG, 1.46, r, ti]) for r in rs]
-    v = np.stack([np.asarray(_VALUE(p, _TO, b2)) for p in ps])
-    d = np.stack([np.asarray(_jac(p, _TO, b2)[:, 2]) for p in ps])
+    out = [_rho_jac_dto(jnp.array([3 * DEG, 1.46, r, ti]), _TO, b2) for r in rs]
+    v = np.stack([np.asarray(value) for value, _, _ in out])
+    d = np.stack([np.asarray(jac[:, 2]) for _, jac, _ in out])
     return v, np.diff(v, axis=0) - 0.5 * (d[1:] + d[:-1]) * np.diff(rs)[:, None]
 
 
@@ -160,7 +180,7 @@ def test_finite_values_and_gradients_at_extremes(beta2_deg, sigma, n):
     for radius in (0.0, 1e-9, 0.5 * r_max, r_max):
         for ti in angles:
             p = jnp.array([sigma, n, radius, ti])
-            v, j, d = _VALUE(p, _TO, b2), _jac(p, _TO, b2), _d_theta_o(p, _TO, b2)
+            v, j, d = _rho_jac_dto(p, _TO, b2)
             assert _finite((v, j, d)), (radius, ti)
             assert bool(jnp.all(v >= 0))
 
@@ -190,7 +210,7 @@ def test_paths_partition_the_period(beta2_deg):
     ti = jnp.linspace(-HALF, HALF, 361)
     for frac in (0.01, 0.3, 0.7, 1.0):
         radius = frac * float(model.max_edge_radius(b2, L1))
-        w = PATHS(ti, b2, 1.46, L1, radius).weight
+        w = _paths_weight(ti, b2, radius)
         assert bool(jnp.all(w >= -1e-15))
         # 1e-9: at theta_i = +-90 deg the period's width on the ray front is ~1e-5 um
         np.testing.assert_allclose(jnp.sum(w, axis=-1), 1.0, atol=1e-9)
@@ -205,7 +225,7 @@ def test_arc_weight_closed_form_and_cell_size(beta2_deg):
     b2 = beta2_deg * DEG
     radius = 30.0
     ti = jnp.linspace(-b2 + 0.01, HALF - b2 - 0.01, 7)
-    w = PATHS(ti, b2, 1.46, L1, radius).weight
+    w = _paths_weight(ti, b2, radius)
     first_on_arc = jnp.sum(w[:, 3:8], axis=-1)  # the five tip-first lobes
     u = b2 + ti
     expected = radius * (jnp.cos(u) + jnp.sin(u)) / (L1 / jnp.sin(b2) * jnp.cos(ti))
@@ -216,8 +236,8 @@ def test_sixty_degree_cell_more_affected_than_thirty():
     """Paper Sec. 3.3: same layer, same edge radius, the finer 60-degree cell is the more
     affected one. Its arcs take sqrt(3) times the share of the 30-degree cell's at normal
     incidence, and its BRDF changes more when the edges are rounded."""
-    arc30 = PATHS(0.0, 30 * DEG, 1.46, L1, 30.0).weight[3:8].sum()
-    arc60 = PATHS(0.0, 60 * DEG, 1.46, L1, 30.0).weight[3:8].sum()
+    arc30 = _paths_weight(0.0, 30 * DEG, 30.0)[0, 3:8].sum()
+    arc60 = _paths_weight(0.0, 60 * DEG, 30.0)[0, 3:8].sum()
     np.testing.assert_allclose(arc60 / arc30, np.sqrt(3.0), rtol=1e-12)
     to = _TO
     for ti in (0.0, 20 * DEG, -20 * DEG):
@@ -243,7 +263,7 @@ def test_rounded_edges_light_up_minus_80_degrees(beta2_deg):
     continuum reaches there."""
     b2 = beta2_deg * DEG
     to = _TO.at[0].set(-80 * DEG)
-    sharp = float(model.brdf(0.0, to, b2, 1.46, 5 * DEG)[0])
+    sharp = float(SHARP(0.0, to, b2, 1.46, 5 * DEG)[0])
     rounded = float(BRDF(0.0, to, b2, 1.46, 5 * DEG, L1, 30.0)[0])
     assert sharp < 1e-20
     assert rounded > 1e-3  # 1/rad; the retroreflection peak is about 0.08 1/rad
@@ -305,7 +325,7 @@ def test_radius_outside_the_cell_is_a_clear_error():
     with pytest.raises(ValueError, match="negative"):
         model.rounded_total(0.0, 30 * DEG, 1.46, L1, -1.0)
     # inside jax.jit the radius is traced and not checked (a fit bounds it by its transform)
-    v = jax.jit(lambda r: model.rounded_total(0.0, 30 * DEG, 1.46, L1, r))(20.0)
+    v = TOTAL(0.0, 30 * DEG, 1.46, L1, 20.0)
     assert np.isfinite(float(v))
 
 
@@ -386,11 +406,14 @@ def test_broadening_moments_against_brute_force():
 
 
 def test_error_falls_with_resolution():
+    assert _rounded.ROUNDED_RESOLUTION == 4
     args = (_TO, 60 * DEG, 1.46, 2 * DEG, L1, 50.0)
     for ti in (-40 * DEG, 10 * DEG):
         ref = BRDF(ti, *args, resolution=16)
         scale = float(jnp.max(ref))
-        e2, e4 = (float(jnp.max(jnp.abs(BRDF(ti, *args, resolution=k) - ref))) for k in (2, 4))
+        e2 = float(jnp.max(jnp.abs(BRDF(ti, *args, resolution=2) - ref)))
+        # resolution 4 is the default: the program the other tests of this shape use
+        e4 = float(jnp.max(jnp.abs(BRDF(ti, *args) - ref)))
         assert e2 > e4
         assert e4 < 2e-3 * scale  # the default resolution (docs/rounded.md §6)
 
@@ -410,7 +433,10 @@ def test_float32_within_documented_bound():
                 sigma32 = np.float32(sigma_deg * DEG)
                 r32 = BRDF(*args32, 1.46, sigma32, L1, radius)
                 assert r32.dtype == jnp.float32
-                args64 = [np.asarray(a, np.float64) for a in args32]
-                r64 = np.asarray(BRDF(*args64, 1.46, np.float64(sigma32), L1, radius))
+                # float64 at the same (float32-rounded) inputs, through the program the other
+                # tests use (Python floats, the 73 angles of _TO: the first four dropped after)
+                to64 = jnp.concatenate([_TO[:4], args32[1].astype(np.float64)])
+                r64 = BRDF(float(args32[0]), to64, float(b2), 1.46, float(sigma32), L1, radius)
+                r64 = np.asarray(r64)[4:]
                 err = np.max(np.abs(np.asarray(r32, np.float64) - r64))
                 assert err <= 1e-3 * np.max(r64), (b2_deg, ti_deg, sigma_deg)

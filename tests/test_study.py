@@ -1,9 +1,12 @@
 """`stairfit study` on real Dask clusters (issue 16).
 
-* A LocalCluster of 2 spawned workers over 3 tiny simulated folders (two of the same name, one
+* A LocalCluster of 1 spawned worker over 3 tiny simulated folders (two of the same name, one
   broken): the broken one is recorded with its one-line error, the others fitted into
-  distinct folders; a second run skips the finished ones. Slow twins: a second run refits only
-  a folder whose scene changed; a study's folder holds what `stairfit fit` writes.
+  distinct folders; a second run skips the finished ones. Two workers (each compiling the
+  fit, about 20 s more here) are run by `benchmarks/bench_study.py`, which requires every
+  folder fitted with 1 and with 2 workers, on an empty and on a filled cache. Slow twins: a
+  second run refits only a folder whose scene changed; a study's folder holds what `stairfit
+  fit` writes.
 * `dask scheduler` and `dask worker` started as subprocesses on 127.0.0.1 (free ports: the
   scheduler picks one and writes it to its scheduler file), the study run through
   `--scheduler` and resumed through `--scheduler-file`.
@@ -78,7 +81,7 @@ def test_local_cluster_fits_records_failures_and_resumes(
     text = (broken / "scene.toml").read_text().replace("layer_um =", "layr_um =")
     (broken / "scene.toml").write_text(text)
     out = tmp_path / "out"
-    argv = ["study", str(root), "-o", str(out), "--local-workers", "2", "--jax-cache"]
+    argv = ["study", str(root), "-o", str(out), "--local-workers", "1", "--jax-cache"]
     status = main([*argv, str(jax_cache), *FAST])
     assert status == 1  # one folder failed; the others are done
     table = read_table(out)

@@ -23,6 +23,9 @@ from stairfit.imaging._roi import polygon_axis_variance, view_spread
 
 jax.config.update("jax_enable_x64", True)
 DEG = math.pi / 180
+# One compiled program per aperture and shape (an eager call compiles each operation alone).
+_BAND = jax.jit(model.band_density, static_argnums=6)
+_RADIANCE = jax.jit(model.radiance)
 
 
 def test_polygon_variance_of_a_rectangle_is_its_closed_form() -> None:
@@ -63,26 +66,26 @@ def test_band_density_narrows_the_view_spread_like_a_quadrature_by_hand() -> Non
     sigma = np.full(3, 2 * DEG)
     h = 2.0 * DEG
     ap = model.Aperture(0.0, h, 9, foreshortened=True)
-    got = np.asarray(model.band_density(ti, to, b2, n, w, sigma, ap, f))
+    got = np.asarray(_BAND(ti, to, b2, n, w, sigma, ap, f))
     x, wt = np.polynomial.legendre.leggauss(9)
     nodes = [to + xk * f * h * np.cos(to) for xk in x]
     ref = sum(
-        0.5 * wk * np.asarray(model.band_density(ti, tk, b2, n, w, sigma)) / np.cos(tk)
+        0.5 * wk * np.asarray(_BAND(ti, tk, b2, n, w, sigma)) / np.cos(tk)
         for tk, wk in zip(nodes, wt, strict=True)
     )  # the mean over the patch of density / cos(theta_o): radiance up to its constant factors
     np.testing.assert_allclose(got / np.cos(to), ref, rtol=1e-10)
-    point = [model.band_density(ti, tk, b2, n, w, sigma) for tk in nodes]
+    point = [_BAND(ti, tk, b2, n, w, sigma) for tk in nodes]
     mean_radiance = sum(
-        0.5 * wk * np.asarray(model.radiance(d, ti, tk, 1.3, 0.0))
+        0.5 * wk * np.asarray(_RADIANCE(d, ti, tk, 1.3, 0.0))
         for d, tk, wk in zip(point, nodes, wt, strict=True)
     )
-    np.testing.assert_allclose(model.radiance(got, ti, to, 1.3, 0.0), mean_radiance, rtol=1e-10)
+    np.testing.assert_allclose(_RADIANCE(got, ti, to, 1.3, 0.0), mean_radiance, rtol=1e-10)
     plain = sum(
-        0.5 * wk * np.asarray(model.band_density(ti, tk, b2, n, w, sigma))
+        0.5 * wk * np.asarray(_BAND(ti, tk, b2, n, w, sigma))
         for tk, wk in zip(nodes, wt, strict=True)
     )
     assert np.max(np.abs(got / plain - 1)) > 1e-6  # the conversion per node is not a no-op
-    whole = np.asarray(model.band_density(ti, to, b2, n, w, sigma, ap))
+    whole = np.asarray(_BAND(ti, to, b2, n, w, sigma, ap))
     assert abs(got[0] / whole[0] - 1) > 1e-4  # a narrower spread is not the whole face's
     np.testing.assert_allclose(got[2], whole[2], rtol=1e-12)
 
@@ -114,7 +117,8 @@ def test_fit_grid_agrees_with_model_radiance_under_spreads(grouped: bool) -> Non
     z[1:4] = np.log([0.05, 0.1, 0.2])
     z[lay.slot("scale")] = np.log(1.7)
     z[lay.slot("floor")] = 0.004
-    ours = np.asarray(_forward.model_values(jnp.asarray(z), static, data)[0])
+    grid = jax.jit(lambda zz: _forward.model_values(zz, static, data)[0])  # eager: op by op
+    ours = np.asarray(grid(jnp.asarray(z)))
     ref = fitting.model_radiance(truth, obs, spec, aperture=ap)
     np.testing.assert_allclose(ours, ref, rtol=1e-11)
     whole = fitting.model_radiance(truth, obs._replace(view_spread=np.ones(obs.n_rows)), spec,
