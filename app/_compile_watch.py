@@ -31,6 +31,9 @@ TICK_S = 0.5
 """How often the line's clock is redrawn."""
 KNOWN_PROGRAMS = {
     "_solve_one": "the least-squares fit",
+    "solve_one": "the least-squares fit",
+    "evaluate": "the fit's evaluation at its optimum",
+    "log_probability": "the posterior's log probability",
     "_batched_log_probability": "the posterior's log probability",
     "_batched_physical": "the posterior's parameter transform",
 }

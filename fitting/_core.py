@@ -151,9 +151,15 @@ def _linear_scale(z0: Array, static: Static, data: Data) -> Array:
 
 @eqx.filter_jit
 def _solve_one(
-    z0: Array, static: Static, data: Data, solver: optx.AbstractLeastSquaresSolver, max_steps: int
-) -> tuple[Array, Array, Array, Evaluation]:
-    """One start: linear scale, the optimistix solve, and the evaluation at its optimum.
+    z0: Array,
+    static: Static,
+    data: Data,
+    solver: optx.AbstractLeastSquaresSolver,
+    max_steps: int,
+    with_evaluation: bool = True,
+) -> tuple[Array, ...]:
+    """One start: linear scale, the optimistix solve, and (`with_evaluation`) the evaluation at
+    its optimum, `(z, result codes, steps, *Evaluation)`.
 
     One compiled function per scene shape, forward variant, solver and `max_steps`; the starts
     run one after another (measured: as fast as vmapping them, and half the compile time).
@@ -163,7 +169,39 @@ def _solve_one(
         residuals, solver, z0, args=(static, data), max_steps=max_steps, throw=False
     )
     codes = _result_codes(sol.result)
-    return sol.value, codes, sol.stats["num_steps"], evaluate(sol.value, static, data)
+    ev = evaluate(sol.value, static, data) if with_evaluation else ()
+    return sol.value, codes, sol.stats["num_steps"], *ev
+
+
+_evaluate = jax.jit(evaluate, static_argnums=1)
+
+
+def _solve_and_evaluate(
+    z0: np.ndarray,
+    static: Static,
+    data: Data,
+    solver: optx.AbstractLeastSquaresSolver,
+    max_steps: int,
+) -> tuple[Array, Array, Array, Evaluation]:
+    """`_solve_one` through the exported-program cache (`_export`). A rounded model's solver
+    and evaluation compile as two programs: one program holding both took 43 s of compilation
+    against 18 s + 20 s for the two (rounded+floor, 2 MP x 9 views, CPU seconds at load 3-5),
+    while for the sharp model one program is the cheaper (6.9 s against 4.4 s + 3.2 s)."""
+    together = not static.rounded
+    key = repr((static, solver_key(solver), max_steps))
+    out = _export.call(
+        "solve_one",
+        lambda z, d: _solve_one(z, static, d, solver, max_steps, together),
+        key,
+        (jnp.asarray(z0), data),
+        tuple,
+    )
+    z, codes, steps = out[:3]
+    if together:
+        return z, codes, steps, Evaluation(*out[3:])
+    ev = _export.call("evaluate", lambda zz, d: _evaluate(zz, static, d), repr(static),
+                      (z, data), lambda leaves: Evaluation(*leaves))  # fmt: skip
+    return z, codes, steps, ev
 
 
 _RESULT_NAMES = (
@@ -408,13 +446,7 @@ class CoreFit(NamedTuple):
 
 def _run(z0: np.ndarray, static: Static, data: Data, solver: optx.AbstractLeastSquaresSolver,
          max_steps: int) -> StartRun:  # fmt: skip
-    z, codes, steps, ev = _export.call(
-        "solve_one",
-        lambda z, d: _solve_one(z, static, d, solver, max_steps),
-        repr((static, solver_key(solver), max_steps)),
-        (jnp.asarray(z0), data),
-        lambda out: (out[0], out[1], out[2], Evaluation(*out[3:])),
-    )
+    z, codes, steps, ev = _solve_and_evaluate(z0, static, data, solver, max_steps)
     ev = Evaluation(*(np.asarray(a) for a in ev))
     z = np.asarray(z)
     name, msg = _result_string(codes)

@@ -94,21 +94,35 @@ def program_key(name: str, static_key: str, treedef: Any, leaves: Sequence[Any])
     return f"{re.sub(r'[^A-Za-z0-9_]', '_', name)}-{h.hexdigest()[:32]}"
 
 
-_PROGRAMS: dict[Path, jax.export.Exported] = {}
-"""The programs this process has loaded or exported, by file (a memo: the posterior calls its
-program hundreds of times)."""
+_PROGRAMS: dict[Path, Callable[..., Any]] = {}
+"""The programs this process has loaded or exported, by file, as jitted callers (a memo: the
+posterior calls its program hundreds of times)."""
 
 
-def _load(path: Path) -> jax.export.Exported | None:
-    """The exported program in `path` (None if absent or unreadable)."""
+def _named(fn: Callable[..., Any], name: str) -> Callable[..., Any]:
+    """`fn` under the name `name` (what JAX's compilation log and the CLI's compile line show)."""
+
+    def named(*args: Any) -> Any:
+        return fn(*args)
+
+    named.__name__ = named.__qualname__ = name
+    return named
+
+
+def _caller(exported: jax.export.Exported, name: str) -> Callable[..., Any]:
+    return jax.jit(_named(exported.call, name))
+
+
+def _load(path: Path, name: str) -> Callable[..., Any] | None:
+    """The caller of the exported program in `path` (None if absent or unreadable)."""
     if path in _PROGRAMS:
         return _PROGRAMS[path]
     try:
         exported = jax.export.deserialize(bytearray(path.read_bytes()))
     except Exception:  # a missing, damaged or foreign file is a missed saving, not an error
         return None
-    _PROGRAMS[path] = exported
-    return exported
+    _PROGRAMS[path] = caller = _caller(exported, name)
+    return caller
 
 
 _CUSTOM_CALL = re.compile(r"stablehlo\.custom_call @([A-Za-z0-9_.]+)")
@@ -165,16 +179,16 @@ def call(
         return fn(*args)
     leaves, treedef = jax.tree.flatten(args)
     path = folder / f"{program_key(name, static_key, treedef, leaves)}.bin"
-    exported = _load(path)
-    if exported is None:
+    caller = _load(path, name)
+    if caller is None:
 
         def flat(*lv: Any) -> tuple[Any, ...]:
             return tuple(jax.tree.leaves(fn(*jax.tree.unflatten(treedef, lv))))
 
         try:
-            exported = _export(flat, [_spec(leaf) for leaf in leaves])
+            exported = _export(_named(flat, name), [_spec(leaf) for leaf in leaves])
         except (ValueError, TypeError, ImportError):  # not exportable: trace as usual
             return fn(*args)
         _save(exported, path)
-        _PROGRAMS[path] = exported
-    return unflatten(list(exported.call(*leaves)))
+        _PROGRAMS[path] = caller = _caller(exported, name)
+    return unflatten(list(caller(*leaves)))
