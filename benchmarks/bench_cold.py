@@ -31,6 +31,7 @@ Run:
 
     python benchmarks/bench_cold.py                 # 5 repeats, the 2 MP x 9-view scene
     python benchmarks/bench_cold.py --quick         # 1 repeat, 0.5 MP x 5 views: does it run?
+    python benchmarks/bench_cold.py --rounded       # also --model rounded+floor, cold and warm
 
 Writes benchmarks/results/cold.md unless --no-write (or --out FILE).
 """
@@ -165,6 +166,9 @@ def scipy_case(photos: Path, fit_dir: Path, variant: str, record: list[dict]) ->
     return run
 
 
+ROUNDED = "rounded+floor"
+"""The forced rounded-edge fit of `--rounded` (issue 14's aim: at most 60 s cold)."""
+
 LOAD_OWN = 2.5
 """The benchmark's own processes raise the 1-minute load to about 2 on the 2-core machine (a
 fit uses both cores): a run counts as idle when the load was at most 1 at its start and at most
@@ -216,6 +220,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--views", type=int, default=9)
     p.add_argument("--variant", default="sharp+floor", choices=("sharp", "sharp+floor"))
     p.add_argument("--no-default-fit", action="store_true", help="skip the default fit")
+    p.add_argument(
+        "--rounded",
+        action="store_true",
+        help="also a forced rounded-edge fit (--model rounded+floor --no-posterior), cold/warm",
+    )
     p.add_argument("--quick", action="store_true", help="1 repeat, 0.5 MP x 5 views")
     p.add_argument("--out", type=Path, default=RESULTS / "cold.md")
     p.add_argument("--no-write", action="store_true")
@@ -247,6 +256,10 @@ def main(argv: list[str] | None = None) -> int:
         }  # fmt: skip
         if not args.no_default_fit:
             cases.update(fit_cases(exe, photos, default_dir, "stairfit fit (default)", []))
+        if args.rounded:
+            cases.update(fit_cases(exe, photos, tmp / "fit-rounded", "stairfit fit --model "
+                                   f"{ROUNDED} --no-posterior", ["--model", ROUNDED,
+                                                                "--no-posterior"]))  # fmt: skip
         samples: dict[str, list[tuple[float, float, float]]] = {k: [] for k in cases}
         stages: dict[str, list[dict[str, float]]] = {k: [] for k in cases}
         for r in range(args.repeats):
@@ -254,7 +267,13 @@ def main(argv: list[str] | None = None) -> int:
                 samples[name].append(run())
                 print(f"repeat {r + 1}/{args.repeats}: {name}: {samples[name][-1][0]:.2f} s",
                       file=sys.stderr, flush=True)  # fmt: skip
-                fit_dir = variant_dir if args.variant in name else default_dir
+                fit_dir = (
+                    tmp / "fit-rounded"
+                    if ROUNDED in name
+                    else variant_dir
+                    if args.variant in name
+                    else default_dir
+                )
                 if name.startswith("stairfit fit"):
                     stages[name].append(timings_of(fit_dir))
         variant_fit = json.loads((variant_dir / "results.json").read_text())
