@@ -404,9 +404,16 @@ class Target(NamedTuple):
     slots: np.ndarray
     fingerprint: str
     cov_z: np.ndarray
+    batch: int = 0
+    """Calls with fewer walkers are padded to this many (the ensemble): emcee's differential-
+    evolution moves evaluate half the ensemble, the Laplace move all of it, the start's redraws
+    any number; one compiled program serves them all (each batch size compiled its own)."""
 
     def log_prob(self, theta: np.ndarray) -> np.ndarray:
         """Log posterior of walkers `theta` `(n_walkers, p)`, a writable numpy array."""
+        n = theta.shape[0]
+        if n < self.batch:  # pad with copies of the first walker; their values are dropped
+            theta = np.concatenate([theta, np.repeat(theta[:1], self.batch - n, axis=0)])
         out = _export.call(
             "log_probability",
             lambda th, d, z, s: _batched_log_probability(th, self.static, self.priors, d, z, s),
@@ -414,7 +421,7 @@ class Target(NamedTuple):
             (jnp.asarray(theta), self.data, jnp.asarray(self.base_z), jnp.asarray(self.slots)),
             lambda leaves: leaves[0],
         )
-        return np.array(out)  # a writable copy: walkers outside the support are re-drawn
+        return np.array(out)[:n]  # a writable copy: walkers outside the support are re-drawn
 
     def physical(self, kept_z: np.ndarray) -> np.ndarray:
         """Physical values of the free slots for unconstrained samples `(n, p)`."""
@@ -548,10 +555,12 @@ def _sampler(
     p = t.slots.size
     if resume:
         backend = _resumed(t, path)
+        t = t._replace(batch=backend.nwalkers)
         sampler = emcee.EnsembleSampler(backend.nwalkers, p, t.log_prob, vectorize=True,
                                         backend=backend, moves=_moves(opts.moves, t))  # fmt: skip
         return sampler, None, backend.info.seed
     walkers = _walker_count(opts.n_walkers, p)
+    t = t._replace(batch=walkers)
     state = _initial_state(t, walkers, opts)
     backend = ChainBackend(t.chain_info(opts.seed), path)
     sampler = emcee.EnsembleSampler(
