@@ -183,8 +183,10 @@ def truth_records(outcome: FitOutcome, records: list[dict[str, Any]]) -> list[di
 # --- files ----------------------------------------------------------------------------------
 
 
-def write_outputs(outcome: FitOutcome, out: Path) -> None:
-    """Write every output into `out` (a temporary folder moved into place by the caller)."""
+def write_outputs(outcome: FitOutcome, out: Path, drawn: dict[str, str] | None = None) -> None:
+    """Write every output into `out` (a temporary folder moved into place by the caller);
+    `drawn`: the figures `fit_figures` already drew into `out / "figures"` (drawn here if
+    None)."""
     from .photo_reports import MARKER_COLUMNS, fit_marker_reports, write_table
 
     out.mkdir(parents=True, exist_ok=True)
@@ -192,7 +194,7 @@ def write_outputs(outcome: FitOutcome, out: Path) -> None:
     markers = fit_marker_reports(outcome.scene, outcome.table)
     write_table(out / "markers.csv", markers, MARKER_COLUMNS)
     write_observations(outcome, out / "observations.csv")
-    figures = write_figures(outcome, out / "figures")
+    figures = write_figures(outcome, out / "figures", drawn)
     results = results_dict(outcome, figures)
     (out / "results.json").write_text(json.dumps(results, indent=2, allow_nan=False))
     (out / "report.html").write_text(report_html(outcome, results, figures, out))
@@ -455,8 +457,25 @@ def spectral_record(outcome: FitOutcome) -> dict[str, Any]:
 # --- figures --------------------------------------------------------------------------------
 
 
-def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
-    """Every figure of the report; returns {key: relative path}.
+def write_figures(
+    outcome: FitOutcome, folder: Path, drawn: dict[str, str] | None = None
+) -> dict[str, str]:
+    """Every figure of the report; returns {key: relative path}. `drawn`: what `fit_figures`
+    already drew into `folder` (while the posterior was sampled); drawn here if None."""
+    figs = dict(fit_figures(outcome, folder) if drawn is None else drawn)
+    if outcome.posterior is not None and outcome.posterior.samples.shape[1] >= 1:
+        figs["corner"] = _rel(save(corner_figure(outcome), folder / "corner.png"), folder)
+    return {k: figs[k] for k in FIGURE_ORDER if k in figs}
+
+
+FIGURE_ORDER = ("fit", "residuals", "misfit", "corner", "brdf_map", "colours")
+"""The report's figures in the order it shows them."""
+
+
+def fit_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
+    """The figures that need the least-squares fit only (every one but the corner plot);
+    returns {key: relative path}. `stairfit fit` draws them in a second thread while the
+    posterior is sampled (its model evaluations release the interpreter most of the time).
 
     The model-only figures (fitted BRDF, reflected colours) follow the preset's
     `diffuse_nodes` and `float32_figures`.
@@ -472,8 +491,6 @@ def write_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
     figs["misfit"] = _rel(
         save(residual_pattern_figure(outcome), folder / "residual_pattern.png"), folder
     )
-    if outcome.posterior is not None and outcome.posterior.samples.shape[1] >= 1:
-        figs["corner"] = _rel(save(corner_figure(outcome), folder / "corner.png"), folder)
     wedges = [w.angle_deg for w in outcome.scene.specimen.wedges]
     pick = sorted({min(wedges), max(wedges)})
     sigma_deg = float(np.mean(p.sigma_rad)) / DEG

@@ -199,30 +199,33 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
         selection, accuracy = refine(scene, observations, selection, options)
         timings["fit_s"] = time.perf_counter() - t0
 
-        posterior = None
+        outcome = FitOutcome(scene, options, table, observations, row_info, spectral,
+                             selection, None, timings, notes, accuracy)  # fmt: skip
+        drawn = None
         if options.posterior:
             t0 = time.perf_counter()
-            posterior = sample(selection.fit, out, options)
+            outcome.posterior, drawn = sample_while_drawing(outcome, out)
             timings["posterior_s"] = time.perf_counter() - t0
     timings.update(compiled.as_timings())
-
-    outcome = FitOutcome(
-        scene,
-        options,
-        table,
-        observations,
-        row_info,
-        spectral,
-        selection,
-        posterior,
-        timings,
-        notes,
-        accuracy,
-    )
     t0 = time.perf_counter()
-    write_outputs(outcome, out)
+    write_outputs(outcome, out, drawn)
     timings["outputs_s"] = time.perf_counter() - t0
     return outcome
+
+
+def sample_while_drawing(outcome: FitOutcome, out: Path) -> tuple[Any, dict[str, str]]:
+    """The posterior of the chosen fit, and meanwhile, in a second thread, the report's figures
+    that need the least-squares fit only (`report.fit_figures`): the sampler's model
+    evaluations release the interpreter most of the time. Whatever ends the sampling (an error,
+    Ctrl-C), the figures are finished first, so nothing writes into the output afterwards."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ..report import fit_figures
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="stairfit-figures") as pool:
+        drawing = pool.submit(fit_figures, outcome, out / "figures")
+        posterior = sample(outcome.selection.fit, out, outcome.options)
+        return posterior, drawing.result()
 
 
 # --- stages ---------------------------------------------------------------------------------
