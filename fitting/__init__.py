@@ -73,6 +73,7 @@ from ._selection import not_fitted_row as not_fitted_row
 from ._selection import parents_of as parents_of
 from ._selection import rounding_needed as rounding_needed
 from ._selection import select_model as select_model
+from ._forward import Resolution as Resolution
 from ._simulate import STANDARD_WEDGES_DEG as STANDARD_WEDGES_DEG
 from ._simulate import Design as Design
 from ._simulate import Noise as Noise
