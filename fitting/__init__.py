@@ -25,6 +25,7 @@ from ._errors import FitWarning as FitWarning
 from ._errors import FitWarningCategory as FitWarningCategory
 from ._errors import UnconstrainedError as UnconstrainedError
 from ._errors import UnidentifiedParameterWarning as UnidentifiedParameterWarning
+from ._forward import Resolution as Resolution
 from ._identify import IDENTIFIABILITY_THRESHOLD as IDENTIFIABILITY_THRESHOLD
 from ._jacobian import model_jacobian as model_jacobian
 from ._least_squares import DEFAULT_SIGMA_STARTS_RAD as DEFAULT_SIGMA_STARTS_RAD
@@ -73,7 +74,6 @@ from ._selection import not_fitted_row as not_fitted_row
 from ._selection import parents_of as parents_of
 from ._selection import rounding_needed as rounding_needed
 from ._selection import select_model as select_model
-from ._forward import Resolution as Resolution
 from ._simulate import STANDARD_WEDGES_DEG as STANDARD_WEDGES_DEG
 from ._simulate import Design as Design
 from ._simulate import Noise as Noise

@@ -3,9 +3,10 @@ optimum, against a converged reference, in units of the measurement standard err
 
 A preset's knobs (spectral sampling, aperture nodes, the rounded model's resolution, the fillet
 correction's rays) trade accuracy for speed; an error that is small at 2% noise can be many
-standard errors when a large photo averages the noise down. `numerical_error` evaluates the model once more at the fitted
-parameters with the reference knobs (`model_radiance`, `stairfit.model` directly) and compares
-it with the fitted model row by row. docs/fitting.md §3 ("Numerical error at the optimum").
+standard errors when a large photo averages the noise down. `numerical_error` evaluates the
+model once more at the fitted parameters with the reference knobs (`model_radiance`,
+`stairfit.model` directly) and compares it with the fitted model row by row. docs/fitting.md
+§3 ("Numerical error at the optimum").
 """
 
 from __future__ import annotations

@@ -381,14 +381,16 @@ def _filleted_grid_jvp(cfg: tuple, primals: tuple, tangents: tuple) -> tuple[Arr
     )  # fmt: skip
     rays = jax.tree_util.tree_map(lambda a: a[0], rays_all)
 
-    def f(eps: Array) -> Array:
-        s, d = sigma_k + eps[0], dn + eps[1]
-        return _rounded_impl(s, d, radius_um + eps[2], cfg[:2], g) + _fillet_impl(
-            s, d, rays, cfg, g
-        )
+    def rounded(eps: Array) -> Array:
+        return _rounded_impl(sigma_k + eps[0], dn + eps[1], radius_um + eps[2], cfg[:2], g)
 
-    value, jac = _value_and_jac(f, jnp.zeros(3, dtype=sigma_k.dtype))
-    d_sigma, d_dn, d_r = jac[..., 0], jac[..., 1], jac[..., 2]
+    def fillet(eps: Array) -> Array:  # the rays fixed: widths and index only
+        return _fillet_impl(sigma_k + eps[0], dn + eps[1], rays, cfg, g)
+
+    value, jac = _value_and_jac(rounded, jnp.zeros(3, dtype=sigma_k.dtype))
+    value_f, jac_f = _value_and_jac(fillet, jnp.zeros(2, dtype=sigma_k.dtype))
+    value = value + value_f
+    d_sigma, d_dn, d_r = jac[..., 0] + jac_f[..., 0], jac[..., 1] + jac_f[..., 1], jac[..., 2]
     tangent = d_sigma * t_sigma[:, None, None] + d_dn * t_dn + d_r * t_r
     moved = jax.tree_util.tree_map(lambda a: a[1:], rays_all)
     c = jax.vmap(lambda rr: _fillet_impl(sigma_k, dn, rr, cfg, g))(moved)  # (3, R, T, C)

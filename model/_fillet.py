@@ -51,6 +51,14 @@ FILLET_RAYS = 2048
 FILLET_BOUNCES = 16
 """Default number of reflections traced per ray (the bound of docs/rounded.md §1)."""
 
+FILLET_SEARCH_FRACTION = 4
+"""The fillet correction's search pass traces `rays // FILLET_SEARCH_FRACTION` stratified rays
+to find where the two lanes differ; the `rays` rays are then spread over that footprint
+(`_pair_rays`, docs/rounded.md §11)."""
+
+FILLET_MAX_REFINE = 64
+"""At most this many rays per search stratum of the footprint."""
+
 COMPACT_FRACTION = 16
 """The tracer follows every ray while more than `1 / COMPACT_FRACTION` of them are still
 reflecting, then only those (`_trace_one`)."""
@@ -239,10 +247,14 @@ class _Rays(NamedTuple):
     theta_o: Float[Array, "... n_rays"]
 
 
-def _trace(ti: Array, b: Array, l1: Array, r: Array, rf: Array, rays: int, bounces: int) -> _Rays:
+def _trace(
+    ti: Array, b: Array, l1: Array, r: Array, rf: Array, rays: int, bounces: int,
+    frac: Array | None = None,
+) -> _Rays:  # fmt: skip
     """Trace `rays` rays per element of the (broadcast) geometry, stratified (midpoints) across
-    one period of the ray front, for up to `bounces` reflections [conventions §1, §2]. A ray
-    still reflecting after that is dropped.
+    one period of the ray front, or starting at the fractions `frac` of the period (`(...,
+    rays)`), for up to `bounces` reflections [conventions §1, §2]. A ray still reflecting after
+    that is dropped.
 
     All rays of all geometries are one flat batch. Two while loops over the same step: every
     ray while more than `1 / COMPACT_FRACTION` of them are still reflecting (most leave after
@@ -256,7 +268,10 @@ def _trace(ti: Array, b: Array, l1: Array, r: Array, rf: Array, rays: int, bounc
     shape = ti.shape
     ti, b, l1, r, rf = (a.reshape(-1, 1) for a in (ti, b, l1, r, rf))  # (G, 1)
     cell = _cell(b, l1, r, rf)
-    frac = (jnp.arange(rays, dtype=ti.dtype)[None] + 0.5) / rays
+    if frac is None:
+        frac = (jnp.arange(rays, dtype=ti.dtype)[None] + 0.5) / rays
+    else:
+        frac = jnp.broadcast_to(frac, (*shape, rays)).reshape(-1, rays)
     px = -r * (cell.sb - cell.cb) + frac * cell.period  # (G, rays)
     pz = jnp.broadcast_to(-r * (cell.cb + cell.sb) + r, px.shape)
     dx = jnp.broadcast_to(jnp.sin(ti), px.shape)
@@ -324,7 +339,8 @@ class FilletRays(NamedTuple):
     upwards within `bounces` reflections; `theta_o`: its final direction [conventions §1];
     `live`: whether the two lanes of the ray differ at all (a ray that meets neither the fillet
     nor the corner it replaces takes bit-identical steps in both and is left out of every sum;
-    it would cancel exactly).
+    it would cancel exactly); `weight`: the share of the period's ray front the ray stands for
+    (its stratum's width; 0 for an unused ray).
     """
 
     cos: Float[Array, "... 2 n_rays bounces"]
@@ -332,6 +348,18 @@ class FilletRays(NamedTuple):
     escaped: Array
     theta_o: Float[Array, "... 2 n_rays"]
     live: Array
+    weight: Float[Array, "... n_rays"]
+
+
+def _differ(rays: _Rays) -> Array:
+    """Per ray, whether its two lanes (the axis before the rays) differ in any bit."""
+    cos, hit, esc, th = rays
+    return (
+        jnp.any((cos[..., 0, :, :] != cos[..., 1, :, :]) | (hit[..., 0, :, :] != hit[..., 1, :, :]),
+                axis=-1)
+        | (esc[..., 0, :] != esc[..., 1, :])
+        | (th[..., 0, :] != th[..., 1, :])
+    )  # fmt: skip
 
 
 def _pair_rays(
@@ -339,21 +367,32 @@ def _pair_rays(
     rf_other: Array | float = 0.0,
 ) -> FilletRays:  # fmt: skip
     """The rays for `r_f` and for `rf_other` (default 0) on a new axis before the ray axis:
-    `(..., 2, rays[, K])`.
+    `(..., 2, rays[, K])`, placed where the two lanes differ (docs/rounded.md §11).
 
-    One vectorised computation on both lanes, so a ray that meets neither lane's fillet (nor
+    A search pass traces `rays // FILLET_SEARCH_FRACTION` stratified rays; the strata whose
+    ray differs between the lanes, and their neighbours, are the footprint, and `rays` rays
+    are spread over it: `m = rays // (strata in it)` (at most `FILLET_MAX_REFINE`) at the
+    midpoints of equal parts of each of its strata, each standing for `1 / (strata x m)` of the
+    period. Every other stratum's rays are the same in both lanes and cancel. Both passes trace
+    both lanes in one vectorised computation, so a ray that meets neither lane's fillet (nor
     the corner) gives the same bits in both (`live` is False for it)."""
     ti, b, l1, r, rf, rf_other = jnp.broadcast_arrays(ti, b, l1, r, rf, rf_other)
     pair = [jnp.stack([a, a], axis=-1) for a in (ti, b, l1, r)]
     pair.append(jnp.stack([rf, rf_other], axis=-1))
-    cos, hit, esc, th = _trace(*pair, rays=rays, bounces=bounces)
-    live = (
-        jnp.any((cos[..., 0, :, :] != cos[..., 1, :, :]) | (hit[..., 0, :, :] != hit[..., 1, :, :]),
-                axis=-1)
-        | (esc[..., 0, :] != esc[..., 1, :])
-        | (th[..., 0, :] != th[..., 1, :])
-    )  # fmt: skip
-    return FilletRays(cos, hit, esc, th, live)
+    n0 = max(rays // FILLET_SEARCH_FRACTION, 1)
+    found = _differ(_Rays(*_trace(*pair, rays=n0, bounces=bounces)))
+    near = found | jnp.roll(found, 1, axis=-1) | jnp.roll(found, -1, axis=-1)
+    count = jnp.sum(near, axis=-1, keepdims=True)  # (..., 1)
+    m = jnp.clip(rays // jnp.maximum(count, 1), 1, FILLET_MAX_REFINE)
+    order = jnp.argsort(~near, axis=-1, stable=True)  # the footprint's strata first, in order
+    j = jnp.arange(rays).reshape((1,) * (m.ndim - 1) + (rays,))
+    k = j // m  # (..., rays): which of the footprint's strata
+    stratum = jnp.take_along_axis(order, jnp.minimum(k, n0 - 1), axis=-1)
+    frac = (stratum + ((j - k * m) + 0.5) / m) / n0
+    weight = jnp.where(k < count, 1.0 / (n0 * m), 0.0).astype(ti.dtype)
+    frac = jnp.stack([frac, frac], axis=-2).astype(ti.dtype)
+    traced = _Rays(*_trace(*pair, rays=rays, bounces=bounces, frac=frac))
+    return FilletRays(*traced, _differ(traced) & (weight > 0), weight)
 
 
 def fillet_ray_power(rays: FilletRays, n: ArrayLike) -> Float[Array, "... 2 n_rays"]:
@@ -380,7 +419,7 @@ def fillet_ray_power(rays: FilletRays, n: ArrayLike) -> Float[Array, "... 2 n_ra
     ones = jnp.ones(shape, rays.cos.dtype)  # fresnel_sp computes at the cosines' precision
     p_s, p_p = jax.lax.fori_loop(0, used, one, (ones, ones))
     keep = rays.escaped & rays.live[..., None, :]
-    power = 0.5 * (p_s + p_p) / rays.cos.shape[-2]
+    power = 0.5 * (p_s + p_p) * rays.weight[..., None, :]
     sign = with_rank(jnp.asarray([1.0, -1.0], power.dtype)[:, None], power.ndim)
     power = power * sign
     return jnp.where(keep, power, 0.0)
