@@ -59,9 +59,9 @@ to find where the two lanes differ; the `rays` rays are then spread over that fo
 FILLET_MAX_REFINE = 64
 """At most this many rays per search stratum of the footprint."""
 
-COMPACT_FRACTION = 16
-"""The tracer follows every ray while more than `1 / COMPACT_FRACTION` of them are still
-reflecting, then only those (`_trace_one`)."""
+CHUNK_FRACTION = 4
+"""The tracer steps the rays still reflecting in chunks of `1 / CHUNK_FRACTION` of them
+(`_trace`)."""
 
 FILLET_FD_STEP = 0.01
 """Steps of the correction's derivatives in the geometry, as a fraction of `min(l1, l2)` (the
@@ -247,75 +247,84 @@ class _Rays(NamedTuple):
     theta_o: Float[Array, "... n_rays"]
 
 
+def _step(k: Array, bounces: int, state: tuple, c: _Cell) -> tuple:
+    """One reflection of every ray in `state = (px, pz, dx, dz, active)` at bounce `k`: the new
+    state, whether each ray reflected (`hit`), whether it left upwards (`esc`) and the cosine
+    of its local angle of incidence (1 where it did not reflect). Step `bounces` (after the
+    last reflection) only checks for escape. Elementwise in each ray's state and cell."""
+    px, pz, dx, dz, active = state
+    t, nx, nz, shift = _nearest((px, pz, dx, dz), c)
+    meets = jnp.isfinite(t)
+    esc = active & ~meets & (dz > 0)
+    hit = active & meets & (k < bounces)
+    t = jnp.where(hit, t, 0.0)
+    dn = dx * nx + dz * nz
+    new = (px + t * dx - shift * c.period, pz + t * dz, dx - 2 * dn * nx, dz - 2 * dn * nz)
+    px, pz, dx, dz = (jnp.where(hit, a, o) for a, o in zip(new, (px, pz, dx, dz), strict=True))
+    return (px, pz, dx, dz, hit), esc, jnp.where(hit, -dn, 1.0)
+
+
 def _trace(
     ti: Array, b: Array, l1: Array, r: Array, rf: Array, rays: int, bounces: int,
-    frac: Array | None = None,
+    frac: Array | None = None, valid: Array | None = None,
 ) -> _Rays:  # fmt: skip
     """Trace `rays` rays per element of the (broadcast) geometry, stratified (midpoints) across
     one period of the ray front, or starting at the fractions `frac` of the period (`(...,
-    rays)`), for up to `bounces` reflections [conventions §1, §2]. A ray still reflecting after
-    that is dropped.
+    rays)`, only where `valid`), for up to `bounces` reflections [conventions §1, §2]. A ray
+    still reflecting after that is dropped.
 
-    All rays of all geometries are one flat batch. Two while loops over the same step: every
-    ray while more than `1 / COMPACT_FRACTION` of them are still reflecting (most leave after
-    1-2 reflections), then only those, gathered into a buffer of that size and scattered back.
-    A ray's steps are elementwise in its own state and its own geometry, so neither the batch
-    nor the gathering changes a bit of them; the loops stop once no ray is left (the steps
-    skipped would change nothing), so the result is that of `bounces` steps of every ray to
-    the bit. The step after the last reflection only checks for escape. The rays are never
-    differentiated through (derivatives in the geometry are differences, `_fd_correction`)."""
+    All rays of all geometries are one flat batch, and one while loop steps the rays still
+    reflecting in chunks of a quarter of the batch: each pass gathers the next chunk of rays
+    at the current bounce (most leave after 1-2 reflections, so later bounces take one small
+    chunk), steps them and scatters them back. A ray's steps are elementwise in its own state
+    and cell, so neither the batch nor the gathering changes a bit of them; the loop stops once
+    no ray is left (the steps skipped would change nothing), so the result is that of
+    `bounces` steps of every ray to the bit. One step in the compiled program. The rays are
+    never differentiated through (derivatives in the geometry are differences,
+    `_fd_correction`)."""
     ti, b, l1, r, rf = jnp.broadcast_arrays(ti, b, l1, r, rf)
     shape = ti.shape
-    ti, b, l1, r, rf = (a.reshape(-1, 1) for a in (ti, b, l1, r, rf))  # (G, 1)
-    cell = _cell(b, l1, r, rf)
+    n_all = ti.size * rays
+    flat = lambda a: jnp.broadcast_to(a[..., None], (*shape, rays)).reshape(n_all)  # noqa: E731
+    cell = _cell(*(flat(a) for a in (b, l1, r, rf)))
     if frac is None:
-        frac = (jnp.arange(rays, dtype=ti.dtype)[None] + 0.5) / rays
-    else:
-        frac = jnp.broadcast_to(frac, (*shape, rays)).reshape(-1, rays)
-    px = -r * (cell.sb - cell.cb) + frac * cell.period  # (G, rays)
-    pz = jnp.broadcast_to(-r * (cell.cb + cell.sb) + r, px.shape)
-    dx = jnp.broadcast_to(jnp.sin(ti), px.shape)
-    dz = jnp.broadcast_to(-jnp.cos(ti), px.shape)
-    n_all = px.size
-    cap = max(n_all // COMPACT_FRACTION, 1)
+        frac = (jnp.arange(rays, dtype=ti.dtype) + 0.5) / rays
+    frac = jnp.broadcast_to(frac, (*shape, rays)).reshape(n_all)
+    r_ = cell.r
+    state = (
+        -r_ * (cell.sb - cell.cb) + frac * cell.period,
+        -r_ * (cell.cb + cell.sb) + r_,
+        flat(jnp.sin(ti)),
+        flat(-jnp.cos(ti)),
+        jnp.ones(n_all, bool) if valid is None else jnp.broadcast_to(valid, (*shape, rays)).ravel(),
+    )
+    chunk = max(n_all // CHUNK_FRACTION, 1)
 
-    def step(carry: tuple, c: _Cell) -> tuple:
-        k, px, pz, dx, dz, active, esc, cos, hits = carry
-        t, nx, nz, shift = _nearest((px, pz, dx, dz), c)
-        meets = jnp.isfinite(t)
-        esc = esc | (active & ~meets & (dz > 0))
-        hit = active & meets & (k < bounces)  # step `bounces` (the last) checks escape only
-        t = jnp.where(hit, t, 0.0)
-        dn = dx * nx + dz * nz
-        new = (px + t * dx - shift * c.period, pz + t * dz, dx - 2 * dn * nx, dz - 2 * dn * nz)
-        px, pz, dx, dz = (jnp.where(hit, a, o) for a, o in zip(new, (px, pz, dx, dz), strict=True))
-        cos = jax.lax.dynamic_update_index_in_dim(cos, jnp.where(hit, -dn, 1.0), k, 0)
-        hits = jax.lax.dynamic_update_index_in_dim(hits, hit, k, 0)
-        return (k + 1, px, pz, dx, dz, hit, esc, cos, hits)
+    def body(carry: tuple) -> tuple:
+        k, state, level, esc, cos, hits = carry
+        todo = state[4] & (level == k)
+        (idx,) = jnp.nonzero(todo, size=chunk, fill_value=n_all)
+        take = jnp.minimum(idx, n_all - 1)
+        part = tuple(jnp.where(idx < n_all, a[take], False) if a.dtype == bool else a[take]
+                     for a in state)  # fmt: skip
+        new, out, cos_k = _step(k, bounces, part, jax.tree_util.tree_map(lambda a: a[take], cell))
+        state = tuple(a.at[idx].set(f, mode="drop") for a, f in zip(state, new, strict=True))
+        esc = esc.at[idx].set(esc[take] | out, mode="drop")
+        level = level.at[idx].add(1, mode="drop")
+        cos = cos.at[k, idx].set(cos_k, mode="drop")
+        hits = hits.at[k, idx].set(new[4], mode="drop")
+        k = jnp.where(jnp.sum(todo) <= chunk, k + 1, k)  # every ray at bounce k stepped
+        return (k, state, level, esc, cos, hits)
 
-    def many(carry: tuple) -> Array:
-        return (carry[0] <= bounces) & (jnp.sum(carry[5]) > cap)
-
-    def any_left(carry: tuple) -> Array:
-        return (carry[0] <= bounces) & jnp.any(carry[5])
+    def more(carry: tuple) -> Array:
+        return (carry[0] <= bounces) & jnp.any(carry[1][4])
 
     # rows 0..bounces-1 the reflections, row `bounces` written by the escape-only step
     start = (
-        jnp.asarray(0), px, pz, dx, dz, jnp.ones(px.shape, bool), jnp.zeros(px.shape, bool),
-        jnp.ones((bounces + 1, *px.shape), px.dtype), jnp.zeros((bounces + 1, *px.shape), bool),
+        jnp.asarray(0), state, jnp.zeros(n_all, jnp.int32), jnp.zeros(n_all, bool),
+        jnp.ones((bounces + 1, n_all), ti.dtype), jnp.zeros((bounces + 1, n_all), bool),
     )  # fmt: skip
-    full = jax.lax.while_loop(many, lambda a: step(a, cell), start)
-    full = (full[0], *(a.reshape(*a.shape[:-2], n_all) for a in full[1:]))  # rays flat
-    (idx,) = jnp.nonzero(full[5], size=cap, fill_value=n_all)
-    take = jnp.minimum(idx, n_all - 1)
-    gather = lambda a: jnp.broadcast_to(a, px.shape).reshape(n_all)[take]  # noqa: E731
-    cell_few = jax.tree_util.tree_map(gather, cell)
-    few = (full[0], *(a[..., take] for a in full[1:]))
-    few = (*few[:5], few[5] & (idx < n_all), *few[6:])
-    few = jax.lax.while_loop(any_left, lambda a: step(a, cell_few), few)
-    px, pz, dx, dz, _, esc, cos, hit = (
-        a.at[..., idx].set(f, mode="drop") for a, f in zip(full[1:], few[1:], strict=True)
-    )
+    _, (_, _, dx, dz, _), _, esc, cos, hit = jax.lax.while_loop(more, body, start)
     unflat = lambda a: a.reshape(*a.shape[:-1], *shape, rays)  # noqa: E731
     return _Rays(
         cos=jnp.moveaxis(unflat(cos[:bounces]), 0, -1),

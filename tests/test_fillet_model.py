@@ -49,24 +49,23 @@ def _correction(p, b2):
 
 
 # Few compiled programs, each shared by several tests (the filleted model's compilation is
-# most of this file's time, issue 14): the correction alone with its Jacobian; the filleted
-# and the rounded model with theirs, in one program
-_CORRECTION = jax.jit(lambda p, b2: (_correction(p, b2), jax.jacfwd(_correction)(p, b2)))
+# most of this file's time, issue 14): the filleted and the rounded model and the correction
+# alone, each with its Jacobian, in one program
 _ALL = jax.jit(
     lambda p, b2: (_brdf(p, b2), _rounded(p, b2), jax.jacfwd(_brdf)(p, b2),
-                   jax.jacfwd(_rounded)(p, b2))
+                   jax.jacfwd(_rounded)(p, b2), _correction(p, b2), jax.jacfwd(_correction)(p, b2))
 )  # fmt: skip
 
 
 @pytest.mark.parametrize("beta2_deg", [10, 30, 60])
 @pytest.mark.parametrize("theta_i_deg", [-70.0, -20.0, 0.0, 40.0])
 def test_zero_fillet_is_the_rounded_model_in_value_and_gradient(beta2_deg, theta_i_deg):
-    """The correction is exactly 0 with exactly 0 derivatives (`_CORRECTION`); the whole, in
-    one compiled program with the rounded model, is equal to it. (Separately compiled, the
-    rounded model itself differs from its eager run by up to 1e-8 relative at small values.)"""
+    """The correction is exactly 0 with exactly 0 derivatives; the whole, in one compiled
+    program with the rounded model, is equal to it. (Separately compiled, the rounded model
+    itself differs from its eager run by up to 1e-8 relative at small values.)"""
     b2 = beta2_deg * DEG
     p = jnp.array([0.05, 1.46, 30.0, 0.0, theta_i_deg * DEG, L1])
-    v, v0, j, j0 = _ALL(p, b2)
+    v, v0, j, j0, c, dc = _ALL(p, b2)
     np.testing.assert_array_equal(v, v0)
     keep = [0, 1, 2, 4, 5]  # every parameter but r_f (which the rounded model does not have)
     # the Jacobians are two differently structured programs: equal to the last bits (the
@@ -74,7 +73,6 @@ def test_zero_fillet_is_the_rounded_model_in_value_and_gradient(beta2_deg, theta
     np.testing.assert_allclose(j[:, keep], j0[:, keep], rtol=1e-12, atol=0)
     if theta_i_deg == 0:  # at -70, -20 (10 deg wedge), 40 (10, 60 deg) a shadow covers the
         assert bool(jnp.any(j[:, 3] != 0))  # corner; elsewhere r_f acts, already at 0
-    c, dc = _CORRECTION(p, b2)
     np.testing.assert_array_equal(c, 0.0)
     np.testing.assert_array_equal(dc[:, keep], 0.0)
 
@@ -110,7 +108,7 @@ def test_finite_values_and_gradients_at_extremes(beta2_deg):
             for ti in angles:
                 for n in (1.46, 1.0001):
                     p = jnp.array([0.05, n, r, rf, ti, L1])
-                    v, _, j, _ = _ALL(p, b2)  # the program compiled above
+                    v, _, j, *_ = _ALL(p, b2)  # the program compiled above
                     assert _finite((v, j)), (r, rf, ti, n)
                     assert bool(jnp.all(v >= 0)), (r, rf, ti, n)
 
