@@ -210,8 +210,8 @@ def _nearest(ray: tuple, c: _Cell) -> tuple[Array, Array, Array, Array]:
     [conventions §2]: tread `[r, l2 - r_f]` from the tip at the origin, riser `[r, l1 - r_f]`
     down from the tip at `(L, 0)`, tip arc (convex) and fillet (concave), normals in
     `[beta2 - 90 deg, beta2]`. Returns the ray parameter (inf = none), the outward normal at
-    the hit and the cell of the primitive hit. A running minimum over the primitives (ties go
-    to the earlier one, as an argmin would)."""
+    the hit and the cell of the primitive hit (the first of equal ones: an argmin over the
+    stacked candidates; a running minimum measured slower)."""
     n_tr, n_ri = (c.sb, c.cb), (-c.cb, c.sb)
     ts, nxs, nzs, shifts = [], [], [], []
 
