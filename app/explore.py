@@ -303,7 +303,7 @@ class FitModel:
     aperture: Any
     params: Any
     free: tuple[str, ...]
-    resolution: int
+    resolution: Any  # a fitting.Resolution (rounded resolution, fillet rays)
     uncertainty: np.ndarray
     keys: tuple[tuple[str, int | None], ...] = ()
 
@@ -334,7 +334,7 @@ def params_from_results(results: dict[str, Any]) -> Any:
 
 def fit_model(fit: FitFolder) -> FitModel:
     """Rebuild the fitted model from the folder and its photo folder (needs scene.toml)."""
-    from stairfit import imaging
+    from stairfit import fitting, imaging
 
     from .commands.fit import fit_setup, to_observations
     from .presets import get_preset
@@ -359,7 +359,7 @@ def fit_model(fit: FitFolder) -> FitModel:
         aperture,
         params_from_results(results),
         free,
-        preset.rounded_resolution,
+        fitting.Resolution(preset.rounded_resolution, preset.fillet_rays),
         np.asarray(fit.observations["uncertainty"], float),
         tuple(parameter_key(p) for p in results["parameters"]),
     )

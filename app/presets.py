@@ -23,6 +23,11 @@ face, sigma 6 deg, 2% noise):
 * float32 figures: half the time of float64 at full sampling, error unchanged at 3e-3;
 * diffuse nodes 3 / 6 / 8: error 1e-4 / 3e-9 / 3e-12 of the maximum;
 * rounded resolution 2 / 4 / 8: error 1e-4 / 2e-5 / 2e-6 (model/_rounded.py as of that run).
+* fillet rays 256 / 512 / 4096 (the filleted rungs only): rms error 0.55 / 0.25 / below 0.1
+  measurement standard errors on the standard scene at 1% noise and sigma 2 deg, the worst
+  of five radius pairs, against 16384 rays (measured by `benchmarks/bench_rounded.py
+  --fillet-accuracy`, not by bench_tradeoff; docs/rounded.md §11); 512 matches the 2048
+  uniform rays the fits used before.
 
 Measured presets (least-squares fit of the standard scene after compilation; compilation about
 4-6 s; posterior of 32 walkers; run of 2026-12-01 on the idle 2-core machine): fast 11 ms +
@@ -48,6 +53,9 @@ class Preset:
     * `aperture_nodes`: Gauss-Legendre nodes per axis over the angular size of the light and of
       the viewed face (1 = point light, point view) [conventions §9].
     * `rounded_resolution`: quadrature resolution of the rounded-edge model (docs/rounded.md).
+    * `fillet_rays`: rays per period of the fillet correction's tracer (docs/rounded.md §11;
+      the filleted rungs only). Its error falls like `1 / rays` and is smoothed by the
+      broadening; the accuracy check after a fit compares with `accurate`'s count.
     * `diffuse_nodes`: nodes per piece of the broadened diffuse integral (figures).
     * `sigma_starts_deg`: multi-start widths of the least-squares fit.
     * `ladder`: "shared" (one sigma; 8 variants) or "full" (also one sigma per wedge; 16).
@@ -65,6 +73,7 @@ class Preset:
     spectral: str
     aperture_nodes: int
     rounded_resolution: int
+    fillet_rays: int
     diffuse_nodes: int
     sigma_starts_deg: tuple[float, ...]
     ladder: str
@@ -85,6 +94,7 @@ PRESETS: dict[str, Preset] = {
         spectral="effective",
         aperture_nodes=2,
         rounded_resolution=2,
+        fillet_rays=256,
         diffuse_nodes=3,
         sigma_starts_deg=(2.0, 8.0),
         ladder="shared",
@@ -99,6 +109,7 @@ PRESETS: dict[str, Preset] = {
         spectral="effective",
         aperture_nodes=2,
         rounded_resolution=4,
+        fillet_rays=512,
         diffuse_nodes=6,
         sigma_starts_deg=(1.0, 4.0, 12.0),
         ladder="shared",
@@ -113,6 +124,7 @@ PRESETS: dict[str, Preset] = {
         spectral="full",
         aperture_nodes=4,  # even: a light interval split at a kink gets 2 + 2 (docs/fitting.md §3)
         rounded_resolution=8,
+        fillet_rays=4096,
         diffuse_nodes=8,
         sigma_starts_deg=(1.0, 3.0, 10.0, 30.0),
         ladder="full",

@@ -19,11 +19,15 @@ With `--fillet` (issue 15, docs/rounded.md §11), instead: the filleted model (f
 six distinct geometries on their own axis, as a fit evaluates them), on (1) the case above,
 Jacobian by `jax.jacfwd` in (sigma, delta_n, r[, r_f], scale); (2) the fit-side grid density of
 the standard scene (6 wedges x 19 views x 3 channels, `fitting._forward.rounded_grid_density`
-against `filleted_grid_density`), value and value + Jacobian in (widths, delta_n, r[, r_f]).
-Medians of `--repeats` (at least 3) interleaved rounds; state the machine's load.
+against `filleted_grid_density`), value and value + Jacobian in (widths, delta_n, r[, r_f]), at
+every fillet ray count of the presets (app/presets.py), each with its error against
+`FILLET_REFERENCE_RAYS`. Medians of `--repeats` (at least 3) interleaved rounds; state the
+machine's load. With `--fillet-accuracy`, the fit grid's error per ray count over angles of
+incidence, radii and widths (`run_fillet_accuracy`; docs/rounded.md §11).
 
     python benchmarks/bench_rounded.py [--repeats 20] [--tracer] [--out results.md]
-    python benchmarks/bench_rounded.py --fillet [--repeats 5] [--out results.md]
+    python benchmarks/bench_rounded.py --fillet [--repeats 5] [--grid-only] [--out results.md]
+    python benchmarks/bench_rounded.py --fillet-accuracy 256,512,1024,2048 [--out results.md]
 """
 
 from __future__ import annotations
@@ -190,6 +194,8 @@ def run_tracer(resolutions: tuple[int, ...]) -> list[tuple[str, str, str]]:
 
 
 FILLET_UM = 15.0
+FILLET_REFERENCE_RAYS = 16384
+"""The converged reference of the fit grid's error columns (docs/rounded.md §11)."""
 
 
 def _wedge_case() -> dict[str, jax.Array]:
@@ -227,10 +233,79 @@ def _standard_grid():
     return grid, sigma_k, data.r_ti.shape[0], _forward
 
 
-def run_fillet(repeats: int) -> list[tuple[str, ...]]:
-    """Rounded against filleted, same run: compile, value, value + Jacobian, and ratios."""
+def _preset_fillet_rays() -> dict[int, list[str]]:
+    """The fillet ray counts of the presets (app/presets.py), each with the presets using it."""
+    from stairfit.presets import PRESETS
+
+    out: dict[int, list[str]] = {}
+    for name, p in PRESETS.items():
+        out.setdefault(p.fillet_rays, []).append(name)
+    return dict(sorted(out.items()))
+
+
+def run_fillet(repeats: int, grid_only: bool = False) -> list[tuple[str, ...]]:
+    """Rounded against filleted, same run: compile, value, value + Jacobian, and ratios; on the
+    fit grid at every ray count a preset uses, with the error of the value and of the
+    Jacobian's `r`, `r_f` columns against `FILLET_REFERENCE_RAYS`."""
     jax.config.update("jax_enable_x64", True)
     repeats = max(3, repeats)
+    rows = [] if grid_only else _fillet_model_rows(repeats)
+    grid, sigma_k, n_keys, fwd = _standard_grid()
+    cfg = (model.Aperture(), None)
+    counts = _preset_fillet_rays()
+
+    def rounded(x: jax.Array) -> jax.Array:
+        return fwd.rounded_grid_density(sigma_k * jnp.exp(x[0]), x[1], x[2], cfg, grid)
+
+    def filleted(rays: int):
+        cfg_f = (*cfg, rays, model.FILLET_BOUNCES)
+        return lambda x: fwd.filleted_grid_density(
+            sigma_k * jnp.exp(x[0]), x[1], x[2], x[3], cfg_f, grid
+        )
+
+    x_r, x_f = jnp.array([0.0, 0.0, RADIUS_UM]), jnp.array([0.0, 0.0, RADIUS_UM, FILLET_UM])
+    grid_fns = {}
+    cases = [("rounded", rounded, x_r)]
+    cases += [(f"filleted, {k} rays", filleted(k), x_f) for k in counts]
+    for name, fn, x in cases:
+        v = jax.jit(fn)
+        b = jax.jit(lambda x, fn=fn: (fn(x), jax.jacfwd(fn)(x)))
+        grid_fns[name] = (v, b, x, first_call_seconds(lambda v=v, x=x: v(x)),
+                          first_call_seconds(lambda b=b, x=x: b(x)))  # fmt: skip
+    t = interleaved_medians(
+        {f"{k} {w}": (lambda f=f, i=i: f[i](f[2])) for k, f in grid_fns.items()
+         for i, w in ((0, "value"), (1, "both"))},
+        repeats,
+    )  # fmt: skip
+    ref_fn = filleted(FILLET_REFERENCE_RAYS)
+    ref_v, ref_j = (
+        np.asarray(a) for a in jax.jit(lambda x: (ref_fn(x), jax.jacfwd(ref_fn)(x)))(x_f)
+    )
+    label = f"fit grid, standard scene ({n_keys} keys x 19 views x 3 channels)"
+    for k, f in grid_fns.items():
+        err = ""
+        if k != "rounded":
+            v, j = (np.asarray(a) for a in f[1](f[2]))
+            err = (f"{_rel_err(v, ref_v):.1e}", f"{_col_err(j, ref_j, 2):.2f}",
+                   f"{_col_err(j, ref_j, 3):.2f}")  # fmt: skip
+        rows.append((f"{label}: {k}", fmt_ms(f[3]), fmt_ms(f[4]), fmt_ms(t[f"{k} value"]),
+                     fmt_ms(t[f"{k} both"]), *(err or ("", "", ""))))  # fmt: skip
+    for k in counts:
+        name = f"filleted, {k} rays"
+        rows.append((f"  ratio {name} ({', '.join(counts[k])}) / rounded (aim: value + Jacobian "
+                     "<= 3)", "", "", f"{t[f'{name} value'] / t['rounded value']:.2f}",
+                     f"{t[f'{name} both'] / t['rounded both']:.2f}", "", "", ""))  # fmt: skip
+    return rows
+
+
+def _col_err(j: np.ndarray, ref: np.ndarray, c: int) -> float:
+    """|J - ref| / |ref| of the Jacobian's column `c` (norms over every grid element)."""
+    return float(np.linalg.norm(j[..., c] - ref[..., c]) / np.linalg.norm(ref[..., c]))
+
+
+def _fillet_model_rows(repeats: int) -> list[tuple[str, ...]]:
+    """The model half of `run_fillet`: `brdf_filleted` against `brdf_rounded` on the wedge case
+    at the model's default ray count."""
     rows = []
     c = _wedge_case()
     p = jnp.array([5 * DEG, 0.01, RADIUS_UM, FILLET_UM, 2.0])
@@ -248,40 +323,73 @@ def run_fillet(repeats: int) -> list[tuple[str, ...]]:
     )  # fmt: skip
     for k, f in fns.items():
         rows.append((f"model, 6 wedges x 181 views x 31 indices: {k}", fmt_ms(f[2]), fmt_ms(f[3]),
-                     fmt_ms(t[f"{k} value"]), fmt_ms(t[f"{k} both"])))  # fmt: skip
+                     fmt_ms(t[f"{k} value"]), fmt_ms(t[f"{k} both"]), "", "", ""))  # fmt: skip
     rows.append(("  ratio filleted / rounded", "", "",
                  f"{t['filleted value'] / t['rounded value']:.2f}",
-                 f"{t['filleted both'] / t['rounded both']:.2f}"))  # fmt: skip
-    grid, sigma_k, n_keys, fwd = _standard_grid()
-    cfg = (model.Aperture(), None)
-    cfg_f = (*cfg, model.FILLET_RAYS, model.FILLET_BOUNCES)
-    q = jnp.array([0.0, RADIUS_UM, FILLET_UM])
+                 f"{t['filleted both'] / t['rounded both']:.2f}", "", "", ""))  # fmt: skip
+    return rows
 
-    def rounded(x: jax.Array) -> jax.Array:
-        return fwd.rounded_grid_density(sigma_k * jnp.exp(x[0]), x[1], x[2], cfg, grid)
 
-    def filleted(x: jax.Array) -> jax.Array:
-        return fwd.filleted_grid_density(sigma_k * jnp.exp(x[0]), x[1], x[2], x[3], cfg_f, grid)
+ACCURACY_THETA_I_DEG = (20.0, 0.0, -40.0, 60.0, 80.0, -75.0)
+ACCURACY_RADII_UM = ((30.0, 15.0), (5.0, 40.0), (10.0, 60.0), (30.0, 3.0), (0.0, 20.0))
+ACCURACY_SIGMA_DEG = (2.0, 4.0)
 
-    x_r, x_f = jnp.array([0.0, 0.0, RADIUS_UM]), jnp.concatenate([jnp.zeros(1), q])
-    grid_fns = {}
-    for name, fn, x in (("rounded", rounded, x_r), ("filleted", filleted, x_f)):
-        v = jax.jit(fn)
-        b = jax.jit(lambda x, fn=fn: (fn(x), jax.jacfwd(fn)(x)))
-        grid_fns[name] = (v, b, x, first_call_seconds(lambda v=v, x=x: v(x)),
-                          first_call_seconds(lambda b=b, x=x: b(x)))  # fmt: skip
-    t = interleaved_medians(
-        {f"{k} {w}": (lambda f=f, i=i: f[i](f[2])) for k, f in grid_fns.items()
-         for i, w in ((0, "value"), (1, "both"))},
-        repeats,
-    )  # fmt: skip
-    label = f"fit grid, standard scene ({n_keys} keys x 19 views x 3 channels)"
-    for k, f in grid_fns.items():
-        rows.append((f"{label}: {k}", fmt_ms(f[3]), fmt_ms(f[4]), fmt_ms(t[f"{k} value"]),
-                     fmt_ms(t[f"{k} both"])))  # fmt: skip
-    rows.append(("  ratio filleted / rounded (aim: value + Jacobian <= 3)", "", "",
-                 f"{t['filleted value'] / t['rounded value']:.2f}",
-                 f"{t['filleted both'] / t['rounded both']:.2f}"))  # fmt: skip
+
+def run_fillet_accuracy(counts: tuple[int, ...]) -> list[tuple[str, ...]]:
+    """The fit grid's filleted density and its Jacobian in (sigma, r, r_f) at each ray count
+    against `FILLET_REFERENCE_RAYS`: the standard design at each theta_i of
+    `ACCURACY_THETA_I_DEG` (six wedges 10-60 deg, 19 views, 3 channels), radii
+    `ACCURACY_RADII_UM`, widths `ACCURACY_SIGMA_DEG`. Per theta_i, the worst over the radii of
+    the rms of `error / stderr` with the zoo's noise model at 1% (`stderr = sqrt((0.01 v)^2 +
+    (1e-3 peak)^2)`), at each width; and the worst relative error (norm over the grid) of the
+    Jacobian's r and r_f columns at 4 deg."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    import zoo
+
+    from stairfit import fitting
+    from stairfit.fitting import _forward, _problem
+
+    jax.config.update("jax_enable_x64", True)
+    grids = {}
+    for ti in ACCURACY_THETA_I_DEG:
+        truth = fitting.Params(sigma_rad=4 * DEG, edge_radius_um=RADIUS_UM, scale=2.0)
+        s = zoo.scene(truth, fitting.standard_design(theta_i_deg=ti), zoo.effective(), 0.01, 0)
+        grids[ti] = _forward._grid(_problem.prepare(s.obs, s.spec).data)
+
+    def values(rays: int) -> dict[tuple, tuple[np.ndarray, np.ndarray]]:
+        cfg = (model.Aperture(), None, rays, model.FILLET_BOUNCES)
+
+        def f(x: jax.Array, g: object) -> jax.Array:
+            sig = jnp.full(g.r_ti.shape, x[0])
+            return _forward.filleted_grid_density(sig, 0.0, x[1], x[2], cfg, g)
+
+        fn = jax.jit(lambda x, g: (f(x, g), jax.jacfwd(f)(x, g)))
+        return {
+            (ti, r, rf, sg): tuple(np.asarray(a) for a in fn(jnp.array([sg * DEG, r, rf]), g))
+            for ti, g in grids.items()
+            for r, rf in ACCURACY_RADII_UM
+            for sg in ACCURACY_SIGMA_DEG
+        }
+
+    ref = values(FILLET_REFERENCE_RAYS)
+    rows = []
+    for rays in counts:
+        out = values(rays)
+        worst: dict[tuple, float] = {}
+        for key, (v, j) in out.items():
+            vr, jr = ref[key]
+            peak = np.max(np.abs(vr))
+            sd = np.sqrt((0.01 * vr) ** 2 + (1e-3 * peak) ** 2)
+            cell = (key[0], key[3])
+            worst[cell] = max(worst.get(cell, 0.0), float(np.sqrt(np.mean(((v - vr) / sd) ** 2))))
+            if key[3] == 4.0:
+                jac = max(_col_err(j, jr, c) for c in (1, 2) if np.linalg.norm(jr[..., c]) > 0)
+                worst["jac"] = max(worst.get("jac", 0.0), jac)
+        cells = [
+            f"{worst[ti, ACCURACY_SIGMA_DEG[0]]:.2f} / {worst[ti, ACCURACY_SIGMA_DEG[1]]:.2f}"
+            for ti in ACCURACY_THETA_I_DEG
+        ]
+        rows.append((str(rays), *cells, f"{worst['jac']:.2f}"))
     return rows
 
 
@@ -292,16 +400,37 @@ def main() -> None:
     ap.add_argument("--tracer", action="store_true", help="also compare with the ray tracer")
     ap.add_argument("--out", type=Path, default=None, help="also write the tables here (markdown)")
     ap.add_argument("--fillet", action="store_true", help="the filleted model against the rounded")
+    ap.add_argument("--grid-only", action="store_true", help="with --fillet: the fit grid only")
+    ap.add_argument(
+        "--fillet-accuracy", default=None, help="ray counts (e.g. 256,512,1024,2048): the fit "
+        "grid's error against the reference over theta_i, radii and widths"
+    )  # fmt: skip
     args = ap.parse_args()
+    if args.fillet_accuracy:
+        rows = run_fillet_accuracy(tuple(int(a) for a in args.fillet_accuracy.split(",")))
+        table = (
+            f"rms error / stderr (1% noise) against {FILLET_REFERENCE_RAYS} rays, worst over "
+            "the radii, sigma 2 / 4 deg\n\n| rays | "
+            + " | ".join(f"theta_i {t:g} deg" for t in ACCURACY_THETA_I_DEG)
+            + " | Jacobian r, r_f (4 deg) |\n|---|"
+            + "---|" * (len(ACCURACY_THETA_I_DEG) + 1)
+            + "\n"
+            + "\n".join("| " + " | ".join(r) + " |" for r in rows)
+        )
+        print(table)
+        if args.out:
+            args.out.write_text(table + "\n")
+        return
     if args.fillet:
         import os
 
         load = os.getloadavg()[0]
         table = (
             f"Load average at the start: {load:.1f} (2 cores)\n\n"
-            "| case | compile: value | compile: value + Jacobian | value | value + Jacobian |\n"
-            "|---|---|---|---|---|\n"
-        ) + "\n".join("| " + " | ".join(r) + " |" for r in run_fillet(args.repeats))
+            "| case | compile: value | compile: value + Jacobian | value | value + Jacobian "
+            f"| value error vs {FILLET_REFERENCE_RAYS} rays (max / peak) | Jacobian r | "
+            "Jacobian r_f |\n|---|---|---|---|---|---|---|---|\n"
+        ) + "\n".join("| " + " | ".join(r) + " |" for r in run_fillet(args.repeats, args.grid_only))
         table += f"\n\nLoad average at the end: {os.getloadavg()[0]:.1f}"
         print(table)
         if args.out:

@@ -25,6 +25,7 @@ from ._errors import FitWarning as FitWarning
 from ._errors import FitWarningCategory as FitWarningCategory
 from ._errors import UnconstrainedError as UnconstrainedError
 from ._errors import UnidentifiedParameterWarning as UnidentifiedParameterWarning
+from ._forward import Resolution as Resolution
 from ._identify import IDENTIFIABILITY_THRESHOLD as IDENTIFIABILITY_THRESHOLD
 from ._jacobian import model_jacobian as model_jacobian
 from ._least_squares import DEFAULT_SIGMA_STARTS_RAD as DEFAULT_SIGMA_STARTS_RAD

@@ -1,11 +1,12 @@
 """Accuracy that follows the data (issue 13): the numerical error of a fit's model at its
 optimum, against a converged reference, in units of the measurement standard errors.
 
-A preset's knobs (spectral sampling, aperture nodes, the rounded model's resolution) trade
-accuracy for speed; an error that is small at 2% noise can be many standard errors when a large
-photo averages the noise down. `numerical_error` evaluates the model once more at the fitted
-parameters with the reference knobs (`model_radiance`, `stairfit.model` directly) and compares
-it with the fitted model row by row. docs/fitting.md §3 ("Numerical error at the optimum").
+A preset's knobs (spectral sampling, aperture nodes, the rounded model's resolution, the fillet
+correction's rays) trade accuracy for speed; an error that is small at 2% noise can be many
+standard errors when a large photo averages the noise down. `numerical_error` evaluates the
+model once more at the fitted parameters with the reference knobs (`model_radiance`,
+`stairfit.model` directly) and compares it with the fitted model row by row. docs/fitting.md
+§3 ("Numerical error at the optimum").
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 
 from stairfit import model
 
-from ._forward import measurement_whitened
+from ._forward import Resolution, measurement_whitened
 from ._observations import Spectral
 from ._result import FitResult
 from ._simulate import model_radiance
@@ -61,11 +62,12 @@ def numerical_error(
     reference: Spectral,
     *,
     aperture: model.Aperture | None = None,
-    resolution: int | None = None,
+    resolution: int | Resolution | None = None,
     limit: float = ACCURACY_LIMIT,
 ) -> NumericalError:
     """`fit.model` against `model_radiance(fit.params, ...)` with the reference spectral setup
-    `reference`, `aperture` and rounded `resolution` (module doc); one evaluation."""
+    `reference`, `aperture` and `resolution` (the rounded model's, or a `Resolution` with the
+    fillet correction's rays too) (module doc); one evaluation."""
     import time
 
     if fit.problem is None:

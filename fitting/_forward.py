@@ -42,7 +42,8 @@ class Static(NamedTuple):
     (the plain `(value - model) / sd`). `aperture`: finite light/patch sizes [conventions §9].
     `resolution`: the rounded model's resolution setting (`None` = its default). `filleted`:
     the rounded model plus concave fillets (`stairfit.model.brdf_filleted`; needed when the
-    fillet radius is free or non-zero; implies `rounded`).
+    fillet radius is free or non-zero; implies `rounded`). `fillet_rays`: the fillet
+    correction's rays per period (`None` = `stairfit.model.FILLET_RAYS`; docs/rounded.md §11).
     """
 
     layout: Layout
@@ -52,6 +53,25 @@ class Static(NamedTuple):
     aperture: model.Aperture = model.Aperture()
     resolution: int | None = None
     filleted: bool = False
+    fillet_rays: int | None = None
+
+
+class Resolution(NamedTuple):
+    """The model's quadrature knobs as a fit takes them (`resolution=` of `fit_least_squares`,
+    `select_model`, `model_radiance`, ...): `rounded`, the rounded model's resolution
+    (`None` = `stairfit.model.ROUNDED_RESOLUTION`), and `fillet_rays`, the fillet correction's
+    rays per period (`None` = `stairfit.model.FILLET_RAYS`; docs/rounded.md §11). A plain int
+    there is the rounded resolution alone."""
+
+    rounded: int | None = None
+    fillet_rays: int | None = None
+
+
+def resolution_parts(resolution: int | Resolution | None) -> tuple[int | None, int | None]:
+    """`(rounded resolution, fillet rays)` of a `resolution=` argument (None: the default)."""
+    if isinstance(resolution, Resolution):
+        return resolution.rounded, resolution.fillet_rays
+    return resolution, None
 
 
 class Data(NamedTuple):
@@ -345,38 +365,42 @@ def filleted_grid_density(
 
 @filleted_grid_density.defjvp
 def _filleted_grid_jvp(cfg: tuple, primals: tuple, tangents: tuple) -> tuple[Array, Array]:
-    """The primal rays and the four differenced ones (`r` and `r_f` each at their two points)
-    are traced in one batched call, five radius pairs on a leading axis (one while loop in the
-    compiled program instead of five: issue 14)."""
+    """Four ray pairs traced in one batched call (one tracer in the compiled program, issue
+    14): the primal `(r, r_f)` against `(r, 0)`; `r`'s upper and lower points, each against its
+    own `r_f = 0`; and `r_f`'s upper point against its lower one directly (the difference of
+    the two corrections, `stairfit.model.fillet_rays`)."""
     sigma_k, dn, radius_um, fillet_um, g = primals
     t_sigma, t_dn, t_r, t_rf, _ = tangents
     radii = jnp.broadcast_arrays(radius_um, fillet_um, g.g_ti)[:2]
     pts = model.fillet_difference_points(g.g_ti, g.g_b2, g.g_layer, *radii)
     (r_lo, r_hi), (f_lo, f_hi) = pts[3], pts[4]
     r, rf = radii
-    r_at = jnp.stack([r, r_lo, r_hi, r, r])
-    rf_at = jnp.stack([rf, rf, rf, f_lo, f_hi])
+    zero = jnp.zeros_like(rf)
+    r_at = jnp.stack([r, r_hi, r_lo, r])
+    rf_at = jnp.stack([rf, rf, rf, f_hi])
     stack = lambda a: jnp.broadcast_to(a, r_at.shape)  # noqa: E731
     rays_all = model.fillet_rays(
-        stack(g.g_ti), stack(g.g_b2), stack(g.g_layer), r_at, rf_at, rays=cfg[2], bounces=cfg[3]
-    )
+        stack(g.g_ti), stack(g.g_b2), stack(g.g_layer), r_at, rf_at, rays=cfg[2], bounces=cfg[3],
+        other_fillet_um=jnp.stack([zero, zero, zero, f_lo]),
+    )  # fmt: skip
     rays = jax.tree_util.tree_map(lambda a: a[0], rays_all)
 
-    def f(eps: Array) -> Array:
-        s, d = sigma_k + eps[0], dn + eps[1]
-        return _rounded_impl(s, d, radius_um + eps[2], cfg[:2], g) + _fillet_impl(
-            s, d, rays, cfg, g
-        )
+    def rounded(eps: Array) -> Array:
+        return _rounded_impl(sigma_k + eps[0], dn + eps[1], radius_um + eps[2], cfg[:2], g)
 
-    value, jac = _value_and_jac(f, jnp.zeros(3, dtype=sigma_k.dtype))
-    d_sigma, d_dn, d_r = jac[..., 0], jac[..., 1], jac[..., 2]
+    def fillet(eps: Array) -> Array:  # the rays fixed: widths and index only
+        return _fillet_impl(sigma_k + eps[0], dn + eps[1], rays, cfg, g)
+
+    value, jac = _value_and_jac(rounded, jnp.zeros(3, dtype=sigma_k.dtype))
+    value_f, jac_f = _value_and_jac(fillet, jnp.zeros(2, dtype=sigma_k.dtype))
+    value = value + value_f
+    d_sigma, d_dn, d_r = jac[..., 0] + jac_f[..., 0], jac[..., 1] + jac_f[..., 1], jac[..., 2]
     tangent = d_sigma * t_sigma[:, None, None] + d_dn * t_dn + d_r * t_r
     moved = jax.tree_util.tree_map(lambda a: a[1:], rays_all)
-    c = jax.vmap(lambda rr: _fillet_impl(sigma_k, dn, rr, cfg, g))(moved)  # (4, R, T, C)
+    c = jax.vmap(lambda rr: _fillet_impl(sigma_k, dn, rr, cfg, g))(moved)  # (3, R, T, C)
     key_geo = g.r_geo[:, 0]  # a key's aperture nodes share its wedge and layer, so its steps
-    for k, (t, (lo, hi)) in enumerate(((t_r, pts[3]), (t_rf, pts[4]))):
-        scale = model.difference_scale(lo, hi, t)[key_geo, None, None]
-        tangent = tangent + (c[2 * k + 1] - c[2 * k]) * scale
+    for slope, t, (lo, hi) in ((c[0] - c[1], t_r, pts[3]), (c[2], t_rf, pts[4])):
+        tangent = tangent + slope * model.difference_scale(lo, hi, t)[key_geo, None, None]
     return value, tangent
 
 
@@ -386,7 +410,8 @@ def filleted_density(p: Params, data: Data, static: Static) -> Array:
     `stairfit.model.brdf_filleted` the sum is not clipped at 0 per wavelength and node (the
     rounded part is): the two differ only where the correction's quadrature noise exceeds
     the density, in far tails."""
-    cfg = (static.aperture, static.resolution, model.FILLET_RAYS, model.FILLET_BOUNCES)
+    rays = model.FILLET_RAYS if static.fillet_rays is None else static.fillet_rays
+    cfg = (static.aperture, static.resolution, rays, model.FILLET_BOUNCES)
     dens = filleted_grid_density(
         p.sigma_rad[data.r_wedge], p.delta_n, p.edge_radius_um, p.fillet_radius_um, cfg, _grid(data)
     )

@@ -14,7 +14,7 @@ import numpy as np
 from stairfit import model
 
 from ._errors import FitInputError
-from ._forward import Data, Static, light_nodes
+from ._forward import Data, Resolution, Static, light_nodes, resolution_parts
 from ._observations import Observations, Spectral, check_compatible
 from ._params import DEFAULTS, PARAM_NAMES, Layout, Parameter, Params, Priors, Variant
 from ._whiten import group_arrays
@@ -61,7 +61,7 @@ class Problem(NamedTuple):
     priors: Priors
     r_max_um: float
     aperture: model.Aperture
-    resolution: int | None
+    resolution: int | Resolution | None
     wedge_deg: np.ndarray
 
     def static_for(self, spec: FreeSpec) -> Static:
@@ -70,14 +70,16 @@ class Problem(NamedTuple):
         filleted = "fillet_radius_um" in spec.free or float(fixed.fillet_radius_um) > 0.0
         rounded = filleted or "edge_radius_um" in spec.free or float(fixed.edge_radius_um) > 0.0
         model_error = "model_error_frac" in spec.free or float(fixed.model_error_frac) > 0.0
+        resolution, fillet_rays = resolution_parts(self.resolution)
         return Static(
             layout=self.layout,
             rounded=rounded,
             model_error=model_error,
             correlated=self.correlated,
             aperture=self.aperture,
-            resolution=self.resolution,
+            resolution=resolution,
             filleted=filleted,
+            fillet_rays=fillet_rays,
         )
 
     @property
@@ -166,7 +168,7 @@ def prepare(
     fixed: Params = DEFAULTS,
     priors: Priors | None = None,
     aperture: model.Aperture | None = None,
-    resolution: int | None = None,
+    resolution: int | Resolution | None = None,
 ) -> Problem:
     """Validate the combination and build the traced arrays (see `Problem`)."""
     check_float64()
@@ -202,7 +204,7 @@ def as_problem(
     fixed: Params = DEFAULTS,
     priors: Priors | None = None,
     aperture: model.Aperture | None = None,
-    resolution: int | None = None,
+    resolution: int | Resolution | None = None,
 ) -> Problem:
     """`observations` if it is a prepared `Problem`, else `prepare` of it with the rest."""
     if isinstance(observations, Problem):

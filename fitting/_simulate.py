@@ -18,7 +18,7 @@ from jaxtyping import Array
 from stairfit import model
 
 from ._errors import FitInputError
-from ._forward import light_nodes
+from ._forward import Resolution, light_nodes, resolution_parts
 from ._observations import Observations, Spectral
 from ._params import Params, clamp_index
 
@@ -84,7 +84,7 @@ def model_radiance(
     spectral: Spectral,
     *,
     aperture: model.Aperture | None = None,
-    resolution: int | None = None,
+    resolution: int | Resolution | None = None,
 ) -> np.ndarray:
     """Model relative radiance at every row of `observations` for physical `params`.
 
@@ -92,15 +92,17 @@ def model_radiance(
     model when `params.edge_radius_um > 0`, the filleted model (`stairfit.model.brdf_filleted`,
     docs/rounded.md §11) when `params.fillet_radius_um > 0` (micrometres, `r + r_f <=
     min(l1, l2)` on every row's wedge, else a one-line ValueError from
-    `stairfit.model.check_fillet_radius`). Evaluated at every row, used or not.
+    `stairfit.model.check_fillet_radius`). Evaluated at every row, used or not. `resolution`:
+    the rounded model's, or a `Resolution` (also the fillet correction's rays).
     """
     obs = observations
+    resolution, fillet_rays = resolution_parts(resolution)
     sigma = params.sigma_per_wedge(obs.n_wedges)[obs.wedge_index]
     n = clamp_index(np.asarray(spectral.n_base)[obs.channel_index] + params.delta_n)
     w = np.asarray(spectral.weights)[obs.channel_index]
     ti, to = jnp.asarray(obs.theta_i_rad), jnp.asarray(obs.theta_o_rad)
     if float(params.fillet_radius_um) > 0.0:
-        dens = _filleted_rows(params, obs, n, w, sigma, aperture, resolution)
+        dens = _filleted_rows(params, obs, n, w, sigma, aperture, resolution, fillet_rays)
     elif float(params.edge_radius_um) > 0.0:
         dens = _rounded_rows(params, obs, n, w, sigma, aperture, resolution)
     else:
@@ -151,6 +153,7 @@ def _filleted_rows(
     sigma: np.ndarray,
     aperture: model.Aperture | None,
     resolution: int | None,
+    fillet_rays: int | None = None,
 ) -> np.ndarray:
     """Filleted-model band density per row, straight from `stairfit.model.brdf_filleted`:
     the rays are traced once per distinct (theta_i node, wedge, layer) (`fillet_geometry`),
@@ -174,6 +177,7 @@ def _filleted_rows(
         r,
         rf,
         res,
+        model.FILLET_RAYS if fillet_rays is None else fillet_rays,
     )  # (G, M, 1, 1): one geometry per distinct row geometry and light node
     out = np.zeros(obs.n_rows)
     for g in range(first.size):
@@ -198,8 +202,10 @@ _brdf_rounded = jax.jit(
 """`stairfit.model.brdf_rounded` as one compiled program: evaluated op by op it compiled about
 500 small programs on a new scene (tens of seconds of a forced rounded fit's accuracy check)."""
 _fillet_geometry = jax.jit(
-    lambda ti, b, l1, r, rf, res: model.fillet_geometry(ti, b, l1, r, rf, resolution=res),
-    static_argnums=5,
+    lambda ti, b, l1, r, rf, res, rays: model.fillet_geometry(
+        ti, b, l1, r, rf, resolution=res, rays=rays
+    ),
+    static_argnums=(5, 6),
 )
 _filleted_from_geometry = jax.jit(model.brdf_filleted_from_geometry)
 

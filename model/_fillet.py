@@ -51,6 +51,18 @@ FILLET_RAYS = 2048
 FILLET_BOUNCES = 16
 """Default number of reflections traced per ray (the bound of docs/rounded.md §1)."""
 
+FILLET_SEARCH_FRACTION = 4
+"""The fillet correction's search pass traces `rays // FILLET_SEARCH_FRACTION` stratified rays
+to find where the two lanes differ; the `rays` rays are then spread over that footprint
+(`_pair_rays`, docs/rounded.md §11)."""
+
+FILLET_MAX_REFINE = 64
+"""At most this many rays per search stratum of the footprint."""
+
+CHUNK_FRACTION = 4
+"""The tracer steps the rays still reflecting in chunks of `1 / CHUNK_FRACTION` of them
+(`_trace`)."""
+
 FILLET_FD_STEP = 0.01
 """Steps of the correction's derivatives in the geometry, as a fraction of `min(l1, l2)` (the
 radii), of `l1`, and of 15 deg (the angles) (docs/rounded.md §11)."""
@@ -130,20 +142,37 @@ def fillet_bounce_bound(theta_i: ArrayLike, beta2: ArrayLike) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-class _Candidates(NamedTuple):
-    """Every primitive's hit for a batch of rays: ray parameter `t` (inf = none) and the
-    outward normal at the hit, each `(n_primitives, n_rays)`; `shift` the cell of each
-    primitive (static)."""
+class _Cell(NamedTuple):
+    """The constants of one cell's primitives, per ray (arrays of the rays' shape) [conventions
+    §2]: `sin`, `cos` of beta2, `l1`, `l2`, the `period`, the radii, the smallest accepted ray
+    parameter `eps`, the tip arc's and the fillet's centres in cell 0 and the unit vector `mid`
+    halfway between the facets' normals."""
 
-    t: Array
-    nx: Array
-    nz: Array
-    shift: np.ndarray
+    sb: Array
+    cb: Array
+    l1: Array
+    l2: Array
+    period: Array
+    r: Array
+    rf: Array
+    eps: Array
+    tip: tuple[Array, Array]
+    fil: tuple[Array, Array]
+    mid: tuple[Array, Array]
 
 
 def _unit(angle: Array) -> tuple[Array, Array]:
     """`(x, z)` of the unit vector at `angle` from z towards +x [conventions §1]."""
     return jnp.sin(angle), jnp.cos(angle)
+
+
+def _cell(b: Array, l1: Array, r: Array, rf: Array) -> _Cell:
+    """`_Cell` of wedge `b`, layer `l1`, tip radius `r` and fillet radius `rf` (broadcast)."""
+    sb, cb = jnp.sin(b), jnp.cos(b)
+    l2, period = l1 * cb / sb, l1 / sb
+    c_tip = (-r * (sb - cb), -r * (cb + sb))
+    c_fil = (l2 * cb + rf * (sb - cb), -l2 * sb + rf * (cb + sb))
+    return _Cell(sb, cb, l1, l2, period, r, rf, _EPS * period, c_tip, c_fil, _unit(b - np.pi / 4))
 
 
 def _line_hit(ray: tuple, anchor: tuple, tangent: tuple, normal: tuple, lo, hi, eps) -> Array:  # noqa: ANN001
@@ -176,17 +205,14 @@ def _circle_hit(ray: tuple, centre: tuple, radius, sign: float, mid: tuple, eps)
     return jnp.where(real & in_arc & (t > eps), t, jnp.inf), nx, nz
 
 
-def _candidates(ray: tuple, b: Array, l1: Array, r: Array, rf: Array) -> _Candidates:
-    """All primitives of cells -1..+1 (tip arcs -1..+2) against the rays [conventions §2]:
-    tread `[r, l2 - r_f]` from the tip at the origin, riser `[r, l1 - r_f]` down from the tip
-    at `(L, 0)`, tip arc (convex) and fillet (concave), normals in `[beta2 - 90 deg, beta2]`."""
-    sb, cb = jnp.sin(b), jnp.cos(b)
-    l2, period = l1 * cb / sb, l1 / sb
-    eps = _EPS * period
-    n_tr, n_ri = (sb, cb), (-cb, sb)
-    mid = _unit(b - np.pi / 4)
-    c_tip = (-r * (sb - cb), -r * (cb + sb))
-    c_fil = (l2 * cb + rf * (sb - cb), -l2 * sb + rf * (cb + sb))
+def _nearest(ray: tuple, c: _Cell) -> tuple[Array, Array, Array, Array]:
+    """The first hit of each ray among all primitives of cells -1..+1 (tip arcs -1..+2)
+    [conventions §2]: tread `[r, l2 - r_f]` from the tip at the origin, riser `[r, l1 - r_f]`
+    down from the tip at `(L, 0)`, tip arc (convex) and fillet (concave), normals in
+    `[beta2 - 90 deg, beta2]`. Returns the ray parameter (inf = none), the outward normal at
+    the hit and the cell of the primitive hit (the first of equal ones: an argmin over the
+    stacked candidates; a running minimum measured slower)."""
+    n_tr, n_ri = (c.sb, c.cb), (-c.cb, c.sb)
     ts, nxs, nzs, shifts = [], [], [], []
 
     def add(t: Array, nx: Array, nz: Array, shift: int) -> None:
@@ -196,71 +222,116 @@ def _candidates(ray: tuple, b: Array, l1: Array, r: Array, rf: Array) -> _Candid
         shifts.append(shift)
 
     for s in _SHIFTS:
-        x0 = s * period
-        add(_line_hit(ray, (x0, 0.0), (cb, -sb), n_tr, r, l2 - rf, eps), *n_tr, s)
-        add(_line_hit(ray, (x0 + period, 0.0), (-sb, -cb), n_ri, r, l1 - rf, eps), *n_ri, s)
-        add(*_circle_hit(ray, (c_fil[0] + x0, c_fil[1]), rf, -1.0, mid, eps), s)
+        x0 = s * c.period
+        add(_line_hit(ray, (x0, 0.0), (c.cb, -c.sb), n_tr, c.r, c.l2 - c.rf, c.eps), *n_tr, s)
+        t = _line_hit(ray, (x0 + c.period, 0.0), (-c.sb, -c.cb), n_ri, c.r, c.l1 - c.rf, c.eps)
+        add(t, *n_ri, s)
+        add(*_circle_hit(ray, (c.fil[0] + x0, c.fil[1]), c.rf, -1.0, c.mid, c.eps), s)
     for s in _TIP_SHIFTS:
-        add(*_circle_hit(ray, (c_tip[0] + s * period, c_tip[1]), r, 1.0, mid, eps), s)
-    return _Candidates(jnp.stack(ts), jnp.stack(nxs), jnp.stack(nzs), np.asarray(shifts))
+        add(*_circle_hit(ray, (c.tip[0] + s * c.period, c.tip[1]), c.r, 1.0, c.mid, c.eps), s)
+    t = jnp.stack(ts)
+    j = jnp.argmin(t, axis=0)[None]
+    pick = lambda a: jnp.take_along_axis(a, j, 0)[0]  # noqa: E731
+    shift = jnp.asarray(shifts, t.dtype)[j[0]]
+    return pick(t), pick(jnp.stack(nxs)), pick(jnp.stack(nzs)), shift
 
 
 class _Rays(NamedTuple):
-    """The traced rays of one geometry and lane: per bounce (trailing axis) the cosine of the local
-    angle of incidence and whether the ray reflected there; whether it escaped, and where to."""
+    """The traced rays of each geometry and lane: per bounce (trailing axis) the cosine of the
+    local angle of incidence and whether the ray reflected there; whether it escaped, and where
+    to."""
 
-    cos: Float[Array, "n_rays bounces"]
+    cos: Float[Array, "... n_rays bounces"]
     hit: Array
     escaped: Array
-    theta_o: Float[Array, " n_rays"]
+    theta_o: Float[Array, "... n_rays"]
 
 
-def _trace_one(
-    ti: Array, b: Array, l1: Array, r: Array, rf: Array, rays: int, bounces: int
-) -> _Rays:
-    """Trace `rays` rays, stratified (midpoints) across one period of the ray front, for up to
-    `bounces` reflections [conventions §1, §2]. A ray still reflecting after that is dropped."""
-    sb, cb = jnp.sin(b), jnp.cos(b)
-    period = l1 / sb
-    x_top, z_top = -r * (sb - cb), -r * (cb + sb) + r
-    frac = (jnp.arange(rays, dtype=ti.dtype) + 0.5) / rays
-    px = x_top + frac * period
-    pz = jnp.broadcast_to(z_top, px.shape)
-    dx = jnp.broadcast_to(jnp.sin(ti), px.shape)
-    dz = jnp.broadcast_to(-jnp.cos(ti), px.shape)
+def _step(k: Array, bounces: int, state: tuple, c: _Cell) -> tuple:
+    """One reflection of every ray in `state = (px, pz, dx, dz, active)` at bounce `k`: the new
+    state, whether each ray reflected (`hit`), whether it left upwards (`esc`) and the cosine
+    of its local angle of incidence (1 where it did not reflect). Step `bounces` (after the
+    last reflection) only checks for escape. Elementwise in each ray's state and cell."""
+    px, pz, dx, dz, active = state
+    t, nx, nz, shift = _nearest((px, pz, dx, dz), c)
+    meets = jnp.isfinite(t)
+    esc = active & ~meets & (dz > 0)
+    hit = active & meets & (k < bounces)
+    t = jnp.where(hit, t, 0.0)
+    dn = dx * nx + dz * nz
+    new = (px + t * dx - shift * c.period, pz + t * dz, dx - 2 * dn * nx, dz - 2 * dn * nz)
+    px, pz, dx, dz = (jnp.where(hit, a, o) for a, o in zip(new, (px, pz, dx, dz), strict=True))
+    return (px, pz, dx, dz, hit), esc, jnp.where(hit, -dn, 1.0)
 
-    def step(carry: tuple) -> tuple:
-        k, px, pz, dx, dz, active, esc, cos, hits = carry
-        c = _candidates((px, pz, dx, dz), b, l1, r, rf)
-        j = jnp.argmin(c.t, axis=0)[None]
-        t = jnp.take_along_axis(c.t, j, 0)[0]
-        hit = active & jnp.isfinite(t)
-        esc = esc | (active & ~hit & (dz > 0))
-        t = jnp.where(hit, t, 0.0)
-        nx, nz = (jnp.take_along_axis(a, j, 0)[0] for a in (c.nx, c.nz))
-        shift = jnp.asarray(c.shift, px.dtype)[j[0]]
-        dn = dx * nx + dz * nz
-        new = (px + t * dx - shift * period, pz + t * dz, dx - 2 * dn * nx, dz - 2 * dn * nz)
-        px, pz, dx, dz = (jnp.where(hit, a, o) for a, o in zip(new, (px, pz, dx, dz), strict=True))
-        cos = jax.lax.dynamic_update_index_in_dim(cos, jnp.where(hit, -dn, 1.0), k, 0)
-        hits = jax.lax.dynamic_update_index_in_dim(hits, hit, k, 0)
-        return (k + 1, px, pz, dx, dz, hit, esc, cos, hits)
+
+def _trace(
+    ti: Array, b: Array, l1: Array, r: Array, rf: Array, rays: int, bounces: int,
+    frac: Array | None = None, valid: Array | None = None,
+) -> _Rays:  # fmt: skip
+    """Trace `rays` rays per element of the (broadcast) geometry, stratified (midpoints) across
+    one period of the ray front, or starting at the fractions `frac` of the period (`(...,
+    rays)`, only where `valid`), for up to `bounces` reflections [conventions §1, §2]. A ray
+    still reflecting after that is dropped.
+
+    All rays of all geometries are one flat batch, and one while loop steps the rays still
+    reflecting in chunks of a quarter of the batch: each pass gathers the next chunk of rays
+    at the current bounce (most leave after 1-2 reflections, so later bounces take one small
+    chunk), steps them and scatters them back. A ray's steps are elementwise in its own state
+    and cell, so neither the batch nor the gathering changes a bit of them; the loop stops once
+    no ray is left (the steps skipped would change nothing), so the result is that of
+    `bounces` steps of every ray to the bit. One step in the compiled program. The rays are
+    never differentiated through (derivatives in the geometry are differences,
+    `_fd_correction`)."""
+    ti, b, l1, r, rf = jnp.broadcast_arrays(ti, b, l1, r, rf)
+    shape = ti.shape
+    n_all = ti.size * rays
+    flat = lambda a: jnp.broadcast_to(a[..., None], (*shape, rays)).reshape(n_all)  # noqa: E731
+    cell = _cell(*(flat(a) for a in (b, l1, r, rf)))
+    if frac is None:
+        frac = (jnp.arange(rays, dtype=ti.dtype) + 0.5) / rays
+    frac = jnp.broadcast_to(frac, (*shape, rays)).reshape(n_all)
+    r_ = cell.r
+    state = (
+        -r_ * (cell.sb - cell.cb) + frac * cell.period,
+        -r_ * (cell.cb + cell.sb) + r_,
+        flat(jnp.sin(ti)),
+        flat(-jnp.cos(ti)),
+        jnp.ones(n_all, bool) if valid is None else jnp.broadcast_to(valid, (*shape, rays)).ravel(),
+    )
+    chunk = max(n_all // CHUNK_FRACTION, 1)
+
+    def body(carry: tuple) -> tuple:
+        k, state, level, esc, cos, hits = carry
+        todo = state[4] & (level == k)
+        (idx,) = jnp.nonzero(todo, size=chunk, fill_value=n_all)
+        take = jnp.minimum(idx, n_all - 1)
+        part = tuple(jnp.where(idx < n_all, a[take], False) if a.dtype == bool else a[take]
+                     for a in state)  # fmt: skip
+        new, out, cos_k = _step(k, bounces, part, jax.tree_util.tree_map(lambda a: a[take], cell))
+        state = tuple(a.at[idx].set(f, mode="drop") for a, f in zip(state, new, strict=True))
+        esc = esc.at[idx].set(esc[take] | out, mode="drop")
+        level = level.at[idx].add(1, mode="drop")
+        cos = cos.at[k, idx].set(cos_k, mode="drop")
+        hits = hits.at[k, idx].set(new[4], mode="drop")
+        k = jnp.where(jnp.sum(todo) <= chunk, k + 1, k)  # every ray at bounce k stepped
+        return (k, state, level, esc, cos, hits)
 
     def more(carry: tuple) -> Array:
-        return (carry[0] < bounces) & jnp.any(carry[5])
+        return (carry[0] <= bounces) & jnp.any(carry[1][4])
 
-    # A while loop, not a scan: it stops once every ray has escaped or been absorbed (most
-    # need 1-3 reflections), and the steps it skips would change nothing (no ray active: cosine
-    # 1, no hit), so the result is the same as `bounces` steps to the bit. The rays are never
-    # differentiated through (derivatives in the geometry are differences, `_fd_correction`).
+    # rows 0..bounces-1 the reflections, row `bounces` written by the escape-only step
     start = (
-        jnp.asarray(0), px, pz, dx, dz, jnp.ones(rays, bool), jnp.zeros(rays, bool),
-        jnp.ones((bounces, rays), px.dtype), jnp.zeros((bounces, rays), bool),
+        jnp.asarray(0), state, jnp.zeros(n_all, jnp.int32), jnp.zeros(n_all, bool),
+        jnp.ones((bounces + 1, n_all), ti.dtype), jnp.zeros((bounces + 1, n_all), bool),
     )  # fmt: skip
-    _, px, pz, dx, dz, active, esc, cos, hit = jax.lax.while_loop(more, step, start)
-    last = _candidates((px, pz, dx, dz), b, l1, r, rf)
-    esc = esc | (active & ~jnp.any(jnp.isfinite(last.t), axis=0) & (dz > 0))
-    return _Rays(cos=cos.T, hit=hit.T, escaped=esc, theta_o=jnp.arctan2(dx, dz))
+    _, (_, _, dx, dz, _), _, esc, cos, hit = jax.lax.while_loop(more, body, start)
+    unflat = lambda a: a.reshape(*a.shape[:-1], *shape, rays)  # noqa: E731
+    return _Rays(
+        cos=jnp.moveaxis(unflat(cos[:bounces]), 0, -1),
+        hit=jnp.moveaxis(unflat(hit[:bounces]), 0, -1),
+        escaped=unflat(esc),
+        theta_o=unflat(jnp.arctan2(dx, dz)),
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -277,7 +348,8 @@ class FilletRays(NamedTuple):
     upwards within `bounces` reflections; `theta_o`: its final direction [conventions §1];
     `live`: whether the two lanes of the ray differ at all (a ray that meets neither the fillet
     nor the corner it replaces takes bit-identical steps in both and is left out of every sum;
-    it would cancel exactly).
+    it would cancel exactly); `weight`: the share of the period's ray front the ray stands for
+    (its stratum's width; 0 for an unused ray).
     """
 
     cos: Float[Array, "... 2 n_rays bounces"]
@@ -285,30 +357,51 @@ class FilletRays(NamedTuple):
     escaped: Array
     theta_o: Float[Array, "... 2 n_rays"]
     live: Array
+    weight: Float[Array, "... n_rays"]
 
 
-def _pair_rays(
-    ti: Array, b: Array, l1: Array, r: Array, rf: Array, rays: int, bounces: int
-) -> FilletRays:
-    """The rays for `r_f` and for 0 on a new axis before the ray axis: `(..., 2, rays[, K])`.
-
-    One vectorised computation on both lanes, so a ray that misses the fillet gives the same
-    bits in both (`live` is False for it)."""
-    ti, b, l1, r, rf = jnp.broadcast_arrays(ti, b, l1, r, rf)
-    pair = [jnp.stack([a, a], axis=-1) for a in (ti, b, l1, r)]
-    pair.append(jnp.stack([rf, jnp.zeros_like(rf)], axis=-1))
-
-    def one(*args: Array) -> tuple:
-        return tuple(_trace_one(*args, rays=rays, bounces=bounces))
-
-    cos, hit, esc, th = jnp.vectorize(one, signature="(),(),(),(),()->(n,k),(n,k),(n),(n)")(*pair)
-    live = (
+def _differ(rays: _Rays) -> Array:
+    """Per ray, whether its two lanes (the axis before the rays) differ in any bit."""
+    cos, hit, esc, th = rays
+    return (
         jnp.any((cos[..., 0, :, :] != cos[..., 1, :, :]) | (hit[..., 0, :, :] != hit[..., 1, :, :]),
                 axis=-1)
         | (esc[..., 0, :] != esc[..., 1, :])
         | (th[..., 0, :] != th[..., 1, :])
     )  # fmt: skip
-    return FilletRays(cos, hit, esc, th, live)
+
+
+def _pair_rays(
+    ti: Array, b: Array, l1: Array, r: Array, rf: Array, rays: int, bounces: int,
+    rf_other: Array | float = 0.0,
+) -> FilletRays:  # fmt: skip
+    """The rays for `r_f` and for `rf_other` (default 0) on a new axis before the ray axis:
+    `(..., 2, rays[, K])`, placed where the two lanes differ (docs/rounded.md §11).
+
+    A search pass traces `rays // FILLET_SEARCH_FRACTION` stratified rays; the strata whose
+    ray differs between the lanes, and their neighbours, are the footprint, and `rays` rays
+    are spread over it: `m = rays // (strata in it)` (at most `FILLET_MAX_REFINE`) at the
+    midpoints of equal parts of each of its strata, each standing for `1 / (strata x m)` of the
+    period. Every other stratum's rays are the same in both lanes and cancel. Both passes trace
+    both lanes in one vectorised computation, so a ray that meets neither lane's fillet (nor
+    the corner) gives the same bits in both (`live` is False for it)."""
+    ti, b, l1, r, rf, rf_other = jnp.broadcast_arrays(ti, b, l1, r, rf, rf_other)
+    pair = [jnp.stack([a, a], axis=-1) for a in (ti, b, l1, r)]
+    pair.append(jnp.stack([rf, rf_other], axis=-1))
+    n0 = max(rays // FILLET_SEARCH_FRACTION, 1)
+    found = _differ(_Rays(*_trace(*pair, rays=n0, bounces=bounces)))
+    near = found | jnp.roll(found, 1, axis=-1) | jnp.roll(found, -1, axis=-1)
+    count = jnp.sum(near, axis=-1, keepdims=True)  # (..., 1)
+    m = jnp.clip(rays // jnp.maximum(count, 1), 1, FILLET_MAX_REFINE)
+    order = jnp.argsort(~near, axis=-1, stable=True)  # the footprint's strata first, in order
+    j = jnp.arange(rays).reshape((1,) * (m.ndim - 1) + (rays,))
+    k = j // m  # (..., rays): which of the footprint's strata
+    stratum = jnp.take_along_axis(order, jnp.minimum(k, n0 - 1), axis=-1)
+    frac = (stratum + ((j - k * m) + 0.5) / m) / n0
+    weight = jnp.where(k < count, 1.0 / (n0 * m), 0.0).astype(ti.dtype)
+    frac = jnp.stack([frac, frac], axis=-2).astype(ti.dtype)
+    traced = _Rays(*_trace(*pair, rays=rays, bounces=bounces, frac=frac))
+    return FilletRays(*traced, _differ(traced) & (weight > 0), weight)
 
 
 def fillet_ray_power(rays: FilletRays, n: ArrayLike) -> Float[Array, "... 2 n_rays"]:
@@ -319,16 +412,23 @@ def fillet_ray_power(rays: FilletRays, n: ArrayLike) -> Float[Array, "... 2 n_ra
     `n` (complex allowed) broadcasts with the leading axes of `rays`; pass the index samples on
     their own axis (e.g. `rays` with leading `(G, 1)`, `n` of shape `(K,)` gives
     `(G, K, 2, n_rays)`). The product over bounces is accumulated one bounce at a time, so no
-    `(index x rays x bounces)` array is formed."""
+    `(index x rays x bounces)` array is formed, and only over the bounces some ray reflected at
+    (a loop of dynamic length: the later ones are factors 1)."""
     n_b = jnp.asarray(n)[..., None, None]
-    p_s = p_p = None
-    for k in range(rays.cos.shape[-1]):
-        f = fresnel_sp(rays.cos[..., k], n_b)
-        s = jnp.where(rays.hit[..., k], f.s, 1.0)
-        p = jnp.where(rays.hit[..., k], f.p, 1.0)
-        p_s, p_p = (s, p) if p_s is None else (p_s * s, p_p * p)
+    bounces = rays.cos.shape[-1]
+    reflected = jnp.any(rays.hit, axis=tuple(range(rays.hit.ndim - 1)))  # per bounce
+    used = jnp.max(jnp.where(reflected, jnp.arange(1, bounces + 1), 0))
+
+    def one(k: Array, acc: tuple) -> tuple:
+        hit = jax.lax.dynamic_index_in_dim(rays.hit, k, axis=-1, keepdims=False)
+        f = fresnel_sp(jax.lax.dynamic_index_in_dim(rays.cos, k, axis=-1, keepdims=False), n_b)
+        return acc[0] * jnp.where(hit, f.s, 1.0), acc[1] * jnp.where(hit, f.p, 1.0)
+
+    shape = jnp.broadcast_shapes(rays.cos.shape[:-1], n_b.shape)
+    ones = jnp.ones(shape, rays.cos.dtype)  # fresnel_sp computes at the cosines' precision
+    p_s, p_p = jax.lax.fori_loop(0, used, one, (ones, ones))
     keep = rays.escaped & rays.live[..., None, :]
-    power = 0.5 * (p_s + p_p) / rays.cos.shape[-2]
+    power = 0.5 * (p_s + p_p) * rays.weight[..., None, :]
     sign = with_rank(jnp.asarray([1.0, -1.0], power.dtype)[:, None], power.ndim)
     power = power * sign
     return jnp.where(keep, power, 0.0)
@@ -376,21 +476,28 @@ def fillet_rays(
     *,
     rays: int = FILLET_RAYS,
     bounces: int = FILLET_BOUNCES,
+    other_fillet_um: ArrayLike = 0.0,
 ) -> FilletRays:
     """The traced ray pairs of the fillet correction, one set per broadcast element of the
     geometry (radians, micrometres) [conventions §1, §2]: what does not depend on `theta_o`,
     the index or the broadening, so a caller with many of those per geometry (a fit) traces
     once per distinct geometry and finishes with `fillet_ray_power` and the kernel.
 
+    The second lane has fillet radius `other_fillet_um`: 0 (the default) for the correction
+    `T(r, r_f) - T(r, 0)`; another radius gives `T(r, r_f) - T(r, other)` directly, which is
+    the difference of the two corrections (a ray that differs in neither from `T(r, 0)` is
+    the same in both), so a derivative in `r_f` needs one pair of traces, not two.
+
     Not differentiable in the geometry (a `stop_gradient`: the per-ray derivative is
     heavy-tailed, docs/rounded.md §11); derivatives in the geometry are differences between
     traces at `fillet_difference_points`, as `brdf_filleted` takes them. Traced radii are not
     range-checked (`check_fillet_radius`)."""
     check_fillet_radius(beta2, layer_um, edge_radius_um, fillet_radius_um)
+    check_fillet_radius(beta2, layer_um, edge_radius_um, other_fillet_um)
     geom = jax.lax.stop_gradient(
-        _geom_args(theta_i, beta2, layer_um, edge_radius_um, fillet_radius_um)
+        _geom_args(theta_i, beta2, layer_um, edge_radius_um, fillet_radius_um, other_fillet_um)
     )
-    return _pair_rays(*geom, rays, bounces)
+    return _pair_rays(*geom[:5], rays, bounces, geom[5])
 
 
 class FilletGeometry(NamedTuple):
@@ -518,20 +625,27 @@ def _is_zero(t: object) -> bool:
 
 def _fd_correction_jvp(static: _Static, primals: tuple, tangents: tuple) -> tuple:
     """One batched trace serves the value and every difference: the geometry at the primal and
-    at each differenced argument's two points is stacked on a new leading axis and traced in one
-    `_pair_rays` call (one while loop in the compiled program, not one per point: eleven for a
-    full Jacobian made its compilation 20 s, issue 14)."""
+    at each differenced argument's points is stacked on a new leading axis and traced in one
+    `_pair_rays` call (one tracer in the compiled program, not one per point: eleven for a
+    full Jacobian made its compilation 20 s, issue 14). The difference in `r_f` is one pair
+    (`r_f` at its upper point against its lower, `fillet_rays`); every other argument's is two
+    pairs (the correction at its upper point minus at its lower)."""
     geom, rest = primals
     d_geom, d_rest = tangents
     moved = [k for k in range(len(geom)) if not _is_zero(d_geom[k])]
     points = fillet_difference_points(*geom)
-    stack = []
+    stack, other = [], [jnp.zeros_like(geom[4])]
+    for k in moved:
+        other += [points[4][0]] if k == 4 else [jnp.zeros_like(geom[4])] * 2
     for j, g in enumerate(geom):
         column = [g]
         for k in moved:
-            column += [points[k][0], points[k][1]] if j == k else [g, g]
+            if k == 4:
+                column += [points[4][1] if j == 4 else g]
+            else:
+                column += [points[k][0], points[k][1]] if j == k else [g, g]
         stack.append(jnp.stack(column))
-    rays_all = _pair_rays(*stack, static.rays, static.bounces)
+    rays_all = _pair_rays(*stack, static.rays, static.bounces, jnp.stack(other))
     rays = jax.tree_util.tree_map(lambda a: a[0], rays_all)
     if all(_is_zero(t) for t in d_rest):
         out = _correction_from_rays(static.kind, rays, rest)
@@ -545,11 +659,14 @@ def _fd_correction_jvp(static: _Static, primals: tuple, tangents: tuple) -> tupl
         return out, d_out
     moved_rays = jax.tree_util.tree_map(lambda a: a[1:], rays_all)
     at = jax.vmap(lambda r: _correction_from_rays(static.kind, r, rest))(moved_rays)
-    for i, k in enumerate(moved):
-        lo, hi = points[k]
+    i = 0
+    for k in moved:
+        if k == 4:
+            slope, i = at[i], i + 1
+        else:
+            slope, i = at[i + 1] - at[i], i + 2
         d = d_geom[k]
-        scale = difference_scale(lo, hi, d)
-        slope = at[2 * i + 1] - at[2 * i]
+        scale = difference_scale(*points[k], d)
         d_out = d_out + slope * scale.reshape(d.shape + (1,) * (out.ndim - d.ndim))
     return out, d_out
 

@@ -45,7 +45,9 @@ def test_exported_fit_and_posterior_equal_the_traced_ones(cache_dir: Path) -> No
     posterior (XLA may fuse the exported module a little differently)."""
     jax.config.update("jax_compilation_cache_dir", None)
     plain = _fit()
-    post_plain = fitting.sample_posterior(plain, seed=3, max_steps=200, chunk_steps=100, emit_warnings=False)
+    post_plain = fitting.sample_posterior(
+        plain, seed=3, max_steps=200, chunk_steps=100, emit_warnings=False
+    )
     jax.config.update("jax_compilation_cache_dir", str(cache_dir.parent))
     first = _fit()
     files = sorted(p.name for p in cache_dir.glob("*.bin"))
@@ -56,7 +58,9 @@ def test_exported_fit_and_posterior_equal_the_traced_ones(cache_dir: Path) -> No
         np.testing.assert_allclose(f.z, plain.z, rtol=1e-10, atol=1e-12)
         np.testing.assert_allclose(f.chi2, plain.chi2, rtol=1e-10)
         np.testing.assert_allclose(f.stderrs, plain.stderrs, rtol=1e-8)
-    post = fitting.sample_posterior(second, seed=3, max_steps=200, chunk_steps=100, emit_warnings=False)
+    post = fitting.sample_posterior(
+        second, seed=3, max_steps=200, chunk_steps=100, emit_warnings=False
+    )
     assert any(p.name.startswith("log_probability-") for p in cache_dir.glob("*.bin"))
     np.testing.assert_allclose(post.log_prob, post_plain.log_prob, rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(post.samples, post_plain.samples, rtol=1e-9, atol=1e-12)

@@ -49,53 +49,52 @@ def _correction(p, b2):
 
 
 # Few compiled programs, each shared by several tests (the filleted model's compilation is
-# most of this file's time, issue 14)
-_CORRECTION = jax.jit(lambda p, b2: (_correction(p, b2), jax.jacfwd(_correction)(p, b2)))
-_BOTH = jax.jit(lambda p, b2: (_brdf(p, b2), _rounded(p, b2)))
-_JACS = jax.jit(lambda p, b2: (jax.jacfwd(_brdf)(p, b2), jax.jacfwd(_rounded)(p, b2)))
+# most of this file's time, issue 14): the filleted and the rounded model and the correction
+# alone, each with its Jacobian, in one program
+_ALL = jax.jit(
+    lambda p, b2: (_brdf(p, b2), _rounded(p, b2), jax.jacfwd(_brdf)(p, b2),
+                   jax.jacfwd(_rounded)(p, b2), _correction(p, b2), jax.jacfwd(_correction)(p, b2))
+)  # fmt: skip
 
 
 @pytest.mark.parametrize("beta2_deg", [10, 30, 60])
 @pytest.mark.parametrize("theta_i_deg", [-70.0, -20.0, 0.0, 40.0])
 def test_zero_fillet_is_the_rounded_model_in_value_and_gradient(beta2_deg, theta_i_deg):
-    """The correction is exactly 0 with exactly 0 derivatives (`_CORRECTION`); the whole, in
-    one compiled program with the rounded model, is equal to it. (Separately compiled, the
-    rounded model itself differs from its eager run by up to 1e-8 relative at small values.)"""
+    """The correction is exactly 0 with exactly 0 derivatives; the whole, in one compiled
+    program with the rounded model, is equal to it. (Separately compiled, the rounded model
+    itself differs from its eager run by up to 1e-8 relative at small values.)"""
     b2 = beta2_deg * DEG
     p = jnp.array([0.05, 1.46, 30.0, 0.0, theta_i_deg * DEG, L1])
-    v, v0 = _BOTH(p, b2)
+    v, v0, j, j0, c, dc = _ALL(p, b2)
     np.testing.assert_array_equal(v, v0)
-    j, j0 = _JACS(p, b2)
     keep = [0, 1, 2, 4, 5]  # every parameter but r_f (which the rounded model does not have)
     # the Jacobians are two differently structured programs: equal to the last bits (the
     # correction's own derivative is checked to be exactly 0 below)
     np.testing.assert_allclose(j[:, keep], j0[:, keep], rtol=1e-12, atol=0)
     if theta_i_deg == 0:  # at -70, -20 (10 deg wedge), 40 (10, 60 deg) a shadow covers the
         assert bool(jnp.any(j[:, 3] != 0))  # corner; elsewhere r_f acts, already at 0
-    c, dc = _CORRECTION(p, b2)
     np.testing.assert_array_equal(c, 0.0)
     np.testing.assert_array_equal(dc[:, keep], 0.0)
 
 
-# one compiled program per pair (each compared in the same program, as in the test above;
-# eagerly the four calls took 31 s)
-_BINNED_PAIR = jax.jit(lambda ti, b2: (
+# one compiled program for both pairs (each compared in the same program, as in the test
+# above; eagerly the four calls took 31 s), the three wedges on their own axis
+_BINNED_TOTAL = jax.jit(lambda ti, b2: (
     model.filleted_binned(ti, _EDGES, b2, 1.46, L1, 5.0, 0.0, rays=RAYS),
     model.rounded_binned(ti, _EDGES, b2, 1.46, L1, 5.0),
-))  # fmt: skip
-_TOTAL_PAIR = jax.jit(lambda ti, b2: (
     model.filleted_total(ti, b2, 1.46, L1, 5.0, 0.0, rays=RAYS),
     model.rounded_total(ti, b2, 1.46, L1, 5.0),
 ))  # fmt: skip
 
 
 def test_zero_fillet_binned_and_total_are_the_rounded_ones():
-    ti = jnp.array([-1.0, -0.3, 0.0, 0.6, 1.3])
+    ti = jnp.array([-1.0, -0.3, 0.0, 0.6, 1.3])[None, :]
+    b2 = jnp.array([10 * DEG, 45 * DEG, 80 * DEG])[:, None]
+    binned, binned0, total, total0 = _BINNED_TOTAL(ti, b2)
     # to the last bit but one: compiled together, XLA fuses the two sums differently (1 ulp
     # seen); that the correction itself is exactly 0 is asserted bitwise above
-    for b2 in (10 * DEG, 45 * DEG, 80 * DEG):
-        np.testing.assert_allclose(*_BINNED_PAIR(ti, b2), rtol=1e-14, atol=0)
-        np.testing.assert_allclose(*_TOTAL_PAIR(ti, b2), rtol=1e-14, atol=0)
+    np.testing.assert_allclose(binned, binned0, rtol=1e-14, atol=0)
+    np.testing.assert_allclose(total, total0, rtol=1e-14, atol=0)
 
 
 @pytest.mark.parametrize("beta2_deg", [0.5, 30, 60, 89.5])
@@ -109,23 +108,38 @@ def test_finite_values_and_gradients_at_extremes(beta2_deg):
             for ti in angles:
                 for n in (1.46, 1.0001):
                     p = jnp.array([0.05, n, r, rf, ti, L1])
-                    v, j = _BOTH(p, b2)[0], _JACS(p, b2)[0]  # the programs compiled above
+                    v, _, j, *_ = _ALL(p, b2)  # the program compiled above
                     assert _finite((v, j)), (r, rf, ti, n)
                     assert bool(jnp.all(v >= 0)), (r, rf, ti, n)
 
 
-_T5 = jax.jit(lambda p: model.filleted_total(p[0], p[1], 1.46, p[2], p[3], p[4], rays=4096))
-_J5 = jax.jit(jax.jacfwd(_T5))
+def _t5(p: jax.Array) -> jax.Array:
+    """The filleted total at p = (theta_i, beta2, l1, r, r_f), 4096 rays (the slopes below are
+    differences)."""
+    return model.filleted_total(p[0], p[1], 1.46, p[2], p[3], p[4], rays=4096)
+
+
+# value and whole Jacobian in one program (the Jacobian costs a few ms per call; a second
+# program would cost its compilation)
+_TJ5 = jax.jit(lambda p: (_t5(p), jax.jacfwd(_t5)(p)))
+
+
+def _value5(p: jax.Array) -> jax.Array:
+    return _TJ5(p)[0]
+
+
+def _jac5(p: jax.Array) -> jax.Array:
+    return _TJ5(p)[1]
 
 
 def _total(rf: float, ti: float, b2: float) -> float:
-    """The filleted total at tip radius 30 um (4096 rays: the slopes below are differences)."""
-    return float(_T5(jnp.array([ti, b2, L1, 30.0, rf])))
+    """The filleted total at tip radius 30 um."""
+    return float(_value5(jnp.array([ti, b2, L1, 30.0, rf])))
 
 
 def _d_total(rf: float, ti: float, b2: float) -> float:
     """Its derivative in r_f (the model's difference, docs §11)."""
-    return float(_J5(jnp.array([ti, b2, L1, 30.0, rf]))[4])
+    return float(_jac5(jnp.array([ti, b2, L1, 30.0, rf]))[4])
 
 
 @pytest.mark.parametrize(
@@ -181,15 +195,12 @@ def test_correction_converges_with_the_ray_count():  # count: test_fillet_vs_ray
 
 def test_fillet_increases_total_as_in_the_issue():
     """Issue 15's tracer figures (30-degree wedge, l1 150 um, tip 30 um, fillet 15 um,
-    n = 1.46): total up 6.7% at theta_i = 0 and 11.5% at 40 deg; the model within 0.3%."""
-    ratio = jax.jit(  # one compilation for both angles (eagerly 17 s)
-        lambda ti: (
-            model.filleted_total(ti, 30 * DEG, 1.46, L1, 30.0, 15.0)
-            / model.rounded_total(ti, 30 * DEG, 1.46, L1, 30.0)
-        )
-    )
+    n = 1.46): total up 6.7% at theta_i = 0 and 11.5% at 40 deg; the model within 0.3%. The
+    program of the derivative tests (4096 rays); its `r_f = 0` is the rounded total exactly
+    (`test_zero_fillet_binned_and_total_are_the_rounded_ones`)."""
     for ti, up in ((0.0, 0.067), (40.0, 0.115)):
-        assert float(ratio(ti * DEG)) - 1 == pytest.approx(up, abs=0.003)
+        ratio = _total(15.0, ti * DEG, 30 * DEG) / _total(0.0, ti * DEG, 30 * DEG)
+        assert ratio - 1 == pytest.approx(up, abs=0.003)
 
 
 @pytest.mark.slow  # two compilations (15 s); float32 is for figures, not fits (docs §10)
@@ -216,8 +227,8 @@ def test_jacobian_matches_central_differences(beta2_deg, theta_i_deg, tip, fil):
     noise (measured worst 3.1%, in theta_i; the pathwise derivative was 10x off there)."""
     p = np.array([theta_i_deg * DEG, beta2_deg * DEG, L1, tip, fil])
     steps = np.array([0.5 * DEG, 0.5 * DEG, 1.5, 1.0, 1.0])
-    jac = np.asarray(_J5(jnp.asarray(p)))
+    jac = np.asarray(_jac5(jnp.asarray(p)))
     for k, h in enumerate(steps):
         e = np.eye(5)[k] * h
-        fd = (float(_T5(jnp.asarray(p + e))) - float(_T5(jnp.asarray(p - e)))) / (2 * h)
+        fd = (float(_value5(jnp.asarray(p + e))) - float(_value5(jnp.asarray(p - e)))) / (2 * h)
         np.testing.assert_allclose(jac[k], fd, rtol=0.04, err_msg=str(k))

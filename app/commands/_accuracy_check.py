@@ -16,8 +16,8 @@ from ..presets import PRESETS, Preset
 
 DEG = np.pi / 180
 REFERENCE = "accurate"
-"""The preset whose knobs (5 nm spectral sampling, aperture nodes, rounded resolution) are the
-converged reference."""
+"""The preset whose knobs (5 nm spectral sampling, aperture nodes, rounded resolution, fillet
+rays) are the converged reference."""
 
 
 CHI2_ROSE = 1.05
@@ -72,7 +72,8 @@ def check_accuracy(
                                         "the accurate preset is its own reference")  # fmt: skip
     ref = PRESETS[REFERENCE]
     spectral, aperture = fit_setup(scene, ref)
-    knobs = {"aperture": aperture, "resolution": ref.rounded_resolution}
+    resolution = fitting.Resolution(ref.rounded_resolution, ref.fillet_rays)
+    knobs = {"aperture": aperture, "resolution": resolution}
     error = fitting.numerical_error(selection.fit, spectral, **knobs)
     if not error.exceeds:
         return selection, AccuracyCheck(preset.name, error, "none", 0.0, error.sentence())

@@ -440,7 +440,9 @@ def select(observations: Any, spectral: Any, aperture: Any, options: FitOptions)
                 rounded_rungs=options.preset.rounded_rungs,
                 sigma_starts_rad=tuple(s * DEG for s in options.preset.sigma_starts_deg),
                 aperture=aperture,
-                resolution=options.preset.rounded_resolution,
+                resolution=fitting.Resolution(
+                    options.preset.rounded_resolution, options.preset.fillet_rays
+                ),
                 on_variant=lambda name: tick(),
             )
         except (fitting.FitError, fitting.FitInputError) as err:
