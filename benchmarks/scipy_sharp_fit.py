@@ -8,7 +8,8 @@ staircase of `numpy_staircase.py`:
 
 * the sharp lobes broadened by sigma, averaged over the same Gauss-Legendre aperture nodes as
   `stairfit.model.Aperture`, the viewing offsets scaled by each row's `view_spread` and
-  foreshortened by `cos(theta_o)`;
+  foreshortened by `cos(theta_o)`, each viewing node's density weighted by
+  `cos(theta_o) / cos(node)` (its own radiance conversion, `stairfit.model.view_conversion`);
 * `scale * cos(theta_i) * rho / cos(theta_o) + floor * cos(theta_i)` [conventions §9], one
   effective wavelength per channel (the balanced preset's sampling);
 * residuals whitened per ROI with the 3 x 3 correlation of its R, G, B errors
@@ -132,7 +133,10 @@ def density(d: dict[str, np.ndarray], n: float, sigma: float, nodes: tuple) -> n
     # the face-on spread, narrowed by the ROI's share and foreshortened by cos(theta_o)
     half_o = d["spread"] * np.cos(d["theta_o"])
     to = np.clip(d["theta_o"][:, None] + do * half_o[:, None], -np.pi / 2, np.pi / 2)
-    return nps.brdf(ti, to, d["beta2"][:, None], n, sigma) @ dw
+    # each viewing node converts to radiance at its own angle [conventions §9]: its density
+    # weighted by cos(theta_o) / cos(node), both floored
+    conv = np.maximum(np.cos(d["theta_o"]), COS_FLOOR)[:, None] / np.maximum(np.cos(to), COS_FLOOR)
+    return (nps.brdf(ti, to, d["beta2"][:, None], n, sigma) * conv) @ dw
 
 
 def fit(d: dict[str, np.ndarray], variant: str, starts_deg: list[float], n_nodes: int) -> dict:
