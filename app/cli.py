@@ -110,8 +110,9 @@ def main(argv: list[str] | None = None) -> int:
     `stairfit COMMAND: error: FILE: FIELD: what is wrong; the fix`, with exit status 2; an
     `OSError` (a folder that cannot be written, a full disk) as one line with status 1. SIGINT
     exits with 130, SIGTERM and SIGHUP with 128 + the signal number (143, 129) after the same
-    cleanup (app/_signals.py). Warnings are one line each. Anything else is a bug and keeps its
-    traceback.
+    cleanup (app/_signals.py). A failed allocation (`MemoryError`, XLA's "Out of memory") is
+    one line with what to do, status 1. Warnings are one line each. Anything else is a bug and
+    keeps its traceback.
     """
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(argv[0] if argv and argv[0] in COMMANDS else None)
@@ -140,10 +141,30 @@ def main(argv: list[str] | None = None) -> int:
         print(f"stairfit {args.command}: error: {one_line(where + what)}", file=sys.stderr)
         return EXIT_OS_ERROR
     except Exception as e:
+        if _is_out_of_memory(e):
+            print(f"stairfit {args.command}: error: {one_line(_out_of_memory(e))}", file=sys.stderr)
+            return EXIT_OS_ERROR
         if not _is_imaging_error(e):
             raise
         print(f"stairfit {args.command}: error: {one_line(str(e))}", file=sys.stderr)
         return EXIT_USER_ERROR
+
+
+def _is_out_of_memory(e: BaseException) -> bool:
+    """A failed allocation: Python's `MemoryError` or XLA's "Out of memory" runtime error."""
+    from .commands._accuracy_check import is_out_of_memory
+
+    return is_out_of_memory(e)
+
+
+def _out_of_memory(e: BaseException) -> str:
+    """The one-line message for a run that ran out of memory, with what to do."""
+    first = (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
+    return (
+        f"ran out of memory ({first}); the accurate preset's filleted rungs hold the most "
+        "(5 nm sampling x 4096 rays, docs/fitting.md §3): use --preset balanced, fewer photos, "
+        "or a machine with more memory"
+    )
 
 
 if __name__ == "__main__":

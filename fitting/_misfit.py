@@ -117,6 +117,11 @@ class Assessment(NamedTuple):
         """True when the fit does not describe the data."""
         return self.status == Status.MISFITS
 
+    def because(self) -> str:
+        """The reasons as a predicate of "it": `needs a model-error term of 14% > 0.17%; has
+        chi^2 = 247.3 for 150 dof, p = 9.7e-07`."""
+        return "; ".join(r if r.startswith("needs") else f"has {r}" for r in self.reasons)
+
     def headline(self) -> str:
         """One sentence for the top of a summary (empty when the fit describes the data)."""
         if not self.misfits:
@@ -129,7 +134,7 @@ class Assessment(NamedTuple):
             else ""
         )
         return (
-            f"MISFIT: the model does not describe the data: it {'; '.join(self.reasons)}{limit}; "
+            f"MISFIT: the model does not describe the data: it {self.because()}{limit}; "
             f"chi^2 = {self.chi2_measurement:.4g} with the measurement errors alone, "
             f"{self.chi2:.4g} with the model-error term, for {self.dof} dof. {self.pattern}"
         )

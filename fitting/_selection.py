@@ -344,8 +344,9 @@ def fillet_needed(selection: Selection) -> tuple[bool, str]:
     fit = selection.fit
     a = selection.assessment if selection.assessment is not None else describe_fit(fit)
     if a.misfits:
-        reasons = "; ".join(a.reasons)
-        return True, f"the best variant without fillets {selection.chosen!r} misfits: it {reasons}"
+        return True, (
+            f"the best variant without fillets {selection.chosen!r} misfits: it {a.because()}"
+        )
     return False, (
         f"the best variant without fillets {selection.chosen!r} describes the data "
         f"({chi2_text(fit.chi2, fit.dof)})"
@@ -366,7 +367,7 @@ def rounding_needed(selection: Selection) -> tuple[bool, str]:
     if a.misfits:
         return (
             True,
-            f"the best sharp variant {selection.chosen!r} misfits: it {'; '.join(a.reasons)}",
+            f"the best sharp variant {selection.chosen!r} misfits: it {a.because()}",
         )
     if a.model_error_frac is not None:
         return False, (

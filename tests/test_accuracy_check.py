@@ -84,3 +84,31 @@ def test_a_refit_that_raises_chi2_says_the_reference_is_not_converged(precise, m
     monkeypatch.setattr(fitting, "fit_least_squares", real)
     _, plain = ac.check_accuracy(SCENE, obs, sel, PRESETS["balanced"])
     assert ac.CHI2_ROSE_NOTE not in plain.message  # the genuine refit lowers chi^2
+
+
+def test_a_refit_that_runs_out_of_memory_keeps_the_preset_fit_and_says_so(precise, monkeypatch):
+    """The accurate knobs can need far more memory than the preset's (a filleted variant with 5 nm
+    sampling and 4096 rays asked XLA for 86 GB on a 2 MP x 9-view folder): such a refit keeps
+    the preset's fit, with action "refit failed" and a sentence, not a traceback; any other
+    runtime error still propagates."""
+    from stairfit.commands import _accuracy_check as ac
+
+    sel, obs = precise
+
+    def oom(*args, **kwargs):
+        raise RuntimeError(
+            "INTERNAL: Error dispatching computation: Out of memory allocating 86279272672 bytes."
+        )
+
+    monkeypatch.setattr(fitting, "fit_least_squares", oom)
+    same, check = ac.check_accuracy(SCENE, obs, sel, PRESETS["balanced"])
+    assert same is sel and check.action == "refit failed", check.message
+    assert "ran out of memory" in check.message and "86279272672 bytes" in check.message
+    assert check.record()["action"] == "refit failed"
+
+    def other(*args, **kwargs):
+        raise RuntimeError("INTERNAL: something else")
+
+    monkeypatch.setattr(fitting, "fit_least_squares", other)
+    with pytest.raises(RuntimeError, match="something else"):
+        ac.check_accuracy(SCENE, obs, sel, PRESETS["balanced"])

@@ -457,3 +457,26 @@ def test_unparseable_arguments_exit_2_with_usage(
     err = capsys.readouterr().err
     assert err.startswith(f"usage: stairfit {argv[0]}")
     assert "Traceback" not in err
+
+
+def test_running_out_of_memory_is_one_line_with_what_to_do_and_leaves_no_output(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch
+) -> None:
+    """XLA's failed allocation (seen: 86 GB asked for by the accurate knobs' filleted program)
+    is not a bug report: one line naming it and what to do, status 1, no results folder."""
+    from stairfit.commands import fit as fit_command
+
+    def oom(*args, **kwargs):
+        raise RuntimeError(
+            "INTERNAL: Error dispatching computation: Out of memory allocating 86279272672 "
+            "bytes.\nmore XLA detail"
+        )
+
+    monkeypatch.setattr(fit_command, "fit_scene", oom)
+    out = tmp_path / "results"
+    status, err = run(capsys, "fit", str(photos), "-o", str(out), "--quiet")
+    lines = [x for x in err.strip().splitlines() if x.strip()]
+    assert status == 1 and len(lines) == 1, err
+    assert "ran out of memory" in lines[0] and "86279272672 bytes" in lines[0]
+    assert "--preset balanced" in lines[0] and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]

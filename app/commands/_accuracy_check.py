@@ -93,11 +93,22 @@ def _refit(
     from stairfit import fitting
 
     t0 = time.perf_counter()
-    fit = fitting.fit_least_squares(
-        observations, spectral, selection.fit.requested, start_from=(selection.fit,),
-        sigma_starts_rad=tuple(s * DEG for s in preset.sigma_starts_deg), on_failure="flag",
-        emit_warnings=False, **knobs,
-    )  # fmt: skip
+    try:
+        fit = fitting.fit_least_squares(
+            observations, spectral, selection.fit.requested, start_from=(selection.fit,),
+            sigma_starts_rad=tuple(s * DEG for s in preset.sigma_starts_deg),
+            on_failure="flag", emit_warnings=False, **knobs,
+        )  # fmt: skip
+    except (MemoryError, RuntimeError) as err:  # XLA's allocation failures are RuntimeErrors
+        if not is_out_of_memory(err):
+            raise
+        elapsed = time.perf_counter() - t0
+        message = (
+            f"{error.sentence()}; the refit with the accurate knobs ran out of memory "
+            f"({_first_line(err)}), so the {preset.name} fit is kept: its numerical error is "
+            "above the limit (rerun on a machine with more memory, or fit fewer photos)"
+        )
+        return selection, AccuracyCheck(preset.name, error, "refit failed", elapsed, message)
     elapsed = time.perf_counter() - t0
     if not fit.success:
         message = f"{error.sentence()}; the refit with the accurate knobs failed ({fit.message})"
@@ -114,3 +125,15 @@ def _refit(
     if fit.chi2 > CHI2_ROSE * selection.fit.chi2:
         message += f"; {CHI2_ROSE_NOTE}"
     return refined, AccuracyCheck(preset.name, error, "refitted", elapsed, message)
+
+
+def is_out_of_memory(err: BaseException) -> bool:
+    """Whether `err` is a failed allocation (Python's `MemoryError`, or XLA's "Out of memory" /
+    RESOURCE_EXHAUSTED runtime error)."""
+    text = str(err)
+    return isinstance(err, MemoryError) or "Out of memory" in text or "RESOURCE_EXHAUSTED" in text
+
+
+def _first_line(err: BaseException) -> str:
+    """The first line of an error's message, at most 160 characters."""
+    return (str(err).strip().splitlines() or [type(err).__name__])[0][:160]
