@@ -214,6 +214,16 @@ def _value_and_jac(f, eps0: Array) -> tuple[Array, Array]:  # noqa: ANN001
     return value, jac
 
 
+def _value_and_jac_forward(f, eps0: Array) -> tuple[Array, Array]:  # noqa: ANN001
+    """As `_value_and_jac`, by `jax.jvp` in each direction (vmapped) instead of one
+    linearisation: a linearised `lax.scan` keeps every step's intermediates for its linear
+    part, which undid the fillet correction's chunking over the rays (`FILLET_CHUNK_BYTES`)."""
+    value, jac = jax.vmap(lambda t: jax.jvp(f, (eps0,), (t,)), out_axes=(None, -1))(
+        jnp.eye(eps0.shape[0], dtype=eps0.dtype)
+    )
+    return value, jac
+
+
 SHARP_FRESNEL_DIRECT_MAX_K = 4
 """With at most this many wavelength samples per channel, the sharp grid evaluates the Fresnel
 factors at every (key, aperture node, channel) directly; with more, once per distinct geometry
@@ -318,20 +328,59 @@ def _fillet_impl(
     _, dw = model.light_nodes(g.r_ti, g.r_b2, aperture)  # (R, M): per-key light weights
     to = _view_nodes(g, do, aperture)  # (R|1, T, M)
     n = clamp_index(g.r_n + dn).reshape(-1)  # (C K)
-    lead1 = jax.tree_util.tree_map(lambda a: a[:, None], rays)  # (G, 1, 2, n[, K])
-    w = model.fillet_ray_power(lead1, n)[g.r_geo]  # (R, M, C K, 2, n)
-    th = rays.theta_o[g.r_geo]  # (R, M, 2, n)
-    kern = model.hemisphere_gaussian(
-        jnp.swapaxes(to, -1, -2)[..., None, None],
-        th[:, :, None],
-        sigma_k[:, None, None, None, None],
-    )  # (R, M, T, 2, n)
-    rho = jnp.einsum("rmkpn,rmtpn->rmtk", w, kern)
+
+    def part(r: model.FilletRays) -> Array:  # (R, M, T, C K) from some of the rays
+        lead1 = jax.tree_util.tree_map(lambda a: a[:, None], r)  # (G, 1, 2, n[, B])
+        w = model.fillet_ray_power(lead1, n)[g.r_geo]  # (R, M, C K, 2, n)
+        th = r.theta_o[g.r_geo]  # (R, M, 2, n)
+        kern = model.hemisphere_gaussian(
+            jnp.swapaxes(to, -1, -2)[..., None, None],
+            th[:, :, None],
+            sigma_k[:, None, None, None, None],
+        )  # (R, M, T, 2, n)
+        return jnp.einsum("rmkpn,rmtpn->rmtk", w, kern)
+
+    n_rays = rays.weight.shape[-1]
+    per_ray = _fillet_bytes_per_ray(g, to.shape[-2], n.size, rays.weight.dtype.itemsize)
+    size = _ray_chunk(n_rays, per_ray)
+    if size == n_rays:
+        rho = part(rays)
+    else:  # chunk by chunk: one pass would hold (R, M, C K, 2, n) at once
+        keys, nodes, views = g.r_geo.shape[0], g.r_geo.shape[1], to.shape[-2]
+        zero = jnp.zeros((keys, nodes, views, n.size), sigma_k.dtype)
+        rho, _ = jax.lax.scan(lambda acc, r: (acc + part(r), None), zero,
+                              model.split_rays(rays, size))  # fmt: skip
     rho = rho.reshape(*rho.shape[:-1], *g.r_w.shape)
     band = jnp.einsum("ck,rmtck->rmtc", g.r_w, rho)
     conv = model.view_conversion(g.r_to[..., None], to)  # (R|1, T, M)
     dw = dw[:, :, None] * jnp.swapaxes(conv, -1, -2)  # (R, M, T)
     return jnp.einsum("rmtc,rmt->rtc", band, dw)
+
+
+FILLET_CHUNK_BYTES = 64 * 2**20
+"""The fillet correction's contraction over the rays holds, per ray, the ray power at every
+(key, light node, index sample, lane) and the kernel at every (key, light node, view, lane);
+above this many bytes for all rays at once it is summed over chunks of rays (`lax.scan`). The
+accurate knobs (5 nm sampling, 4096 rays) on a 2 MP x 9-view folder asked for 99 GB in one
+pass; the balanced ones stay in one pass."""
+
+
+def _fillet_bytes_per_ray(g: EvaluationGrid, views: int, samples: int, itemsize: int) -> int:
+    """Bytes per ray of `_fillet_impl`'s arrays: the power per geometry and gathered to the keys'
+    light nodes, the kernel (two lanes each)."""
+    keys, nodes = g.r_geo.shape
+    geometries = g.g_ti.shape[0]
+    return 2 * itemsize * (keys * nodes * (samples + views) + geometries * samples)
+
+
+def _ray_chunk(n_rays: int, bytes_per_ray: int, budget: int | None = None) -> int:
+    """The rays per chunk: all of them when they fit `budget` (default `FILLET_CHUNK_BYTES`),
+    else the largest divisor of `n_rays` that does (at least 1)."""
+    budget = FILLET_CHUNK_BYTES if budget is None else budget
+    if n_rays * bytes_per_ray <= budget:
+        return n_rays
+    fit = max(budget // max(bytes_per_ray, 1), 1)
+    return max(d for d in range(1, min(fit, n_rays) + 1) if n_rays % d == 0)
 
 
 def _fillet_rays(
@@ -392,7 +441,7 @@ def _filleted_grid_jvp(cfg: tuple, primals: tuple, tangents: tuple) -> tuple[Arr
         return _fillet_impl(sigma_k + eps[0], dn + eps[1], rays, cfg, g)
 
     value, jac = _value_and_jac(rounded, jnp.zeros(3, dtype=sigma_k.dtype))
-    value_f, jac_f = _value_and_jac(fillet, jnp.zeros(2, dtype=sigma_k.dtype))
+    value_f, jac_f = _value_and_jac_forward(fillet, jnp.zeros(2, dtype=sigma_k.dtype))
     value = value + value_f
     d_sigma, d_dn, d_r = jac[..., 0] + jac_f[..., 0], jac[..., 1] + jac_f[..., 1], jac[..., 2]
     tangent = d_sigma * t_sigma[:, None, None] + d_dn * t_dn + d_r * t_r

@@ -73,3 +73,4 @@ from ._fillet import fillet_rays as fillet_rays
 from ._fillet import filleted_binned as filleted_binned
 from ._fillet import filleted_total as filleted_total
 from ._fillet import max_fillet_radius as max_fillet_radius
+from ._fillet import split_rays as split_rays

@@ -404,6 +404,27 @@ def _pair_rays(
     return FilletRays(*traced, _differ(traced) & (weight > 0), weight)
 
 
+def split_rays(rays: FilletRays, size: int) -> FilletRays:
+    """`rays` in chunks of `size` consecutive rays on a new leading axis (`n_rays / size`
+    chunks; `size` must divide `n_rays`), e.g. to sum a contraction over the rays chunk by
+    chunk (`lax.scan`) where one pass would hold too large an array. The rays are not changed,
+    only grouped."""
+    n = rays.weight.shape[-1]
+    if size <= 0 or n % size:
+        raise ValueError(f"split_rays: {size} rays per chunk does not divide {n} rays")
+
+    def split(a: Array, axis: int) -> Array:
+        axis %= a.ndim
+        a = a.reshape((*a.shape[:axis], n // size, size, *a.shape[axis + 1 :]))
+        return jnp.moveaxis(a, axis, 0)
+
+    return FilletRays(
+        cos=split(rays.cos, -2), hit=split(rays.hit, -2), escaped=split(rays.escaped, -1),
+        theta_o=split(rays.theta_o, -1), live=split(rays.live, -1),
+        weight=split(rays.weight, -1),
+    )  # fmt: skip
+
+
 def fillet_ray_power(rays: FilletRays, n: ArrayLike) -> Float[Array, "... 2 n_rays"]:
     """Each ray's reflected unpolarised power per unit incident power per period, signed `+`
     for the filleted lane and `-` for the `r_f = 0` lane, 0 for rays whose lanes are identical
