@@ -112,3 +112,25 @@ def test_a_refit_that_runs_out_of_memory_keeps_the_preset_fit_and_says_so(precis
     monkeypatch.setattr(fitting, "fit_least_squares", other)
     with pytest.raises(RuntimeError, match="something else"):
         ac.check_accuracy(SCENE, obs, sel, PRESETS["balanced"])
+
+
+def test_a_filleted_fit_is_not_refitted_automatically_but_warned(precise, monkeypatch):
+    """A filleted variant's refit with the accurate knobs takes tens of minutes (a 2 MP x 9-view
+    folder had not ended after 23 min): balanced warns with the way to refine it instead."""
+    from stairfit.commands import _accuracy_check as ac
+
+    sel, obs = precise
+    filleted = fitting.FILLET_RUNGS[0]
+    fit = dataclasses.replace(sel.fit, requested=filleted)
+    called = []
+    monkeypatch.setattr(fitting, "fit_least_squares", lambda *a, **k: called.append(1))
+    monkeypatch.setattr(
+        fitting, "numerical_error",
+        lambda *a, **k: fitting.NumericalError(0.375, 2.5, 1e-4, 0.2, 1.0),
+    )  # fmt: skip
+    same, check = ac.check_accuracy(
+        SCENE, obs, dataclasses.replace(sel, fit=fit), PRESETS["balanced"]
+    )
+    assert not called and check.action == "warned", check.message
+    assert ac.FILLET_NOT_REFITTED in check.message and "--preset accurate" in check.message
+    assert same.fit is fit
