@@ -12,6 +12,7 @@ from typing import TextIO
 
 from . import __version__
 from ._jaxcache import start_jax
+from ._memory import first_line, is_out_of_memory
 from ._signals import Terminated, terminate_by_exception
 from .errors import StairfitWarning, UserError
 
@@ -141,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"stairfit {args.command}: error: {one_line(where + what)}", file=sys.stderr)
         return EXIT_OS_ERROR
     except Exception as e:
-        if _is_out_of_memory(e):
+        if is_out_of_memory(e):
             print(f"stairfit {args.command}: error: {one_line(_out_of_memory(e))}", file=sys.stderr)
             return EXIT_OS_ERROR
         if not _is_imaging_error(e):
@@ -150,18 +151,10 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USER_ERROR
 
 
-def _is_out_of_memory(e: BaseException) -> bool:
-    """A failed allocation: Python's `MemoryError` or XLA's "Out of memory" runtime error."""
-    from .commands._accuracy_check import is_out_of_memory
-
-    return is_out_of_memory(e)
-
-
 def _out_of_memory(e: BaseException) -> str:
     """The one-line message for a run that ran out of memory, with what to do."""
-    first = (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
     return (
-        f"ran out of memory ({first}); the accurate preset's filleted rungs hold the most "
+        f"ran out of memory ({first_line(e)}); the accurate preset's filleted rungs hold the most "
         "(5 nm sampling x 4096 rays, docs/fitting.md §3): use --preset balanced, fewer photos, "
         "or a machine with more memory"
     )

@@ -42,6 +42,7 @@ from ._observations import Spectral as Spectral
 from ._observations import spectral_setup as spectral_setup
 from ._params import DEFAULT_LADDER as DEFAULT_LADDER
 from ._params import DEFAULTS as DEFAULTS
+from ._params import FILLET as FILLET
 from ._params import FILLET_RUNGS as FILLET_RUNGS
 from ._params import PARAM_NAMES as PARAM_NAMES
 from ._params import PARAMETERS as PARAMETERS

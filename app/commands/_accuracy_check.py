@@ -12,6 +12,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from .._memory import first_line, is_out_of_memory
 from ..presets import PRESETS, Preset
 
 DEG = np.pi / 180
@@ -31,7 +32,6 @@ CHI2_ROSE_NOTE = (
 )
 
 
-FILLET = "fillet_radius_um"
 FILLET_NOT_REFITTED = (
     "a filleted variant is not refitted automatically: with the accurate knobs (5 nm sampling, "
     "4096 rays) one value + Jacobian takes about 25 s and a refit of a 2 MP x 9-view folder "
@@ -90,7 +90,7 @@ def check_accuracy(
     if preset.name == "fast":
         message = f"{error.sentence()}; fast does not refine: rerun with --preset balanced"
         return selection, AccuracyCheck(preset.name, error, "warned", 0.0, message)
-    if FILLET in selection.fit.requested.free:
+    if fitting.FILLET in selection.fit.requested.free:
         return selection, AccuracyCheck(preset.name, error, "warned", 0.0,
                                         f"{error.sentence()}; {FILLET_NOT_REFITTED}")  # fmt: skip
     return _refit(selection, observations, spectral, knobs, preset, error)
@@ -118,7 +118,7 @@ def _refit(
         elapsed = time.perf_counter() - t0
         message = (
             f"{error.sentence()}; the refit with the accurate knobs ran out of memory "
-            f"({_first_line(err)}), so the {preset.name} fit is kept: its numerical error is "
+            f"({first_line(err)}), so the {preset.name} fit is kept: its numerical error is "
             "above the limit (rerun on a machine with more memory, or fit fewer photos)"
         )
         return selection, AccuracyCheck(preset.name, error, "refit failed", elapsed, message)
@@ -138,15 +138,3 @@ def _refit(
     if fit.chi2 > CHI2_ROSE * selection.fit.chi2:
         message += f"; {CHI2_ROSE_NOTE}"
     return refined, AccuracyCheck(preset.name, error, "refitted", elapsed, message)
-
-
-def is_out_of_memory(err: BaseException) -> bool:
-    """Whether `err` is a failed allocation (Python's `MemoryError`, or XLA's "Out of memory" /
-    RESOURCE_EXHAUSTED runtime error)."""
-    text = str(err)
-    return isinstance(err, MemoryError) or "Out of memory" in text or "RESOURCE_EXHAUSTED" in text
-
-
-def _first_line(err: BaseException) -> str:
-    """The first line of an error's message, at most 160 characters."""
-    return (str(err).strip().splitlines() or [type(err).__name__])[0][:160]
