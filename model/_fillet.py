@@ -59,17 +59,12 @@ to find where the two lanes differ; the `rays` rays are then spread over that fo
 FILLET_MAX_REFINE = 64
 """At most this many rays per search stratum of the footprint."""
 
-CHUNK_FRACTION = 4
-"""The tracer steps the rays still reflecting in chunks of `1 / CHUNK_FRACTION` of them
-(`_trace`)."""
-
 FILLET_FD_STEP = 0.01
 """Steps of the correction's derivatives in the geometry, as a fraction of `min(l1, l2)` (the
 radii), of `l1`, and of 15 deg (the angles) (docs/rounded.md §11)."""
 
 _EPS = 1e-9  # smallest accepted ray parameter, in periods (rejects a ray's own start point)
-_SHIFTS = (-1, 0, 1)  # cells whose tread, fillet and riser are tested
-_TIP_SHIFTS = (-1, 0, 1, 2)  # cells whose tip arc is tested (the cell holds two tip halves)
+_TIPS = (0, 1)  # the tip arcs bounding a ray's groove: at the groove's left and right end
 
 
 # --------------------------------------------------------------------------------------------
@@ -205,35 +200,37 @@ def _circle_hit(ray: tuple, centre: tuple, radius, sign: float, mid: tuple, eps)
     return jnp.where(real & in_arc & (t > eps), t, jnp.inf), nx, nz
 
 
-def _nearest(ray: tuple, c: _Cell) -> tuple[Array, Array, Array, Array]:
-    """The first hit of each ray among all primitives of cells -1..+1 (tip arcs -1..+2)
-    [conventions §2]: tread `[r, l2 - r_f]` from the tip at the origin, riser `[r, l1 - r_f]`
-    down from the tip at `(L, 0)`, tip arc (convex) and fillet (concave), normals in
-    `[beta2 - 90 deg, beta2]`. Returns the ray parameter (inf = none), the outward normal at
-    the hit and the cell of the primitive hit (the first of equal ones: an argmin over the
-    stacked candidates; a running minimum measured slower)."""
+def _nearest(ray: tuple, c: _Cell) -> tuple[Array, Array, Array]:
+    """The first hit of each ray in its groove [conventions §2]: the tread `[r, l2 - r_f]`
+    from the tip at the origin, the riser `[r, l1 - r_f]` down from the tip at `(L, 0)`, the
+    fillet (concave) between them and the two tip arcs (convex) at `x = 0` and `x = L`, normals
+    in `[beta2 - 90 deg, beta2]`. Returns the ray parameter (inf = none) and the outward normal
+    at the hit (the first of equal ones: an argmin over the stacked candidates; a running
+    minimum measured slower).
+
+    Why five primitives suffice (docs/rounded.md §11, "the groove"): the profile is a graph
+    `z = h(x)` (every normal has a positive `z`), highest at the tops of the tip arcs, `x =
+    c.tip[0] + k L`, height `h_top`. A ray starts at `h_top` or on the surface, so `z <= h_top`
+    there; between its start `x0` in the groove `[c.tip[0], c.tip[0] + L]` and the groove's end
+    in its direction of travel, it either meets the surface or passes that tip's top above
+    `h_top`, rising, and then stays above every later point of the profile: it escapes. So
+    it hits, if at all, within its own groove, on the five primitives whose `x` range meets it
+    (the tip arcs only with their inner halves). The other cells' primitives, which an earlier
+    version also tested (13 in all), were never the nearest hit."""
     n_tr, n_ri = (c.sb, c.cb), (-c.cb, c.sb)
-    ts, nxs, nzs, shifts = [], [], [], []
-
-    def add(t: Array, nx: Array, nz: Array, shift: int) -> None:
-        ts.append(t)
-        nxs.append(jnp.broadcast_to(nx, t.shape))
-        nzs.append(jnp.broadcast_to(nz, t.shape))
-        shifts.append(shift)
-
-    for s in _SHIFTS:
-        x0 = s * c.period
-        add(_line_hit(ray, (x0, 0.0), (c.cb, -c.sb), n_tr, c.r, c.l2 - c.rf, c.eps), *n_tr, s)
-        t = _line_hit(ray, (x0 + c.period, 0.0), (-c.sb, -c.cb), n_ri, c.r, c.l1 - c.rf, c.eps)
-        add(t, *n_ri, s)
-        add(*_circle_hit(ray, (c.fil[0] + x0, c.fil[1]), c.rf, -1.0, c.mid, c.eps), s)
-    for s in _TIP_SHIFTS:
-        add(*_circle_hit(ray, (c.tip[0] + s * c.period, c.tip[1]), c.r, 1.0, c.mid, c.eps), s)
-    t = jnp.stack(ts)
+    hits = [
+        (_line_hit(ray, (0.0, 0.0), (c.cb, -c.sb), n_tr, c.r, c.l2 - c.rf, c.eps), *n_tr),
+        (_line_hit(ray, (c.period, 0.0), (-c.sb, -c.cb), n_ri, c.r, c.l1 - c.rf, c.eps), *n_ri),
+        _circle_hit(ray, c.fil, c.rf, -1.0, c.mid, c.eps),
+        *(_circle_hit(ray, (c.tip[0] + s * c.period, c.tip[1]), c.r, 1.0, c.mid, c.eps)
+          for s in _TIPS),
+    ]  # fmt: skip
+    t = jnp.stack([h[0] for h in hits])
     j = jnp.argmin(t, axis=0)[None]
     pick = lambda a: jnp.take_along_axis(a, j, 0)[0]  # noqa: E731
-    shift = jnp.asarray(shifts, t.dtype)[j[0]]
-    return pick(t), pick(jnp.stack(nxs)), pick(jnp.stack(nzs)), shift
+    nx = jnp.stack([jnp.broadcast_to(h[1], t.shape[1:]) for h in hits])
+    nz = jnp.stack([jnp.broadcast_to(h[2], t.shape[1:]) for h in hits])
+    return pick(t), pick(nx), pick(nz)
 
 
 class _Rays(NamedTuple):
@@ -253,35 +250,35 @@ def _step(k: Array, bounces: int, state: tuple, c: _Cell) -> tuple:
     of its local angle of incidence (1 where it did not reflect). Step `bounces` (after the
     last reflection) only checks for escape. Elementwise in each ray's state and cell."""
     px, pz, dx, dz, active = state
-    t, nx, nz, shift = _nearest((px, pz, dx, dz), c)
+    t, nx, nz = _nearest((px, pz, dx, dz), c)
     meets = jnp.isfinite(t)
     esc = active & ~meets & (dz > 0)
     hit = active & meets & (k < bounces)
     t = jnp.where(hit, t, 0.0)
     dn = dx * nx + dz * nz
-    new = (px + t * dx - shift * c.period, pz + t * dz, dx - 2 * dn * nx, dz - 2 * dn * nz)
+    x = px + t * dx  # in the groove; back into it should rounding put a tip-top hit outside
+    x = x - c.period * ((x > c.tip[0] + c.period).astype(x.dtype) - (x < c.tip[0]).astype(x.dtype))
+    new = (x, pz + t * dz, dx - 2 * dn * nx, dz - 2 * dn * nz)
     px, pz, dx, dz = (jnp.where(hit, a, o) for a, o in zip(new, (px, pz, dx, dz), strict=True))
     return (px, pz, dx, dz, hit), esc, jnp.where(hit, -dn, 1.0)
 
 
 def _trace(
     ti: Array, b: Array, l1: Array, r: Array, rf: Array, rays: int, bounces: int,
-    frac: Array | None = None, valid: Array | None = None,
+    frac: Array | None = None,
 ) -> _Rays:  # fmt: skip
     """Trace `rays` rays per element of the (broadcast) geometry, stratified (midpoints) across
     one period of the ray front, or starting at the fractions `frac` of the period (`(...,
-    rays)`, only where `valid`), for up to `bounces` reflections [conventions §1, §2]. A ray
-    still reflecting after that is dropped.
+    rays)`), for up to `bounces` reflections [conventions §1, §2]. A ray still reflecting
+    after that is dropped.
 
-    All rays of all geometries are one flat batch, and one while loop steps the rays still
-    reflecting in chunks of a quarter of the batch: each pass gathers the next chunk of rays
-    at the current bounce (most leave after 1-2 reflections, so later bounces take one small
-    chunk), steps them and scatters them back. A ray's steps are elementwise in its own state
-    and cell, so neither the batch nor the gathering changes a bit of them; the loop stops once
-    no ray is left (the steps skipped would change nothing), so the result is that of
-    `bounces` steps of every ray to the bit. One step in the compiled program. The rays are
-    never differentiated through (derivatives in the geometry are differences,
-    `_fd_correction`)."""
+    All rays of all geometries are one flat batch, stepped together by one while loop until
+    no ray is still reflecting (the steps skipped would change nothing, so the result is that
+    of `bounces` steps of every ray to the bit). Every ray is stepped at every pass (a ray that
+    left keeps its state): with the five primitives of the groove (`_nearest`) a step is cheap
+    enough that gathering the few rays still reflecting cost more than it saved (docs/rounded.md
+    §11). The rays are never differentiated through (derivatives in the geometry are
+    differences, `_fd_correction`)."""
     ti, b, l1, r, rf = jnp.broadcast_arrays(ti, b, l1, r, rf)
     shape = ti.shape
     n_all = ti.size * rays
@@ -296,35 +293,25 @@ def _trace(
         -r_ * (cell.cb + cell.sb) + r_,
         flat(jnp.sin(ti)),
         flat(-jnp.cos(ti)),
-        jnp.ones(n_all, bool) if valid is None else jnp.broadcast_to(valid, (*shape, rays)).ravel(),
+        jnp.ones(n_all, bool),
     )
-    chunk = max(n_all // CHUNK_FRACTION, 1)
 
     def body(carry: tuple) -> tuple:
-        k, state, level, esc, cos, hits = carry
-        todo = state[4] & (level == k)
-        (idx,) = jnp.nonzero(todo, size=chunk, fill_value=n_all)
-        take = jnp.minimum(idx, n_all - 1)
-        part = tuple(jnp.where(idx < n_all, a[take], False) if a.dtype == bool else a[take]
-                     for a in state)  # fmt: skip
-        new, out, cos_k = _step(k, bounces, part, jax.tree_util.tree_map(lambda a: a[take], cell))
-        state = tuple(a.at[idx].set(f, mode="drop") for a, f in zip(state, new, strict=True))
-        esc = esc.at[idx].set(esc[take] | out, mode="drop")
-        level = level.at[idx].add(1, mode="drop")
-        cos = cos.at[k, idx].set(cos_k, mode="drop")
-        hits = hits.at[k, idx].set(new[4], mode="drop")
-        k = jnp.where(jnp.sum(todo) <= chunk, k + 1, k)  # every ray at bounce k stepped
-        return (k, state, level, esc, cos, hits)
+        k, state, esc, cos, hits = carry
+        state, out, cos_k = _step(k, bounces, state, cell)
+        cos = jax.lax.dynamic_update_index_in_dim(cos, cos_k, k, 0)
+        hits = jax.lax.dynamic_update_index_in_dim(hits, state[4], k, 0)
+        return (k + 1, state, esc | out, cos, hits)
 
-    def more(carry: tuple) -> Array:
+    def any_left(carry: tuple) -> Array:
         return (carry[0] <= bounces) & jnp.any(carry[1][4])
 
     # rows 0..bounces-1 the reflections, row `bounces` written by the escape-only step
     start = (
-        jnp.asarray(0), state, jnp.zeros(n_all, jnp.int32), jnp.zeros(n_all, bool),
+        jnp.asarray(0), state, jnp.zeros(n_all, bool),
         jnp.ones((bounces + 1, n_all), ti.dtype), jnp.zeros((bounces + 1, n_all), bool),
     )  # fmt: skip
-    _, (_, _, dx, dz, _), _, esc, cos, hit = jax.lax.while_loop(more, body, start)
+    _, (_, _, dx, dz, _), esc, cos, hit = jax.lax.while_loop(any_left, body, start)
     unflat = lambda a: a.reshape(*a.shape[:-1], *shape, rays)  # noqa: E731
     return _Rays(
         cos=jnp.moveaxis(unflat(cos[:bounces]), 0, -1),
