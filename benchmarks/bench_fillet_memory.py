@@ -11,7 +11,8 @@ a 1-degree light and view spread, dispersive PLA, r = 20, r_f = 15 um):
 * at the `balanced` knobs, with the 1-degree spreads and with a point light and view, the
   median time of tracing the Jacobian's four ray pairs against the
   contraction of the rays with the index and the kernels (value, two derivative directions,
-  three difference points), each as its own compiled program.
+  three difference points), each as its own compiled program, and the rounded model's value +
+  Jacobian of the same grid beside it (the issue's 3x aim at that spread).
 
     python benchmarks/bench_fillet_memory.py    # about 3 minutes on the 2-core machine
 """
@@ -97,8 +98,9 @@ def median_ms(f, *args, repeats: int = 15) -> float:
     return 1e3 * statistics.median(times)
 
 
-def time_split(spread_deg: float) -> tuple[float, float, float]:
-    """(tracing the four ray pairs, the contraction, the whole value + Jacobian) in ms."""
+def time_split(spread_deg: float) -> tuple[float, float, float, float]:
+    """(tracing the four ray pairs, the contraction, the whole value + Jacobian, the rounded
+    model's value + Jacobian) in ms."""
     g, sigma_k, cfg = setup("balanced", spread_deg)
     r, rf = X[2], X[3]
 
@@ -125,8 +127,13 @@ def time_split(spread_deg: float) -> tuple[float, float, float]:
         return value, jac, at
 
     whole = value_and_jacobian(g, sigma_k, cfg)
+
+    def rounded(x: jax.Array) -> jax.Array:
+        return _forward.rounded_grid_density(sigma_k * jnp.exp(x[0]), x[1], x[2], cfg[:2], g)
+
+    rounded_both = jax.jit(lambda x: (rounded(x), jax.jacfwd(rounded)(x)))
     return (median_ms(traced, r, rf), median_ms(jax.jit(contract), rays_all),
-            median_ms(whole, X))  # fmt: skip
+            median_ms(whole, X), median_ms(rounded_both, X[:3]))  # fmt: skip
 
 
 def main() -> None:
@@ -137,10 +144,11 @@ def main() -> None:
     for preset in ("balanced", "accurate"):
         print(f"| {preset} | {temp_gb(preset, True):.3g} GB | {temp_gb(preset, False):.3g} GB |")
     for spread in (1.0, 0.0):
-        trace, contract, whole = time_split(spread)
+        trace, contract, whole, rounded = time_split(spread)
         print(f"\nbalanced, {spread:g}-deg light and view: value + Jacobian {whole:.1f} ms; "
               f"tracing the four ray pairs {trace:.1f} ms, the contraction {contract:.1f} ms "
-              "(each its own program, medians of 15)")  # fmt: skip
+              f"(each its own program, medians of 15); the rounded model's value + Jacobian "
+              f"{rounded:.1f} ms (filleted / rounded {whole / rounded:.2f})")  # fmt: skip
 
 
 if __name__ == "__main__":
