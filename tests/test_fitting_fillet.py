@@ -9,6 +9,8 @@ with 0; the fillet rungs are gated like the rounded ones.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -171,9 +173,12 @@ def test_a_fillet_rung_also_starts_with_the_parent_radius_shared_by_tip_and_fill
 def test_the_correction_summed_over_chunks_of_rays_is_the_one_pass_sum(monkeypatch):
     """`_fillet_impl` sums over chunks of rays (`lax.scan`) when one pass would hold more than
     `FILLET_CHUNK_BYTES` (the accurate knobs asked XLA for 99 GB on a 2 MP x 9-view folder;
-    now 2.9 GB): value and Jacobian (widths, delta_n, r, r_f) equal the one-pass ones to
-    rounding, here with 64 rays in chunks of 8 (budget forced down). The chunk size is the
-    largest divisor of the ray count within the budget."""
+    now 2.9 GB): its value, its forward-mode derivatives in the widths and `delta_n` and its
+    values at a stack of other rays (as the grid's JVP takes them for `r` and `r_f`, under
+    `vmap`) equal the one-pass ones to rounding, here with 64 rays in chunks of 8 (budget
+    forced down). Only the contraction is compiled (the rays traced once, outside): the whole
+    grid's value + Jacobian twice took 54-66 s of the suite. The chunk size is the largest
+    divisor of the ray count within the budget."""
     assert _forward._ray_chunk(4096, 1000, budget=64_000) == 64
     assert _forward._ray_chunk(4096, 10, budget=64_000) == 4096  # fits: one pass
     assert _forward._ray_chunk(96, 1000, budget=40_000) == 32  # a divisor, not 40
@@ -182,22 +187,30 @@ def test_the_correction_summed_over_chunks_of_rays_is_the_one_pass_sum(monkeypat
     g = _forward._grid(_problem.prepare(s.obs, s.spec).data)
     sigma_k = jnp.full(g.r_ti.shape, 4 * DEG)
     cfg = (model.Aperture(), None, 64, 16)  # (aperture, resolution, rays, bounces)
+    r = jnp.broadcast_to(TRUTH.edge_radius_um, g.g_ti.shape)
+    rf = jnp.broadcast_to(TRUTH.fillet_radius_um, g.g_ti.shape)
+    stack = lambda a: jnp.stack([a, a])  # noqa: E731
+    rays = model.fillet_rays(g.g_ti, g.g_b2, g.g_layer, r, rf, rays=64, bounces=16)
+    r_moved = jnp.stack([1.1 * r, 0.9 * r])
+    moved = model.fillet_rays(*map(stack, (g.g_ti, g.g_b2, g.g_layer)), r_moved, stack(rf),
+                              rays=64, bounces=16)  # fmt: skip
 
-    def both(x: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-        f = lambda x: _forward.filleted_grid_density(  # noqa: E731
-            sigma_k * jnp.exp(x[0]), x[1], x[2], x[3], cfg, g
-        )
-        return f(x), jax.jacfwd(f)(x)
+    def make() -> Callable:  # a fresh function each time: the chunk size is chosen in tracing
+        def both(x: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
+            f = lambda x: _forward._fillet_impl(sigma_k * jnp.exp(x[0]), x[1], rays, cfg, g)  # noqa: E731
+            at = jax.vmap(lambda rr: _forward._fillet_impl(sigma_k, x[1], rr, cfg, g))(moved)
+            return f(x), jax.jacfwd(f)(x), at
 
-    x = jnp.array([0.0, 0.0, TRUTH.edge_radius_um, TRUTH.fillet_radius_um])
-    one = jax.jit(both)(x)
-    scans = str(jax.make_jaxpr(both)(x)).count("scan[")  # the rounded part has its own
+        return both
+
+    x = jnp.array([0.0, 0.0])
+    scans = str(jax.make_jaxpr(make())(x)).count("scan[")
+    one = jax.jit(make())(x)
     per_ray = _forward._fillet_bytes_per_ray(g, g.r_to.shape[-1], g.r_n.size, 8)
     monkeypatch.setattr(_forward, "FILLET_CHUNK_BYTES", 8 * per_ray)
-    jax.clear_caches()  # the chunk size is chosen when the program is traced
     assert _forward._ray_chunk(64, per_ray, budget=8 * per_ray) == 8
-    assert str(jax.make_jaxpr(both)(x)).count("scan[") > scans  # the chunked path
-    chunked = jax.jit(both)(x)
+    assert str(jax.make_jaxpr(make())(x)).count("scan[") >= scans + 2  # value and vmap chunked
+    chunked = jax.jit(make())(x)
     for a, b in zip(one, chunked, strict=True):
         np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-15 * float(np.max(np.abs(a))))
-    assert float(np.max(np.abs(one[1][..., 3]))) > 0  # the r_f column is not trivially 0
+    assert float(np.max(np.abs(one[0]))) > 0 and float(np.max(np.abs(one[2][0] - one[2][1]))) > 0
