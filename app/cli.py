@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import sys
 import warnings
@@ -160,5 +161,19 @@ def _out_of_memory(e: BaseException) -> str:
     )
 
 
+def entry() -> None:
+    """The `stairfit` console script: `main()`, then exit with its status.
+
+    Before the interpreter shuts down, `gc.freeze()` moves every object into the collector's
+    permanent generation, so the shutdown's last garbage collection does not walk the whole
+    heap of JAX, XLA and matplotlib objects only to free memory the operating system frees
+    anyway: that walk took 0.5 s of a 9 s warm `stairfit fit` (issue 14; median of 5 runs).
+    Files are closed and atexit handlers still run. Not done in `main()`, which tests and
+    notebooks call in a process that goes on."""
+    code = main()
+    gc.freeze()
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

@@ -74,3 +74,48 @@ def test_fitting_without_a_posterior_does_not_import_emcee():
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert run.stdout.split() == ["[]", "True", "stairfit.fitting._chain"], run.stdout
+
+
+def test_prefetch_imports_in_a_thread_and_never_raises():
+    """The fit's late imports load in a daemon thread (app/_prefetch.py); a module that cannot
+    be imported there is skipped silently (the main thread's own import reports it)."""
+    code = (
+        "import sys\n"
+        "from stairfit import _prefetch\n"
+        "before = [m in sys.modules for m in ('emcee', 'arviz', 'h5netcdf', 'stairfit.report')]\n"
+        "t = _prefetch.prefetch((*_prefetch.FIT_MODULES, 'no_such_module_of_stairfit'))\n"
+        "named, daemon = t.name, t.daemon\n"
+        "t.join(300)\n"
+        "after = [m in sys.modules for m in ('emcee', 'arviz', 'h5netcdf', 'stairfit.report')]\n"
+        "print(before, after, t.is_alive(), named, daemon)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.strip().split(maxsplit=8) == [
+        "[False,", "False,", "False,", "False]", "[True,", "True,", "True,", "True]",
+        "False stairfit-imports True",
+    ], run.stdout  # fmt: skip
+    assert "Traceback" not in run.stderr, run.stderr
+
+
+def test_the_console_script_is_the_entry_that_freezes_the_heap_and_keeps_the_status(tmp_path):
+    """`stairfit` runs `cli.entry` (main, then `gc.freeze()` before the interpreter's shutdown,
+    app/cli.py); the exit status of a success (0) and of a user error (2) pass through."""
+    from importlib import metadata
+
+    (script,) = [e for e in metadata.entry_points(group="console_scripts") if e.name == "stairfit"]
+    assert script.value == "stairfit.cli:entry"
+    ok = subprocess.run(
+        [sys.executable, "-m", "stairfit.cli", "predict", "--lobes", "--wedge-deg", "30",
+         "--theta-i-deg", "0", "-o", str(tmp_path / "lobes.csv")],
+        capture_output=True, text=True, timeout=300,
+        env=dict(os.environ, STAIRFIT_JAX_CACHE="off"),
+    )  # fmt: skip
+    assert ok.returncode == 0, ok.stderr
+    assert "lobe" in (tmp_path / "lobes.csv").read_text().splitlines()[0].split(",")
+    bad = subprocess.run(
+        [sys.executable, "-m", "stairfit.cli", "fit", str(tmp_path / "no-such-folder")],
+        capture_output=True, text=True, timeout=300,
+        env=dict(os.environ, STAIRFIT_JAX_CACHE="off"),
+    )  # fmt: skip
+    assert bad.returncode == 2, bad.stderr
+    assert "Traceback" not in bad.stderr

@@ -121,16 +121,20 @@ def default_output(folder: Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """`stairfit fit DIR`."""
+    from .._prefetch import FIT_MODULES, REPORT_MODULES, prefetch
     from ..outputs import staged_folder
-    from ..report import print_summary
 
     options = options_from_args(args)
     scene = load_scene(args.folder)
+    # the posterior's and the report's imports, in a thread while the photos are measured
+    prefetch(FIT_MODULES if options.posterior else REPORT_MODULES)
     out = args.output or default_output(args.folder)
     inputs = (scene.folder, *scene.input_files())
     with staged_folder(out, args.force, inputs=inputs, reserved=(scene.folder / CACHE_DIR,)) as tmp:
         check_photos(scene)
         outcome = fit_scene(scene, tmp, options)
+    from ..report import print_summary
+
     print_summary(outcome, out)
     return 0
 
@@ -175,8 +179,6 @@ def photo_file_problem(
 
 def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     """The whole pipeline into the (temporary) folder `out`."""
-    from ..report import write_outputs
-
     timings: dict[str, float] = {}
     notes: list[str] = []
     t0 = time.perf_counter()
@@ -207,6 +209,8 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
             outcome.posterior, drawn = sample_while_drawing(outcome, out)
             timings["posterior_s"] = time.perf_counter() - t0
     timings.update(compiled.as_timings())
+    from ..report import write_outputs
+
     t0 = time.perf_counter()
     write_outputs(outcome, out, drawn)
     timings["outputs_s"] = time.perf_counter() - t0

@@ -1,0 +1,58 @@
+"""The fit's late imports, loaded in a background thread while the photos are measured and the
+model is fitted (issue 14: imports are part of the user's wait).
+
+A default `stairfit fit` needs, after the least-squares fit, emcee (which imports
+scipy.stats), ArviZ with xarray (which imports dask.array the first time it checks whether an
+array is a dask array) and h5netcdf for the chain, and matplotlib for the report: about 3 s of
+imports on the 2-core machine, spent while the second core idled. The least-squares fit runs
+in compiled XLA programs, which release the interpreter, so the same imports done in a thread
+started before the measurement cost the user little of that (`benchmarks/bench_cold.py`).
+
+Nothing but imports (and a 2 x 2 ArviZ dataset, which is how xarray's lazy imports are
+reached) happens in the thread, and it never raises: a module that fails to import there is
+imported again where it is used, in the main thread, which reports the error as before.
+Python's per-module import locks make a main-thread import of a module the thread is still
+loading wait for it, not load it twice.
+"""
+
+from __future__ import annotations
+
+import importlib
+import threading
+
+REPORT_MODULES = ("stairfit.report",)
+"""What `fit --no-posterior` imports after the least-squares fit (the report: matplotlib)."""
+FIT_MODULES = (
+    "stairfit.fitting._posterior",
+    "stairfit.fitting._diagnostics",
+    "arviz",
+    "h5netcdf",
+    *REPORT_MODULES,
+)
+"""What a default `fit` imports after the least-squares fit, in the order it needs them."""
+
+
+def _load(modules: tuple[str, ...]) -> None:
+    for name in modules:
+        try:
+            importlib.import_module(name)
+        except Exception:  # imported (and reported) again where it is used
+            continue
+    if "arviz" not in modules:
+        return
+    try:
+        import arviz
+        import numpy as np
+
+        arviz.convert_to_dataset({"x": np.zeros((2, 2))})  # xarray's lazy dask import
+    except Exception:  # as above
+        pass
+
+
+def prefetch(modules: tuple[str, ...] = FIT_MODULES) -> threading.Thread:
+    """Start importing `modules` in a daemon thread; returns the thread (already started)."""
+    thread = threading.Thread(
+        target=_load, args=(modules,), name="stairfit-imports", daemon=True
+    )
+    thread.start()
+    return thread
