@@ -32,6 +32,13 @@ Run:
     python benchmarks/bench_cold.py                 # 5 repeats, the 2 MP x 9-view scene
     python benchmarks/bench_cold.py --quick         # 1 repeat, 0.5 MP x 5 views: does it run?
     python benchmarks/bench_cold.py --rounded       # also --model rounded+floor, cold and warm
+    python benchmarks/bench_cold.py --compare-exe OTHER/bin/stairfit   # an earlier version's
+                                                    # default fit beside this one's
+
+`--compare-exe` is how a change's effect is measured: install the earlier commit in its own
+environment (e.g. `git worktree add ../old COMMIT`, a venv with `pip install -e ../old`) and
+give its `stairfit` script; both fit the same photos, each with its own JAX cache, one after
+the other in every repeat, so a slow phase of the machine hits both alike.
 
 Writes benchmarks/results/cold.md unless --no-write (or --out FILE).
 """
@@ -225,6 +232,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         action="store_true",
         help="also a forced rounded-edge fit (--model rounded+floor --no-posterior), cold/warm",
     )
+    p.add_argument(
+        "--compare-exe",
+        metavar="STAIRFIT",
+        help="another installation's `stairfit` script (e.g. an earlier commit in its own "
+        "environment): its default fit, cold and warm, runs beside this one's in every repeat",
+    )
     p.add_argument("--quick", action="store_true", help="1 repeat, 0.5 MP x 5 views")
     p.add_argument("--out", type=Path, default=RESULTS / "cold.md")
     p.add_argument("--no-write", action="store_true")
@@ -256,6 +269,9 @@ def main(argv: list[str] | None = None) -> int:
         }  # fmt: skip
         if not args.no_default_fit:
             cases.update(fit_cases(exe, photos, default_dir, "stairfit fit (default)", []))
+        if args.compare_exe:
+            cases.update(fit_cases(args.compare_exe, photos, tmp / "fit-compare",
+                                   f"{COMPARED} fit (default)", []))  # fmt: skip
         if args.rounded:
             cases.update(fit_cases(exe, photos, tmp / "fit-rounded", "stairfit fit --model "
                                    f"{ROUNDED} --no-posterior", ["--model", ROUNDED,
@@ -268,13 +284,15 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"repeat {r + 1}/{args.repeats}: {name}: {samples[name][-1][0]:.2f} s",
                       file=sys.stderr, flush=True)  # fmt: skip
                 fit_dir = (
-                    tmp / "fit-rounded"
+                    tmp / "fit-compare"
+                    if name.startswith(COMPARED)
+                    else tmp / "fit-rounded"
                     if ROUNDED in name
                     else variant_dir
                     if args.variant in name
                     else default_dir
                 )
-                if name.startswith("stairfit fit"):
+                if name.startswith(("stairfit fit", COMPARED)):
                     stages[name].append(timings_of(fit_dir))
         variant_fit = json.loads((variant_dir / "results.json").read_text())
     load_end = load_average()
@@ -294,6 +312,11 @@ def main(argv: list[str] | None = None) -> int:
         "scene": f"`stairfit simulate --megapixels {args.megapixels:g} --views {args.views}` "
         f"(rendered in {t_sim:.1f} s, not timed)",
         "repeats": str(args.repeats),
+        **(
+            {"compared installation": f"{_version_of(args.compare_exe)}, its own environment"}
+            if args.compare_exe
+            else {}
+        ),
         "load average (1 min) at start / end": f"{load_start:.2f} / {load_end:.2f}",
         "status": "**measured under load: figures are upper bounds; re-measure on an idle machine**"
         if under_load
@@ -307,6 +330,19 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _version_of(exe: str) -> str:
+    """`stairfit --version` of `exe`, and the git commit of its source where it is a checkout."""
+    out = subprocess.run([exe, "--version"], capture_output=True, text=True).stdout.strip()
+    code = "import stairfit, pathlib; print(pathlib.Path(stairfit.__file__).parents[1])"
+    python = Path(exe).parent / "python"
+    src = subprocess.run([str(python), "-c", code], capture_output=True, text=True).stdout.strip()
+    rev = subprocess.run(["git", "-C", src, "rev-parse", "--short", "HEAD"], capture_output=True,
+                         text=True).stdout.strip() if src else ""  # fmt: skip
+    return f"{out}, commit {rev}" if rev else out
+
+
+COMPARED = "compared installation:"
+"""The label of the `--compare-exe` cases."""
 SAME_CHI2 = 1e-4
 """The baseline solves the same problem when its chi^2 is within this (relative) of stairfit's."""
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from .. import _ranges
 from .._compile_watch import watching_compilation
+from .._prefetch import FIT_MODULES, REPORT_MODULES, prefetch
 from ..errors import StairfitWarning, UserError
 from ..imaging_specs import CACHE_DIR, MEASUREMENT_CACHE, extraction_settings, photo_specs
 from ..outcome import FitOptions, FitOutcome
@@ -121,13 +122,10 @@ def default_output(folder: Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """`stairfit fit DIR`."""
-    from .._prefetch import FIT_MODULES, REPORT_MODULES, prefetch
     from ..outputs import staged_folder
 
     options = options_from_args(args)
     scene = load_scene(args.folder)
-    # the posterior's and the report's imports, in a thread while the photos are measured
-    prefetch(FIT_MODULES if options.posterior else REPORT_MODULES)
     out = args.output or default_output(args.folder)
     inputs = (scene.folder, *scene.input_files())
     with staged_folder(out, args.force, inputs=inputs, reserved=(scene.folder / CACHE_DIR,)) as tmp:
@@ -184,6 +182,9 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     t0 = time.perf_counter()
     table = measure(scene, out, options)
     timings["measure_s"] = time.perf_counter() - t0
+    # the posterior's and the report's imports, in a thread while the model is compiled and
+    # fitted (not while the photos are decoded, which keeps both cores busy)
+    prefetch(FIT_MODULES if options.posterior else REPORT_MODULES)
 
     t0 = time.perf_counter()
     try:
