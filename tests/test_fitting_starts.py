@@ -252,3 +252,28 @@ def test_a_model_error_term_creeping_to_zero_is_fixed_and_the_forced_fit_converg
     rec = fit_pulls(obs, spectral, aperture, options, truth_params(truth))
     assert 0.7 < rec["reduced_chi2"] < 1.3
     assert all(p["95"] for p in rec["params"].values()), rec
+
+
+def test_starts_solved_in_threads_equal_the_starts_solved_one_after_another() -> None:
+    """`_run_starts` solves a sharp fit's starts after the first in `START_THREADS` threads
+    (issue 14); every start's optimum, result and step count equal the one-after-another
+    solves' to the bit, in the same order."""
+    from stairfit.fitting import _core
+    from stairfit.fitting._problem import as_problem, spec_for
+
+    obs, spec, _ = zoo.standard(fitting.Params(sigma_rad=np.deg2rad(6.0), scale=1.0), seed=3)
+    problem = as_problem(obs, spec)
+    free = spec_for(LADDER["sharp+floor"], problem)
+    static, data = problem.static_for(free), problem.arrays_for(free)
+    z0s = _core.start_vectors(problem, free, tuple(np.deg2rad((1.0, 4.0, 12.0, 25.0))))
+    solver = _core.make_solver("lm", 1e-8, 1e-8)
+    assert not static.rounded and len(z0s) >= 3  # the threaded path is the one taken
+    threaded = _core._run_starts(z0s, static, data, solver, 256)
+    serial = [_core._run(z0, static, data, solver, 256) for z0 in z0s]
+    assert len(threaded) == len(serial)
+    for a, b in zip(threaded, serial, strict=True):
+        np.testing.assert_array_equal(a.z, b.z)
+        assert (a.name, a.steps, a.finite) == (b.name, b.steps, b.finite)
+        np.testing.assert_array_equal(a.ev.chi2, b.ev.chi2)
+    assert len({tuple(np.asarray(z0)) for z0 in z0s}) == len(z0s)  # distinct starts
+    assert len({r.steps for r in serial}) > 1  # which take different paths
