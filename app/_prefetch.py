@@ -1,12 +1,15 @@
-"""The fit's late imports, loaded in a background thread while the photos are measured and the
-model is fitted (issue 14: imports are part of the user's wait).
+"""The fit's late imports, loaded in a background thread while the model is compiled and
+fitted (issue 14: imports are part of the user's wait).
 
 A default `stairfit fit` needs, after the least-squares fit, emcee (which imports
 scipy.stats), ArviZ with xarray (which imports dask.array the first time it checks whether an
 array is a dask array) and h5netcdf for the chain, and matplotlib for the report: about 3 s of
-imports on the 2-core machine, spent while the second core idled. The least-squares fit runs
-in compiled XLA programs, which release the interpreter, so the same imports done in a thread
-started before the measurement cost the user little of that (`benchmarks/bench_cold.py`).
+imports on the 2-core machine, spent while the second core idled. The compilation and the
+least-squares fit run in XLA, single-threaded and without the interpreter lock, so the same
+imports done in a thread started once the photos are measured cost the user little of that
+(`benchmarks/bench_cold.py --compare-exe`: a warm default fit 10.8 -> 8.8 s with `cli.entry`
+and the threaded starts). Not earlier: decoding the photos keeps both cores busy, and imports
+started before it only slowed it.
 
 Nothing but imports (and a 2 x 2 ArviZ dataset, which is how xarray's lazy imports are
 reached) happens in the thread, and it never raises: a module that fails to import there is
@@ -51,8 +54,6 @@ def _load(modules: tuple[str, ...]) -> None:
 
 def prefetch(modules: tuple[str, ...] = FIT_MODULES) -> threading.Thread:
     """Start importing `modules` in a daemon thread; returns the thread (already started)."""
-    thread = threading.Thread(
-        target=_load, args=(modules,), name="stairfit-imports", daemon=True
-    )
+    thread = threading.Thread(target=_load, args=(modules,), name="stairfit-imports", daemon=True)
     thread.start()
     return thread
