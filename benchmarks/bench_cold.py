@@ -242,6 +242,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, default=RESULTS / "cold.md")
     p.add_argument("--no-write", action="store_true")
     args = p.parse_args(argv)
+    if args.compare_exe and not (
+        Path(args.compare_exe).is_file() and os.access(args.compare_exe, os.X_OK)
+    ):
+        p.error(
+            f"--compare-exe: {args.compare_exe} is not an executable file; give the `stairfit` "
+            "script of the other installation (e.g. OTHER_VENV/bin/stairfit)"
+        )
     if args.quick:
         args.repeats, args.megapixels, args.views = 1, 0.5, 5
     return args
