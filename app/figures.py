@@ -348,6 +348,11 @@ def reflected_colours(
     return fig
 
 
+SaveFigure = Callable[[Figure, Path], Path]
+"""What draws a figure and writes it to a path: `save`, or `stairfit._drawing.Drawer` (which
+draws in a second process)."""
+
+
 def save(fig: Figure, path: Path, dpi: int = 120) -> Path:
     """Save a figure as an opaque RGB PNG (zlib level `PNG_COMPRESS_LEVEL`) and close it.
 

@@ -26,6 +26,9 @@ class FitOptions:
     workers: int
     cache: bool
     progress: bool
+    figure_process: bool = True
+    """Draw the report's figures in a second process (`stairfit._drawing`); a study's
+    workers, already one process per core, draw their own."""
 
 
 @dataclass

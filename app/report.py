@@ -30,7 +30,15 @@ from ._misfit_report import (
     rounding_sentence,
     summary_lines,
 )
-from .figures import brdf_map, fixed_layout, log_y, reflected_colours, refractive_index, save
+from .figures import (
+    SaveFigure,
+    brdf_map,
+    fixed_layout,
+    log_y,
+    reflected_colours,
+    refractive_index,
+    save,
+)
 from .outcome import FitOutcome, sha256_of
 
 DEG = np.pi / 180
@@ -183,10 +191,16 @@ def truth_records(outcome: FitOutcome, records: list[dict[str, Any]]) -> list[di
 # --- files ----------------------------------------------------------------------------------
 
 
-def write_outputs(outcome: FitOutcome, out: Path, drawn: dict[str, str] | None = None) -> None:
+def write_outputs(
+    outcome: FitOutcome,
+    out: Path,
+    drawn: dict[str, str] | None = None,
+    draw: SaveFigure = save,
+) -> None:
     """Write every output into `out` (a temporary folder moved into place by the caller);
     `drawn`: the figures `fit_figures` already drew into `out / "figures"` (drawn here if
-    None)."""
+    None); `draw`: how a figure is drawn and written (`figures.save`, or a
+    `_drawing.Drawer`, which may still be writing when this returns)."""
     from .photo_reports import MARKER_COLUMNS, fit_marker_reports, write_table
 
     out.mkdir(parents=True, exist_ok=True)
@@ -194,7 +208,7 @@ def write_outputs(outcome: FitOutcome, out: Path, drawn: dict[str, str] | None =
     markers = fit_marker_reports(outcome.scene, outcome.table)
     write_table(out / "markers.csv", markers, MARKER_COLUMNS)
     write_observations(outcome, out / "observations.csv")
-    figures = write_figures(outcome, out / "figures", drawn)
+    figures = write_figures(outcome, out / "figures", drawn, draw)
     results = results_dict(outcome, figures)
     (out / "results.json").write_text(json.dumps(results, indent=2, allow_nan=False))
     (out / "report.html").write_text(report_html(outcome, results, figures, out))
@@ -458,13 +472,17 @@ def spectral_record(outcome: FitOutcome) -> dict[str, Any]:
 
 
 def write_figures(
-    outcome: FitOutcome, folder: Path, drawn: dict[str, str] | None = None
+    outcome: FitOutcome,
+    folder: Path,
+    drawn: dict[str, str] | None = None,
+    draw: SaveFigure = save,
 ) -> dict[str, str]:
     """Every figure of the report; returns {key: relative path}. `drawn`: what `fit_figures`
-    already drew into `folder` (while the posterior was sampled); drawn here if None."""
-    figs = dict(fit_figures(outcome, folder) if drawn is None else drawn)
+    already drew into `folder` (while the posterior was sampled); drawn here if None. `draw`:
+    as in `write_outputs`."""
+    figs = dict(fit_figures(outcome, folder, draw) if drawn is None else drawn)
     if outcome.posterior is not None and outcome.posterior.samples.shape[1] >= 1:
-        figs["corner"] = _rel(save(corner_figure(outcome), folder / "corner.png"), folder)
+        figs["corner"] = _rel(draw(corner_figure(outcome), folder / "corner.png"), folder)
     return {k: figs[k] for k in FIGURE_ORDER if k in figs}
 
 
@@ -472,10 +490,11 @@ FIGURE_ORDER = ("fit", "residuals", "misfit", "corner", "brdf_map", "colours")
 """The report's figures in the order it shows them."""
 
 
-def fit_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
+def fit_figures(outcome: FitOutcome, folder: Path, draw: SaveFigure = save) -> dict[str, str]:
     """The figures that need the least-squares fit only (every one but the corner plot);
-    returns {key: relative path}. `stairfit fit` draws them in a second thread while the
-    posterior is sampled (its model evaluations release the interpreter most of the time).
+    returns {key: relative path}. `stairfit fit` builds them in a second thread while the
+    posterior is sampled (its model evaluations release the interpreter most of the time), and
+    `draw` (a `_drawing.Drawer`) has them drawn and written by a second process.
 
     The model-only figures (fitted BRDF, reflected colours) follow the preset's
     `diffuse_nodes` and `float32_figures`.
@@ -486,10 +505,10 @@ def fit_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
     p = fit.params
     preset = outcome.options.preset
     figs: dict[str, str] = {}
-    figs["fit"] = _rel(save(fit_per_wedge(outcome), folder / "fit_per_wedge.png"), folder)
-    figs["residuals"] = _rel(save(residual_figure(outcome), folder / "residuals.png"), folder)
+    figs["fit"] = _rel(draw(fit_per_wedge(outcome), folder / "fit_per_wedge.png"), folder)
+    figs["residuals"] = _rel(draw(residual_figure(outcome), folder / "residuals.png"), folder)
     figs["misfit"] = _rel(
-        save(residual_pattern_figure(outcome), folder / "residual_pattern.png"), folder
+        draw(residual_pattern_figure(outcome), folder / "residual_pattern.png"), folder
     )
     wedges = [w.angle_deg for w in outcome.scene.specimen.wedges]
     pick = sorted({min(wedges), max(wedges)})
@@ -500,7 +519,7 @@ def fit_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
     n550 = complex(np.interp(550.0, lam, n_lam.real), np.interp(550.0, lam, np.imag(n_lam)))
     n550 = n550.real if n550.imag == 0 else n550
     figs["brdf_map"] = _rel(
-        save(
+        draw(
             brdf_map(
                 pick,
                 n=n550,
@@ -513,7 +532,7 @@ def fit_figures(outcome: FitOutcome, folder: Path) -> dict[str, str]:
         folder,
     )
     figs["colours"] = _rel(
-        save(
+        draw(
             reflected_colours(
                 wedges,
                 disp,

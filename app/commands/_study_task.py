@@ -124,7 +124,7 @@ def fit_or_skip(task: FolderTask) -> FolderReport:
     note = replaced_note(dest, ledger, fingerprint, task.refit)
     check_photos(scene)
     ledger.unlink(missing_ok=True)  # the old fingerprint no longer describes dest
-    options = dataclasses.replace(task.options, progress=False)
+    options = dataclasses.replace(task.options, progress=False, figure_process=False)
     with staged_folder(dest, force=True) as tmp:
         fit_scene(scene, tmp, options)
     write_ledger(ledger, task, fingerprint)

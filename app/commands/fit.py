@@ -11,7 +11,7 @@ import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -25,6 +25,10 @@ from ..presets import PRESETS, Preset, get_preset
 from ..scene import Scene, load_scene
 from . import _exclusions
 from ._failed_previews import FAILED_PREVIEWS, forget_previews, keep_previews
+
+if TYPE_CHECKING:
+    from .._drawing import Drawer
+    from ..figures import SaveFigure
 
 DEG = np.pi / 180
 
@@ -185,7 +189,23 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     # the posterior's and the report's imports, in a thread while the model is compiled and
     # fitted (not while the photos are decoded, which keeps both cores busy)
     prefetch(FIT_MODULES if options.posterior else REPORT_MODULES)
+    from .._drawing import drawing
 
+    with drawing(options.figure_process) as draw:
+        return _fit_measured(scene, out, options, table, timings, notes, draw)
+
+
+def _fit_measured(
+    scene: Scene,
+    out: Path,
+    options: FitOptions,
+    table: Any,
+    timings: dict[str, float],
+    notes: list[str],
+    draw: Drawer,
+) -> FitOutcome:
+    """`fit_scene` once the photos are measured: fit, posterior, outputs; the figures are
+    drawn and written by `draw` (every one written when this returns)."""
     t0 = time.perf_counter()
     try:
         observations, row_info, excluded_notes = to_observations(scene, table)
@@ -207,28 +227,33 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
         drawn = None
         if options.posterior:
             t0 = time.perf_counter()
-            outcome.posterior, drawn = sample_while_drawing(outcome, out)
+            outcome.posterior, drawn = sample_while_drawing(outcome, out, draw)
             timings["posterior_s"] = time.perf_counter() - t0
     timings.update(compiled.as_timings())
     from ..report import write_outputs
 
     t0 = time.perf_counter()
-    write_outputs(outcome, out, drawn)
+    write_outputs(outcome, out, drawn, draw)
+    draw.finish()
     timings["outputs_s"] = time.perf_counter() - t0
     return outcome
 
 
-def sample_while_drawing(outcome: FitOutcome, out: Path) -> tuple[Any, dict[str, str]]:
+def sample_while_drawing(
+    outcome: FitOutcome, out: Path, draw: SaveFigure | None = None
+) -> tuple[Any, dict[str, str]]:
     """The posterior of the chosen fit, and meanwhile, in a second thread, the report's figures
-    that need the least-squares fit only (`report.fit_figures`): the sampler's model
-    evaluations release the interpreter most of the time. Whatever ends the sampling (an error,
-    Ctrl-C), the figures are finished first, so nothing writes into the output afterwards."""
+    that need the least-squares fit only (`report.fit_figures`), built there and drawn by
+    `draw` (default `figures.save`; `fit_scene` gives a `_drawing.Drawer`, which draws them in
+    a second process): the sampler's model evaluations release the interpreter most of the
+    time. Whatever ends the sampling (an error, Ctrl-C), the figures are handed over first."""
     from concurrent.futures import ThreadPoolExecutor
 
+    from ..figures import save
     from ..report import fit_figures
 
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="stairfit-figures") as pool:
-        drawing = pool.submit(fit_figures, outcome, out / "figures")
+        drawing = pool.submit(fit_figures, outcome, out / "figures", draw or save)
         posterior = sample(outcome.selection.fit, out, outcome.options)
         return posterior, drawing.result()
 
