@@ -10,6 +10,7 @@ from it with `run_mcmc(None, n)`.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import itertools
 import math
@@ -390,6 +391,13 @@ class PosteriorResult:
 # --- the problem emcee samples ------------------------------------------------------------------
 
 
+@functools.lru_cache(maxsize=8)
+def _program_key(static: Static, priors: PriorSpec) -> str:
+    """The exported log posterior's static key (`_export.call`), made once per configuration
+    rather than at each of the sampler's hundreds of calls."""
+    return repr((static, priors))
+
+
 class Target(NamedTuple):
     """What the posterior of one fit is evaluated on: the compiled configuration, the arrays,
     the least-squares optimum `base_z` (every slot, sine slots on their principal branch), the
@@ -417,7 +425,7 @@ class Target(NamedTuple):
         out = _export.call(
             "log_probability",
             lambda th, d, z, s: _batched_log_probability(th, self.static, self.priors, d, z, s),
-            repr((self.static, self.priors)),
+            _program_key(self.static, self.priors),
             (jnp.asarray(theta), self.data, jnp.asarray(self.base_z), jnp.asarray(self.slots)),
             lambda leaves: leaves[0],
         )

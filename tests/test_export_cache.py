@@ -94,6 +94,18 @@ def test_the_key_follows_the_static_description_shapes_and_code(cache_dir: Path)
     assert len(_export.code_fingerprint()) == 64
 
 
+def test_the_remembered_file_of_a_program_is_its_key(tmp_path: Path) -> None:
+    """`call` remembers each program's file (the posterior calls its program hundreds of
+    times): the same name as `program_key`, for NumPy, JAX and Python-scalar leaves."""
+    leaves = [np.zeros(3), jnp.ones((2, 2), jnp.float32), 1.5]
+    tree = jax.tree.structure(leaves)
+    shapes = tuple(map(_export._shape_dtype, leaves))
+    want = tmp_path / f"{_export.program_key('p', 'a', tree, leaves)}.bin"
+    assert _export._program_path(tmp_path, "p", "a", tree, shapes) == want
+    other = tuple(map(_export._shape_dtype, [np.zeros(3), jnp.ones((2, 2)), 1.5]))
+    assert _export._program_path(tmp_path, "p", "a", tree, other) != want  # float64 there
+
+
 def test_switched_off_or_without_a_cache_folder_nothing_is_written(
     cache_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
