@@ -9,11 +9,14 @@ of the 2 MP x 9-view demo took 7.3-7.5 s against 8.4-9.2 s (4 interleaved runs e
 So the figures are still *built* where the data are (a `matplotlib.figure.Figure` is cheap to
 make: artists and numbers), then pickled and *drawn* by a spawned process (JAX does not
 survive fork) that imports matplotlib and Pillow only, on the second core, while this process
-samples the posterior and writes the other outputs. `Drawer.__call__` has the signature of
-`figures.save`; `drawing()` starts the process and, when its block ends, waits until every
-figure is written, so nothing writes into the output folder afterwards. Any failure of the
-process (it cannot start, it died, a figure does not pickle) falls back to drawing that figure
-here with `figures.save`: the same pixels either way (tests/test_drawing.py).
+samples the posterior and writes the other outputs (`fit --no-posterior` has nothing to draw
+beside, and draws here; so do a study's workers, already one per core). `Drawer.__call__`
+has the signature of `figures.save`; `drawing()` starts the process and, when its block ends,
+waits until every figure is written, so nothing writes into the output folder afterwards. Any
+failure of the process (it cannot start, it died, a figure does not pickle) falls back to
+drawing that figure here with `figures.save`: the same bytes either way (tests/test_drawing.py).
+A warm default fit: 8.2 s (7.9-8.4) against 9.7 s before (benchmarks/results/cold.md, with the
+exported programs' keys remembered, fitting/_export.py).
 
 The process ignores SIGINT (Ctrl-C reaches the whole process group): this process decides
 when it stops, and waits for the figure being written.

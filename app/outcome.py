@@ -27,8 +27,8 @@ class FitOptions:
     cache: bool
     progress: bool
     figure_process: bool = True
-    """Draw the report's figures in a second process (`stairfit._drawing`); a study's
-    workers, already one process per core, draw their own."""
+    """Draw the report's figures in a second process while the posterior is sampled
+    (`stairfit._drawing`); a study's workers, already one process per core, draw their own."""
 
 
 @dataclass

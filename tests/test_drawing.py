@@ -126,3 +126,18 @@ def test_without_the_process_figures_are_drawn_here(tmp_path):
         fig = _report_like_figures()[1][1]
         draw(fig, tmp_path / "fit.png")
         assert (tmp_path / "fit.png").stat().st_size > 0
+
+
+def test_a_fit_draws_in_the_process_only_beside_a_posterior(monkeypatch, tmp_path):
+    # without a posterior there is nothing to draw beside; a study's workers draw their own
+    from stairfit.commands import fit
+
+    seen = []
+    monkeypatch.setattr(fit, "measure", lambda scene, out, options: None)
+    monkeypatch.setattr(fit, "prefetch", lambda modules: None)
+    monkeypatch.setattr(fit, "_fit_measured", lambda *args: seen.append(args[-1].in_process))
+    cases = [(True, True), (False, True), (True, False)]
+    for posterior, figure_process in cases:
+        options = SimpleNamespace(posterior=posterior, figure_process=figure_process)
+        fit.fit_scene(SimpleNamespace(), tmp_path, options)
+    assert seen == [True, False, False]

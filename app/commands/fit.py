@@ -191,7 +191,9 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     prefetch(FIT_MODULES if options.posterior else REPORT_MODULES)
     from .._drawing import drawing
 
-    with drawing(options.figure_process) as draw:
+    # the figures drawn by a second process while the posterior is sampled (without a
+    # posterior there is nothing to draw beside: starting the process would cost more)
+    with drawing(options.figure_process and options.posterior) as draw:
         return _fit_measured(scene, out, options, table, timings, notes, draw)
 
 
