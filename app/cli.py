@@ -105,7 +105,7 @@ def one_line_warnings(command: str) -> Iterator[None]:
         yield
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, freeze_imports: bool = False) -> int:
     """Entry point: float64 on, one-line errors for user mistakes, non-zero exit on failure.
 
     A `UserError` (or an `ImagingError` that reached this far) is printed as one line,
@@ -115,6 +115,11 @@ def main(argv: list[str] | None = None) -> int:
     cleanup (app/_signals.py). A failed allocation (`MemoryError`, XLA's "Out of memory") is
     one line with what to do, status 1. Warnings are one line each. Anything else is a bug and
     keeps its traceback.
+
+    `freeze_imports` (the console script, `entry`): once jax and the command's modules are
+    imported, and after each of a fit's late imports (`_prefetch.prefetch`), `gc.freeze()`
+    takes them out of the collector's way (they live until the process ends); not for a
+    process that goes on, where what is frozen is never collected.
     """
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(argv[0] if argv and argv[0] in COMMANDS else None)
@@ -125,6 +130,9 @@ def main(argv: list[str] | None = None) -> int:
     # float64 [conventions §10], the persistent compilation cache, and under --quiet no XLA
     # log banners (set before jax is first imported: app/_jaxcache.py)
     start_jax(quiet=bool(getattr(args, "quiet", False)))
+    args.freeze_imports = freeze_imports
+    if freeze_imports:
+        gc.freeze()
     try:
         with terminate_by_exception(), one_line_warnings(args.command):
             return int(args.func(args) or 0)
@@ -169,8 +177,9 @@ def entry() -> None:
     heap of JAX, XLA and matplotlib objects only to free memory the operating system frees
     anyway: that walk took 0.5 s of a 9 s warm `stairfit fit` (issue 14; median of 5 runs).
     Files are closed and atexit handlers still run. Not done in `main()`, which tests and
-    notebooks call in a process that goes on."""
-    code = main()
+    notebooks call in a process that goes on; for the same reason only this entry asks `main`
+    to freeze the imports as they are made (`freeze_imports`)."""
+    code = main(freeze_imports=True)
     gc.freeze()
     sys.exit(code)
 

@@ -134,10 +134,12 @@ def test_a_fit_draws_in_the_process_only_beside_a_posterior(monkeypatch, tmp_pat
 
     seen = []
     monkeypatch.setattr(fit, "measure", lambda scene, out, options: None)
-    monkeypatch.setattr(fit, "prefetch", lambda modules: None)
+    monkeypatch.setattr(fit, "prefetch", lambda *args: None)
     monkeypatch.setattr(fit, "_fit_measured", lambda *args: seen.append(args[-1].in_process))
     cases = [(True, True), (False, True), (True, False)]
     for posterior, figure_process in cases:
-        options = SimpleNamespace(posterior=posterior, figure_process=figure_process)
+        options = SimpleNamespace(
+            posterior=posterior, figure_process=figure_process, freeze_imports=False
+        )
         fit.fit_scene(SimpleNamespace(), tmp_path, options)
     assert seen == [True, False, False]

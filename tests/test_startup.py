@@ -119,3 +119,30 @@ def test_the_console_script_is_the_entry_that_freezes_the_heap_and_keeps_the_sta
     )  # fmt: skip
     assert bad.returncode == 2, bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def test_only_the_console_script_freezes_what_it_imported():
+    """`cli.main(freeze_imports=True)` (what `entry` runs) freezes the start-up's imports once
+    jax is set up, and a fit's `prefetch(..., freeze=True)` after each late import, so that
+    full collections do not walk them again; `main()` as tests and notebooks call it, and
+    `prefetch` by default, freeze nothing (what is frozen is never collected)."""
+    code = (
+        "import gc, sys\n"
+        "from stairfit import _prefetch, cli\n"
+        "counts = []\n"
+        "for freeze in (False, True):\n"
+        "    gc.unfreeze()\n"
+        "    status = cli.main(['fit', '/no/such/folder/of/stairfit'], freeze_imports=freeze)\n"
+        "    counts.append((status, gc.get_freeze_count() > 0))\n"
+        "for freeze in (False, True):\n"
+        "    gc.unfreeze()\n"
+        "    _prefetch.prefetch(('json', 'csv'), freeze=freeze).join(60)\n"
+        "    counts.append(gc.get_freeze_count() > 0)\n"
+        "print(counts)\n"
+    )
+    env = dict(os.environ, STAIRFIT_JAX_CACHE="off")
+    run = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env
+    )
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "[(2, False), (2, True), False, True]", run.stdout

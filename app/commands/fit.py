@@ -98,6 +98,7 @@ def options_from_args(args: argparse.Namespace) -> FitOptions:
         posterior=not args.no_posterior,
         model=args.model,
         model_error=not args.no_model_error,
+        freeze_imports=bool(getattr(args, "freeze_imports", False)),
         seed=args.seed,
         workers=args.workers,
         cache=not args.no_cache,
@@ -188,7 +189,7 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     timings["measure_s"] = time.perf_counter() - t0
     # the posterior's and the report's imports, in a thread while the model is compiled and
     # fitted (not while the photos are decoded, which keeps both cores busy)
-    prefetch(FIT_MODULES if options.posterior else REPORT_MODULES)
+    prefetch(FIT_MODULES if options.posterior else REPORT_MODULES, options.freeze_imports)
     from .._drawing import drawing
 
     # the figures drawn by a second process while the posterior is sampled (without a
