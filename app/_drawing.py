@@ -15,8 +15,9 @@ has the signature of `figures.save`; `drawing()` starts the process and, when it
 waits until every figure is written, so nothing writes into the output folder afterwards. Any
 failure of the process (it cannot start, it died, a figure does not pickle) falls back to
 drawing that figure here with `figures.save`: the same bytes either way (tests/test_drawing.py).
-A warm default fit: 8.2 s (7.9-8.4) against 9.7 s before (benchmarks/results/cold.md, with the
-exported programs' keys remembered, fitting/_export.py).
+A warm default fit: 7.8 s (7.7-8.3) against 9.7 s before the evening's three changes (this,
+the exported programs' keys remembered, the console script's frozen imports;
+benchmarks/results/cold.md).
 
 The process ignores SIGINT (Ctrl-C reaches the whole process group): this process decides
 when it stops, and waits for the figure being written.
