@@ -114,8 +114,12 @@ def _pool() -> ProcessPoolExecutor | None:
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_start_worker,
         )
-        pool.submit(_ready)  # spawn it now: its imports overlap the fit
     except Exception:  # no processes here (a sandbox, a missing semaphore): draw in-process
+        return None
+    try:
+        pool.submit(_ready)  # spawn it now: its imports overlap the fit
+    except Exception:  # it could not start: draw in-process
+        pool.shutdown(wait=False, cancel_futures=True)
         return None
     return pool
 

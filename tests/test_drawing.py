@@ -143,3 +143,31 @@ def test_a_fit_draws_in_the_process_only_beside_a_posterior(monkeypatch, tmp_pat
         )
         fit.fit_scene(SimpleNamespace(), tmp_path, options)
     assert seen == [True, False, False]
+
+
+class _NoProcesses:
+    """A `ProcessPoolExecutor` of a machine that allows none: fails at creation, or (`late`)
+    when its process is spawned at the first submit."""
+
+    late = False
+
+    def __init__(self, *args, **kwargs):
+        if not self.late:
+            raise OSError("no semaphores here")
+        self.stopped = False
+
+    def submit(self, *args):
+        raise OSError("cannot spawn")
+
+    def shutdown(self, wait=True, cancel_futures=False):
+        self.stopped = True
+
+
+@pytest.mark.parametrize("late", [False, True])
+def test_where_no_process_can_start_figures_are_drawn_here(monkeypatch, tmp_path, late):
+    monkeypatch.setattr(_NoProcesses, "late", late)
+    monkeypatch.setattr(_drawing, "ProcessPoolExecutor", _NoProcesses)
+    with _drawing.drawing() as draw:
+        assert not draw.in_process
+        draw(_report_like_figures()[1][1], tmp_path / "fit.png")
+        assert (tmp_path / "fit.png").stat().st_size > 0
