@@ -1,5 +1,6 @@
 """JAX set-up of the command line: float64, the persistent compilation cache (issue 7:
-compilation is part of the user's wait) and, under `--quiet`, no XLA log banners (issue 12).
+compilation is part of the user's wait), XLA:CPU's faster-compiling fusion emitters (issue 14)
+and, under `--quiet`, no XLA log banners (issue 12).
 
 A fit compiles its least-squares and posterior functions once per model variant (shapes are
 kept static across photos and wedges, so one scene compiles once); the persistent cache keeps
@@ -12,8 +13,10 @@ library users choose for themselves (`jax.config.update("jax_compilation_cache_d
 from __future__ import annotations
 
 import os
+import re
 import sys
 from collections.abc import MutableMapping
+from importlib import metadata
 from pathlib import Path
 
 ENV_VAR = "STAIRFIT_JAX_CACHE"
@@ -26,6 +29,52 @@ MIN_COMPILE_TIME_S = 0.0
 """Compilations faster than this are not written to disk (JAX's default is 1 s). Every one is
 kept: a warm `stairfit fit` of the demo scene otherwise recompiled about 35 small programs
 (0.06 s each, 2.3 s in all), while reading one back takes about 0.01 s."""
+
+
+XLA_FLAGS_VAR = "XLA_FLAGS"
+FAST_COMPILE_OPTION = "xla_cpu_use_fusion_emitters"
+FAST_COMPILE_FLAG = f"--{FAST_COMPILE_OPTION}=false"
+"""XLA:CPU compiles fusions with its earlier (LLVM IR) emitters instead of the MLIR ones: a third
+less compilation for stairfit's programs at the same run time (benchmarks/results/cold.md,
+"XLA's fusion emitters"; results equal to about 1e-13 relative, the differences of a
+different order of floating-point operations)."""
+FAST_COMPILE_JAXLIB = ((0, 6), (0, 10))
+"""The jaxlib releases (major, minor), first and last, whose XLA knows the option: it appeared
+in 0.6 (0.5.0 lacks it) and 0.10.2 is the release measured. XLA stops the process on an option
+it does not know, so a release outside this range compiles with its defaults (widen the range
+once a newer release is checked: tests/test_jaxcache.py)."""
+
+
+def jaxlib_release() -> tuple[int, int] | None:
+    """(major, minor) of the installed jaxlib, from its metadata (jaxlib is not imported);
+    None if it cannot be read."""
+    try:
+        found = re.match(r"(\d+)\.(\d+)", metadata.version("jaxlib"))
+    except metadata.PackageNotFoundError:
+        return None
+    return None if found is None else (int(found[1]), int(found[2]))
+
+
+def fast_compile(
+    environ: MutableMapping[str, str] | None = None, release: tuple[int, int] | None = None
+) -> bool:
+    """Add `FAST_COMPILE_FLAG` to `XLA_FLAGS` (returns whether the process now compiles with it).
+
+    Left alone: a user's own choice of the option in `XLA_FLAGS` (kept as it is), a jaxlib
+    outside `FAST_COMPILE_JAXLIB` (`release`: the installed one unless given). XLA reads the
+    variable when JAX starts its first backend, so this works until the first computation;
+    child processes (a study's workers, notebook kernels) inherit it.
+    """
+    env = os.environ if environ is None else environ
+    flags = env.get(XLA_FLAGS_VAR, "")
+    if FAST_COMPILE_OPTION in flags:
+        return FAST_COMPILE_FLAG in flags.split()
+    release = jaxlib_release() if release is None else release
+    first, last = FAST_COMPILE_JAXLIB
+    if release is None or not first <= release <= last:
+        return False
+    env[XLA_FLAGS_VAR] = f"{flags} {FAST_COMPILE_FLAG}".strip()
+    return True
 
 
 def cache_dir(environ: dict[str, str] | None = None) -> Path | None:
@@ -72,10 +121,12 @@ def quiet_xla_logs(environ: MutableMapping[str, str] | None = None) -> bool:
 
 def start_jax(quiet: bool = False, environ: MutableMapping[str, str] | None = None) -> Path | None:
     """The CLI's JAX set-up, once per process before any computation: under `quiet` no XLA log
-    banners (first, before jax loads), float64 [conventions §10] and the persistent compilation
-    cache; returns the cache folder (None if disabled)."""
+    banners (first, before jax loads), the faster-compiling emitters (`fast_compile`), float64
+    [conventions §10] and the persistent compilation cache; returns the cache folder (None if
+    disabled)."""
     if quiet:
         quiet_xla_logs(environ)
+    fast_compile(environ)
     import jax
 
     jax.config.update("jax_enable_x64", True)

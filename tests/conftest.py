@@ -6,8 +6,16 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import jax
 import pytest
+
+from stairfit._jaxcache import fast_compile
+
+# the programs the tests check are compiled as the command line compiles them (XLA:CPU's
+# faster-compiling emitters, app/_jaxcache.py); set before JAX starts its backend, inherited by
+# the CLI subprocesses, notebook kernels and Dask workers the tests start
+fast_compile()
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 # As in optimistix's tests: an implicit rank promotion (broadcasting arrays of different ranks)

@@ -1,5 +1,5 @@
 """The CLI's JAX set-up (app/_jaxcache.py): where it keeps its persistent compilation cache,
-and no XLA log banners under --quiet."""
+XLA:CPU's faster-compiling emitters, and no XLA log banners under --quiet."""
 
 from __future__ import annotations
 
@@ -8,9 +8,17 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from stairfit._jaxcache import cache_dir, quiet_xla_logs
+from stairfit._jaxcache import (
+    FAST_COMPILE_FLAG,
+    FAST_COMPILE_JAXLIB,
+    cache_dir,
+    fast_compile,
+    jaxlib_release,
+    quiet_xla_logs,
+)
 
 
 def test_default_is_under_the_user_cache_folder() -> None:
@@ -83,3 +91,98 @@ def test_quiet_xla_logs_hides_the_slow_compile_banner() -> None:
     assert all(r.returncode == 0 for r in runs.values()), runs
     assert "Constant folding an instruction is taking" in runs["loud"].stderr  # the control
     assert "Constant folding" not in runs["quiet"].stderr, runs["quiet"].stderr
+
+
+def test_fast_compile_adds_the_flag_and_keeps_the_user_s_own_choice() -> None:
+    inside = FAST_COMPILE_JAXLIB[1]
+    env: dict[str, str] = {}
+    assert fast_compile(env, release=inside) and env == {"XLA_FLAGS": FAST_COMPILE_FLAG}
+    assert fast_compile(env, release=inside) and env == {"XLA_FLAGS": FAST_COMPILE_FLAG}  # once
+    other = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert fast_compile(other, release=inside)
+    assert other["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=2",
+                                          FAST_COMPILE_FLAG]  # fmt: skip
+    mine = {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}
+    assert not fast_compile(mine, release=inside)
+    assert mine == {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}
+
+
+@pytest.mark.parametrize("release", [(0, 5), (FAST_COMPILE_JAXLIB[1][0], 99), (1, 0)])
+def test_fast_compile_leaves_a_release_it_was_not_checked_on_alone(
+    release: tuple[int, int],
+) -> None:
+    # XLA stops the process on an option it does not know (0.5.0 lacks this one)
+    env: dict[str, str] = {}
+    assert fast_compile(env, release=release) is False
+    assert env == {}
+
+
+def test_fast_compile_without_a_readable_jaxlib_version_does_nothing(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from importlib import metadata
+
+    def missing(name: str) -> str:
+        raise metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(metadata, "version", missing)
+    assert jaxlib_release() is None
+    env: dict[str, str] = {}
+    assert fast_compile(env) is False and env == {}
+
+
+def test_the_installed_jaxlib_release_is_read() -> None:
+    import jaxlib
+
+    assert jaxlib_release() == tuple(int(x) for x in jaxlib.__version__.split(".")[:2])
+
+
+_VALUES = """
+import sys
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+from stairfit import model
+ti = jnp.linspace(-1.4, 1.4, 7)[:, None]
+to = jnp.linspace(-1.5, 1.5, 41)[None, :]
+f = jax.jit(lambda p: model.brdf(ti, to, p[0], p[1], p[2]))
+p = jnp.array([0.5, 1.46, 0.08])
+np.save(sys.argv[1], np.concatenate([f(p).ravel(), jax.jacfwd(f)(p).ravel()]))
+"""
+
+
+def test_the_installed_xla_knows_the_flag_and_gives_the_same_numbers(tmp_path: Path) -> None:
+    release = jaxlib_release()
+    first, last = FAST_COMPILE_JAXLIB
+    if release is None or not first <= release <= last:
+        pytest.skip(f"jaxlib {release} is outside {FAST_COMPILE_JAXLIB}: check the option on it "
+                    "(this test) and widen FAST_COMPILE_JAXLIB")  # fmt: skip
+    runs = {}
+    for flags in (FAST_COMPILE_FLAG, "--xla_cpu_use_fusion_emitters=true"):
+        env = {**os.environ, "XLA_FLAGS": flags}
+        out = tmp_path / f"{len(runs)}.npy"
+        done = subprocess.run(
+            [sys.executable, "-c", _VALUES, str(out)], capture_output=True, text=True, env=env
+        )
+        assert done.returncode == 0, done.stderr[-2000:]  # an unknown flag aborts XLA
+        runs[flags] = np.load(out)
+    fast, default = runs.values()
+    assert np.all(np.isfinite(fast)) and np.any(fast != 0)
+    # the same model to rounding: the emitters order some floating-point operations apart
+    np.testing.assert_allclose(fast, default, rtol=1e-12, atol=1e-15 * np.max(np.abs(default)))
+
+
+def test_the_command_line_compiles_with_the_flag(tmp_path: Path) -> None:
+    code = (
+        "import os\n"
+        "from stairfit import cli\n"
+        f"rc = cli.main(['fit', {str(tmp_path / 'none')!r}, '--quiet'])\n"
+        "print(rc, os.environ.get('XLA_FLAGS', ''))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env
+    ).stdout.split()
+    release = jaxlib_release()
+    first, last = FAST_COMPILE_JAXLIB
+    expected = release is not None and first <= release <= last
+    assert out[0] == "2" and (FAST_COMPILE_FLAG in out[1:]) == expected, out

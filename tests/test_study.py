@@ -175,9 +175,10 @@ def dask_cluster(tmp_path: Path) -> Iterator[tuple[str, Path]]:
         )  # fmt: skip
         yield address, scheduler_file
     finally:
+        # the worker first, then the scheduler: a worker whose scheduler is already gone
+        # spends seconds trying to reach it before it exits
         for proc in reversed(procs):
             proc.terminate()
-        for proc in procs:
             try:
                 proc.wait(timeout=30)
             except subprocess.TimeoutExpired:

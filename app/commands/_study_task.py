@@ -90,7 +90,8 @@ def run_task(task: FolderTask) -> FolderReport:
 
 
 def prepare_worker(task: FolderTask) -> str | None:
-    """float64 and the shared JAX cache in this worker process (idempotent), version check.
+    """float64, the faster-compiling emitters and the shared JAX cache in this worker process
+    (idempotent), version check.
 
     Returns the cache folder in use, None when it is off or cannot be created on this worker.
     """
@@ -99,9 +100,10 @@ def prepare_worker(task: FolderTask) -> str | None:
             f"this worker ({socket.gethostname()}) runs stairfit {__version__}, the study "
             f"stairfit {task.version}; install the same version on every worker"
         )
-    import jax
+    from .._jaxcache import ENV_VAR, enable_persistent_cache, fast_compile
 
-    from .._jaxcache import ENV_VAR, enable_persistent_cache
+    fast_compile()  # a worker started by the user (a LocalCluster's inherit it from the study)
+    import jax
 
     jax.config.update("jax_enable_x64", True)  # [conventions §10]
     folder = enable_persistent_cache({ENV_VAR: task.jax_cache or "off"})
