@@ -55,20 +55,30 @@ def jaxlib_release() -> tuple[int, int] | None:
     return None if found is None else (int(found[1]), int(found[2]))
 
 
+def _backend_started() -> bool:
+    """Whether JAX has started a backend in this process (so XLA has read `XLA_FLAGS`)."""
+    bridge = sys.modules.get("jax._src.xla_bridge")
+    started = getattr(bridge, "backends_are_initialized", None)
+    return bool(started()) if callable(started) else False
+
+
 def fast_compile(
     environ: MutableMapping[str, str] | None = None, release: tuple[int, int] | None = None
 ) -> bool:
     """Add `FAST_COMPILE_FLAG` to `XLA_FLAGS` (returns whether the process now compiles with it).
 
     Left alone: a user's own choice of the option in `XLA_FLAGS` (kept as it is), a jaxlib
-    outside `FAST_COMPILE_JAXLIB` (`release`: the installed one unless given). XLA reads the
-    variable when JAX starts its first backend, so this works until the first computation;
-    child processes (a study's workers, notebook kernels) inherit it.
+    outside `FAST_COMPILE_JAXLIB` (`release`: the installed one unless given), and this
+    process's environment once JAX has started its backend: XLA has read the variable by then,
+    and JAX's cache keys, which include it, would describe programs compiled without it. Child
+    processes (a study's workers, notebook kernels) inherit the variable.
     """
     env = os.environ if environ is None else environ
     flags = env.get(XLA_FLAGS_VAR, "")
     if FAST_COMPILE_OPTION in flags:
         return FAST_COMPILE_FLAG in flags.split()
+    if environ is None and _backend_started():
+        return False
     release = jaxlib_release() if release is None else release
     first, last = FAST_COMPILE_JAXLIB
     if release is None or not first <= release <= last:

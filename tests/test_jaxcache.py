@@ -171,6 +171,23 @@ def test_the_installed_xla_knows_the_flag_and_gives_the_same_numbers(tmp_path: P
     np.testing.assert_allclose(fast, default, rtol=1e-12, atol=1e-15 * np.max(np.abs(default)))
 
 
+def test_fast_compile_leaves_a_started_backend_alone() -> None:
+    # XLA read XLA_FLAGS when the backend started: adding the option then would only make JAX's
+    # cache keys (which include the variable) describe programs compiled without it
+    code = (
+        "import os\n"
+        "import jax.numpy as jnp\n"
+        "from stairfit._jaxcache import fast_compile\n"
+        "jnp.zeros(1).block_until_ready()\n"
+        "print(fast_compile(), repr(os.environ.get('XLA_FLAGS')))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env
+    ).stdout.split()
+    assert out == ["False", "None"], out
+
+
 def test_the_command_line_compiles_with_the_flag(tmp_path: Path) -> None:
     code = (
         "import os\n"
