@@ -10,6 +10,7 @@ import csv
 import datetime
 import html
 import json
+import os
 import platform
 import sys
 from importlib import metadata
@@ -350,6 +351,8 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         "python": sys.version.split()[0],
         "platform": platform.platform(),
         "package_versions": package_versions(),
+        # XLA's options change the last bits of the numbers (README "Start-up")
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "settings": {
             "preset": outcome.options.preset.as_dict(),
             "posterior": outcome.options.posterior,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import html
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -62,6 +63,8 @@ def test_sharp_scene_is_recovered(tmp_path: Path) -> None:
     page = (tmp_path / "fit" / "report.html").read_text()
     assert "does not describe the data" not in page
     assert f"Rounded edges: {html.escape(rounding['sentence'])}" in page
+    # what XLA compiled with is recorded (the suite compiles as the command line does)
+    assert results["xla_flags"] == os.environ.get("XLA_FLAGS", "")
 
 
 def _check_observation_columns(out: Path) -> None:
