@@ -42,6 +42,16 @@ def test_quiet_xla_logs_sets_the_level_unless_the_user_chose_one() -> None:
     assert mine == {"TF_CPP_MIN_LOG_LEVEL": "0"}
 
 
+def _fresh_process(code: str, unset: str) -> list[str]:
+    """Run `code` in a new interpreter without the environment variable `unset`; its printed
+    words."""
+    env = {k: v for k, v in os.environ.items() if k != unset}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env
+    )
+    return out.stdout.split()
+
+
 def _cli_in_fresh_process(args: list[str]) -> list[str]:
     """Run `stairfit.cli.main(args)` in a new interpreter; report the exit status, the XLA log
     level it left in the environment, and whether jax was already loaded before main."""
@@ -52,11 +62,7 @@ def _cli_in_fresh_process(args: list[str]) -> list[str]:
         f"rc = cli.main({args!r})\n"
         "print(rc, os.environ.get('TF_CPP_MIN_LOG_LEVEL'), before)\n"
     )
-    env = {k: v for k, v in os.environ.items() if k != "TF_CPP_MIN_LOG_LEVEL"}
-    out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env
-    )
-    return out.stdout.split()
+    return _fresh_process(code, unset="TF_CPP_MIN_LOG_LEVEL")
 
 
 def test_quiet_commands_silence_xla_before_jax_is_imported(tmp_path: Path) -> None:
@@ -181,10 +187,7 @@ def test_fast_compile_leaves_a_started_backend_alone() -> None:
         "jnp.zeros(1).block_until_ready()\n"
         "print(fast_compile(), repr(os.environ.get('XLA_FLAGS')))\n"
     )
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env
-    ).stdout.split()
+    out = _fresh_process(code, unset="XLA_FLAGS")
     assert out == ["False", "None"], out
 
 
@@ -195,10 +198,7 @@ def test_the_command_line_compiles_with_the_flag(tmp_path: Path) -> None:
         f"rc = cli.main(['fit', {str(tmp_path / 'none')!r}, '--quiet'])\n"
         "print(rc, os.environ.get('XLA_FLAGS', ''))\n"
     )
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env
-    ).stdout.split()
+    out = _fresh_process(code, unset="XLA_FLAGS")
     release = jaxlib_release()
     first, last = FAST_COMPILE_JAXLIB
     expected = release is not None and first <= release <= last
