@@ -35,9 +35,9 @@ XLA_FLAGS_VAR = "XLA_FLAGS"
 FAST_COMPILE_OPTION = "xla_cpu_use_fusion_emitters"
 FAST_COMPILE_FLAG = f"--{FAST_COMPILE_OPTION}=false"
 """XLA:CPU compiles fusions with its earlier (LLVM IR) emitters instead of the MLIR ones: a third
-less compilation for stairfit's programs at the same run time (benchmarks/results/cold.md,
-"XLA's fusion emitters"; results equal to about 1e-13 relative, the differences of a
-different order of floating-point operations)."""
+less compilation for stairfit's programs at the same run time (README "Start-up", "XLA's
+earlier fusion emitters"; benchmarks/results/cold.md); results equal to about 1e-13 relative,
+the differences of a different order of floating-point operations."""
 FAST_COMPILE_JAXLIB = ((0, 6), (0, 10))
 """The jaxlib releases (major, minor), first and last, whose XLA knows the option: it appeared
 in 0.6 (0.5.0 lacks it) and 0.10.2 is the release measured. XLA stops the process on an option
