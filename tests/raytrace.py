@@ -341,35 +341,47 @@ def _hit_segments(
 def _hit_arcs(
     p: NDArray, d: NDArray, prim: _Primitives, L: float, self_arc: NDArray, eps: float
 ) -> tuple[NDArray, NDArray, NDArray]:
-    """Nearest arc hit in cells -1, 0, +1: `(t, shift, index)`; `t = inf` for none."""
+    """Nearest arc hit in cells -1, 0, +1: `(t, shift, index)`; `t = inf` for none.
+
+    Per circle, only the rays that meet it (real roots) or leave that very arc are tested
+    further (every other ray has no candidate on it); of equal hits the first in the order
+    (shift, arc, root) wins."""
     m = len(p)
     t_best = np.full(m, np.inf)
     shift_best = np.zeros(m, dtype=np.int64)
     j_best = np.zeros(m, dtype=np.int64)
+    px, pz, dx, dz = p[:, 0].copy(), p[:, 1].copy(), d[:, 0].copy(), d[:, 1].copy()
     for shift in _SHIFTS:
         for j in range(len(prim.arc_radius)):
-            c = prim.arc_centre[j] + np.array([shift * L, 0.0])
+            cx, cz = prim.arc_centre[j, 0] + shift * L, prim.arc_centre[j, 1]
             radius, sigma = prim.arc_radius[j], prim.arc_sigma[j]
-            w = p - c
-            b = np.einsum("ij,ij->i", d, w)
-            cc = np.einsum("ij,ij->i", w, w) - radius**2
-            disc = b * b - cc
-            root = np.sqrt(np.maximum(disc, 0.0))
-            cands = [np.where(disc >= 0, -b - root, np.inf), np.where(disc >= 0, -b + root, np.inf)]
-            if shift == 0:
-                # A ray leaving this very arc: t = 0 is one root, the other is exactly -2 b.
-                on_it = self_arc == j
+            wx, wz = px - cx, pz - cz
+            b = dx * wx + dz * wz
+            disc = b * b - ((wx * wx + wz * wz) - radius**2)
+            meets = disc >= 0
+            # A ray leaving this very arc: t = 0 is one root, the other is exactly -2 b.
+            on_it = self_arc == j if shift == 0 else None
+            rows = np.flatnonzero(meets if on_it is None else meets | on_it)
+            if rows.size == 0:
+                continue
+            b, meets = b[rows], meets[rows]
+            root = np.sqrt(np.maximum(disc[rows], 0.0))
+            cands = [np.where(meets, -b - root, np.inf), np.where(meets, -b + root, np.inf)]
+            if on_it is not None:
+                on_it = on_it[rows]
                 cands = [np.where(on_it, np.inf, c_) for c_ in cands]
                 cands.append(np.where(on_it, -2.0 * b, np.inf))
+            prx, prz, drx, drz = px[rows], pz[rows], dx[rows], dz[rows]
             for t in cands:
-                q = p + np.where(np.isfinite(t), t, 0.0)[:, None] * d
-                ang = np.arctan2(sigma * (q[:, 0] - c[0]), sigma * (q[:, 1] - c[1]))
+                t0 = np.where(np.isfinite(t), t, 0.0)
+                ang = np.arctan2(sigma * ((prx + t0 * drx) - cx), sigma * ((prz + t0 * drz) - cz))
                 ok = np.isfinite(t) & (t > eps)
                 ok &= (ang >= prim.arc_lo[j] - 1e-12) & (ang <= prim.arc_hi[j] + 1e-12)
-                better = ok & (t < t_best)
-                t_best = np.where(better, t, t_best)
-                shift_best = np.where(better, shift, shift_best)
-                j_best = np.where(better, j, j_best)
+                better = ok & (t < t_best[rows])
+                won = rows[better]
+                t_best[won] = t[better]
+                shift_best[won] = shift
+                j_best[won] = j
     return t_best, shift_best, j_best
 
 
