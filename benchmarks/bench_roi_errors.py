@@ -6,8 +6,10 @@ renders `--rois` independent ROIs with the independent NumPy generator tests/roi
 (never `stairfit.imaging.synthetic`), measures each with `imaging.roi_channel_stats` (a
 RawFrame built in memory) and computes, per channel,
 
-* the **total pull** `(mean - untextured) / stderr`: the error of the ROI mean as an estimate of
-  the untextured radiance (what a model of the surface predicts). Every ROI has its own texture,
+* the **total pull** `(mean - untextured) / stderr`: the error of the ROI value as an estimate of
+  the untextured radiance at the ROI's centroid (what a model of the surface predicts; the value
+  is each channel's fitted plane there, docs/imaging.md §Channel sites, and the truths of
+  tests/roi_fields.py are taken at the same point). Every ROI has its own texture,
   drawn afresh, so the pulls sample texture and noise together, as a model fitted to many faces
   would see them;
 * the **noise pull** `(mean - exact) / stderr_noise`: against the noise-free mean of *this*

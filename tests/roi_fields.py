@@ -22,9 +22,14 @@ its own model of the data.
 * **Sensor**: electrons = signal x gain, Poisson; Gaussian read noise (DN); black level;
   rounding to integers; clipping to the 14-bit range.
 
-The truths of every ROI and channel are the means over the ROI's pixels of that colour of the
-noise-free signal with its texture (`exact`: what noise-free photos of *this* surface would
-give) and without it (`untextured`: the radiance a model of the surface predicts).
+The truths of every ROI and channel are values at the centroid of all the ROI's pixels, where
+imaging evaluates each channel's fitted plane (docs/imaging.md §Channel sites): the illumination
+`I_c` there (`untextured`: the radiance a model of the surface predicts; `I_c` is linear, so this
+is `I0_c` times the mean of the ramp over all the ROI's pixels), and the noise-free signal with its
+texture (`exact`: what noise-free photos of *this* surface would give), taken as the mean over
+the ROI's pixels of that colour moved by the same ramp to the centroid (the texture's own slope
+times the sub-pixel offset between the colour's sites and the centroid is left out). `pixel_mean`
+keeps the plain mean over the ROI's pixels of each colour of the noise-free textured signal.
 """
 
 from __future__ import annotations
@@ -78,11 +83,13 @@ class Cell:
 
 @dataclass(frozen=True)
 class RoiTruth:
-    """One ROI of a rendered mosaic with its two truths per channel (DN above black)."""
+    """One ROI of a rendered mosaic with its truths per channel (DN above black; module
+    docstring): at the ROI's centroid with and without texture, and the plain pixel means."""
 
     roi: imaging.RoiMask
     exact: np.ndarray
     untextured: np.ndarray
+    pixel_mean: np.ndarray
 
 
 def gaussian_field(shape: tuple[int, int], ell_px: float, rng: np.random.Generator) -> np.ndarray:
@@ -125,8 +132,8 @@ def render(cell: Cell, n_rois: int, rng: np.random.Generator) -> tuple[np.ndarra
     colour = np.tile(CFA, (shape[0] // 2, shape[1] // 2))
     field = gaussian_field(shape, cell.ell_px, rng) if cell.texture != "none" else None
     signal = np.zeros(shape)
-    untextured = np.zeros(shape)
-    placed = []
+    ramp = np.zeros(shape)  # the illumination over its level: 1 (uniform) or the linear ramp
+    placed, levels = [], []
     for k in range(n_rois):
         ty, tx = divmod(k, per_row)
         centre = ((tx + 0.5) * tile + rng.uniform(-1, 1), (ty + 0.5) * tile + rng.uniform(-1, 1))
@@ -134,18 +141,21 @@ def render(cell: Cell, n_rois: int, rng: np.random.Generator) -> tuple[np.ndarra
         box = (slice(ty * tile, (ty + 1) * tile), slice(tx * tile, (tx + 1) * tile))
         level = np.array(LEVELS_DN) * rng.uniform(0.4, 1.6)
         illum = _illumination(cell, rng, box, centre, level, colour[box])
-        untextured[box] = illum
+        ramp[box] = illum / level[colour[box]]
         signal[box] = _textured(cell, illum, level[colour[box]], field, box)
         placed.append(poly)
+        levels.append(level)
     mosaic = _sensor(signal, rng)
     truths = []
-    for k, poly in enumerate(placed):
+    for k, (poly, level) in enumerate(zip(placed, levels, strict=True)):
         roi = imaging.roi_mask(poly, shape, 0, photo="roi_fields", wedge=f"r{k}")
         sub = (slice(roi.y0, roi.y0 + roi.mask.shape[0]), slice(roi.x0, roi.x0 + roi.mask.shape[1]))
         cols = colour[sub][roi.mask]
-        exact = np.array([signal[sub][roi.mask][cols == c].mean() for c in range(3)])
-        plain = np.array([untextured[sub][roi.mask][cols == c].mean() for c in range(3)])
-        truths.append(RoiTruth(roi, exact, plain))
+        ramp_roi = ramp[sub][roi.mask]
+        pixel_mean = np.array([signal[sub][roi.mask][cols == c].mean() for c in range(3)])
+        own_sites = np.array([level[c] * ramp_roi[cols == c].mean() for c in range(3)])
+        untextured = np.asarray(level, dtype=float) * ramp_roi.mean()
+        truths.append(RoiTruth(roi, pixel_mean + untextured - own_sites, untextured, pixel_mean))
     return mosaic, truths
 
 

@@ -37,8 +37,10 @@ def test_generator_field_has_the_stated_correlation() -> None:
             assert c == pytest.approx(math.exp(-(lag**2) / ell**2), abs=0.03), (ell, lag)
 
 
-def test_generator_truths_are_the_pixel_means() -> None:
-    """`exact` is the noise-free textured mean of the ROI's pixels of each colour."""
+def test_generator_truths_are_the_pixel_means_and_the_ramp_at_the_centroid() -> None:
+    """`pixel_mean` is the noise-free mean of the ROI's pixels of each colour; without texture,
+    `exact` = `untextured` is the illumination at the centroid of all the ROI's pixels, found
+    here from the mosaic by a plane fitted to each colour's pixels (what imaging estimates)."""
     rng = np.random.default_rng(1)
     mosaic, truths = rf.render(rf.Cell("none", 0.0, 60, True), 2, rng)
     for t in truths:
@@ -46,11 +48,18 @@ def test_generator_truths_are_the_pixel_means() -> None:
         rows, cols = t.roi.box()
         y, x = np.mgrid[rows, cols]
         colour = rf.CFA[y % 2, x % 2]
+        centroid = (y[t.roi.mask].mean(), x[t.roi.mask].mean())
         for c in range(3):
             sel = t.roi.mask & (colour == c)
-            measured = mosaic[rows, cols][sel].mean() - rf.BLACK_DN
-            noise = math.sqrt(t.exact[c] / sel.sum())  # Poisson at 1 e/DN
-            assert abs(measured - t.exact[c]) < 5 * noise
+            values = mosaic[rows, cols][sel] - rf.BLACK_DN
+            noise = math.sqrt(t.pixel_mean[c] / sel.sum())  # Poisson at 1 e/DN
+            assert abs(values.mean() - t.pixel_mean[c]) < 5 * noise
+            design = np.stack([np.ones(sel.sum()), y[sel] - centroid[0], x[sel] - centroid[1]], 1)
+            plane = np.linalg.lstsq(design, values, rcond=None)[0]
+            assert abs(plane[0] - t.untextured[c]) < 5 * noise
+    # the colours' sites are off the centroid, so under the ramp the two truths differ (not in
+    # every ROI: a mask symmetric about a pixel has every colour's centroid at the centre)
+    assert max(np.abs(t.pixel_mean - t.untextured).max() for t in truths) > 0.5
 
 
 # --- the moment estimator, against brute force -----------------------------------------------
@@ -162,16 +171,19 @@ def _measure(cell: rf.Cell, n_rois: int, seed: int) -> dict[str, np.ndarray]:
     return res
 
 
-def test_white_noise_in_small_rois_gives_unit_pulls() -> None:
+@pytest.mark.parametrize("graded", [False, True])
+def test_white_noise_in_small_rois_gives_unit_pulls(graded: bool) -> None:
     """35-block ROIs of shot + read noise: pull sd in [0.93, 1.07].
 
     300 ROIs x 3 independent channels = 900 pulls, so the sd is known to ~0.024 (1 sigma); the
     bounds are ~3 of those (a calibrated estimator fails with probability ~0.3%). The old
     estimator's variance was x0.81 here (pull sd >= 1.11): it would pass with probability
-    ~5% (z = -1.7); its bias itself is caught exactly by the moment test above. The slow grid
-    test runs this cell with more ROIs.
+    ~5% (z = -1.7); its bias itself is caught exactly by the moment test above. Under a ramp
+    the value is each channel's plane at the ROI's centroid, not its own sites' mean: against
+    the sites' means as truth the graded pulls had sd 1.47 at 20 blocks and 1.23 at 60. The slow
+    grid test runs these cells with more ROIs.
     """
-    res = _measure(rf.Cell("none", 0.0, 35, False), 300, seed=4)
+    res = _measure(rf.Cell("none", 0.0, 35, graded), 300, seed=4)
     assert not res["flagged"].any()
     assert 0.93 <= np.std(res["total"], ddof=1) <= 1.07
     assert abs(np.mean(res["total"])) < 0.1
