@@ -280,7 +280,7 @@ def test_a_cache_written_by_table_version_4_is_measured_again(tmp_path) -> None:
 
 @pytest.mark.slow
 def test_every_cell_of_the_study_grid_is_calibrated() -> None:
-    """The full grid of benchmarks/bench_roi_errors.py at 300 ROIs per cell (~1 h).
+    """The full grid of benchmarks/bench_roi_errors.py at 300 ROIs per cell (12 min idle).
 
     Every cell with at least 30 unflagged ROIs has a total pull sd in [0.9, 1.1], widened by
     2.5 times its bootstrap Monte Carlo error (0.013-0.04 at 300 ROIs; the benchmark's 1000
