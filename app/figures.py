@@ -123,6 +123,26 @@ def _spectra_at(
     return jnp.concatenate([wedges, flat[None].astype(wedges.dtype)])
 
 
+def _curves_at(
+    theta_o: Any, beta2: Any, n: Any, sigma: Any, broadened: bool, cosine_weighted: bool
+) -> Any:  # traced by `_compiled`
+    """(wedges + 1, angles): the diffuse integral per wedge (`diffuse_broadened` if `broadened`,
+    else `diffuse_sharp`), then the flat material (times cos theta_o if `cosine_weighted`)."""
+    import jax.numpy as jnp
+
+    from stairfit import model
+
+    to, b2 = theta_o[None, :], beta2[:, None]
+    if broadened:
+        wedges = model.diffuse_broadened(to, b2, n, sigma, cosine_weighted)
+    else:
+        wedges = model.diffuse_sharp(to, b2, n, cosine_weighted)
+    flat = model.flat_reflectance(theta_o, n)
+    if cosine_weighted:
+        flat = flat * jnp.cos(theta_o)
+    return jnp.concatenate([wedges, flat[None].astype(wedges.dtype)])
+
+
 @functools.cache
 def _compiled(name: str) -> Callable[..., Any]:
     """The compiled model evaluations of the figures, built once per process (eager JAX would
@@ -133,6 +153,8 @@ def _compiled(name: str) -> Callable[..., Any]:
 
     if name == "spectra":
         return jax.jit(_spectra_at, static_argnames=("diffuse_nodes",))
+    if name == "curves":
+        return jax.jit(_curves_at, static_argnames=("broadened", "cosine_weighted"))
     return jax.jit(getattr(model, name))
 
 
@@ -281,6 +303,25 @@ def brdf_map(
     return fig
 
 
+def diffuse_curve_values(
+    beta2_deg: Sequence[float],
+    n: complex | float,
+    sigma_deg: float,
+    cosine_weighted: bool,
+    theta_o: NDArray,
+) -> NDArray:
+    """The curves of `diffuse_curves` at `theta_o` (radians), shape (wedges + 1, angles): one
+    row per wedge, the flat material last; dimensionless [conventions §4]. One compiled
+    program for all wedges (an eager evaluation compiled each operation: 1.5 s against 0.2 s
+    for the notebook's six wedges)."""
+    to = np.asarray(theta_o, float)
+    b2 = np.asarray(beta2_deg, float) * DEG
+    out = _compiled("curves")(
+        to, b2, n, float(sigma_deg) * DEG, broadened=sigma_deg > 0, cosine_weighted=cosine_weighted
+    )
+    return np.asarray(out, float)
+
+
 def diffuse_curves(
     beta2_deg: Sequence[float],
     n: complex | float = 1.46,
@@ -290,21 +331,13 @@ def diffuse_curves(
 ) -> Figure:
     """Paper Fig. 5: reflectance under diffuse light against viewing angle, plus the flat
     material (dimensionless) [conventions §4]."""
-    from stairfit import model
-
     to = np.arange(-90, 90 + step_deg / 2, step_deg) * DEG
+    curves = diffuse_curve_values(beta2_deg, n, sigma_deg, cosine_weighted, to)
     fig = Figure(figsize=(6.5, 4))
     ax = fig.subplots()
-    for b in beta2_deg:
-        if sigma_deg > 0:
-            d = model.diffuse_broadened(to, b * DEG, n, sigma_deg * DEG, cosine_weighted)
-        else:
-            d = model.diffuse_sharp(to, b * DEG, n, cosine_weighted)
-        ax.plot(to / DEG, np.asarray(d), label=f"{b:g} deg")
-    flat = np.asarray(model.flat_reflectance(to, n))
-    if cosine_weighted:
-        flat = flat * np.cos(to)
-    ax.plot(to / DEG, flat, "-.", color="0.5", label="material")
+    for b, d in zip(beta2_deg, curves[:-1], strict=True):
+        ax.plot(to / DEG, d, label=f"{b:g} deg")
+    ax.plot(to / DEG, curves[-1], "-.", color="0.5", label="material")
     ax.set(xlabel="theta_o (deg)", ylabel="reflectance", xlim=(-90, 90))
     ax.legend(title="wedge", fontsize="small")
     fig.tight_layout()

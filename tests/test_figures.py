@@ -68,6 +68,28 @@ def test_reflected_spectra_float32_stays_close():
     assert np.abs(f32 - f64).max() <= 3e-3 * f64.max()
 
 
+@pytest.mark.parametrize(
+    ("n", "sigma_deg", "cosine_weighted"), [(1.46, 0.0, False), (1.5 + 0.02j, 5.0, True)]
+)
+def test_diffuse_curves_are_the_model_per_wedge(n, sigma_deg, cosine_weighted):
+    """Paper Fig. 5's curves, all wedges in one compiled program, against the model called
+    per wedge (the flat material times cos theta_o where cosine-weighted)."""
+    to = np.arange(-90.0, 90.1, 7.5) * DEG
+    curves = figures.diffuse_curve_values([10, 45, 60], n, sigma_deg, cosine_weighted, to)
+    assert curves.shape == (4, to.size)
+    for k, b in enumerate((10, 45, 60)):
+        if sigma_deg > 0:
+            ref = jax.jit(model.diffuse_broadened, static_argnums=4)(
+                to, b * DEG, n, sigma_deg * DEG, cosine_weighted
+            )
+        else:
+            ref = jax.jit(model.diffuse_sharp, static_argnums=3)(to, b * DEG, n, cosine_weighted)
+        np.testing.assert_allclose(curves[k], np.asarray(ref), rtol=1e-12, atol=1e-15)
+    flat = np.asarray(model.flat_reflectance(to, n)) * (np.cos(to) if cosine_weighted else 1.0)
+    np.testing.assert_allclose(curves[-1], flat, rtol=1e-12, atol=1e-15)
+    assert np.all(np.isfinite(curves)) and curves.min() >= 0
+
+
 def test_brdf_images_match_model_brdf():
     grid, images = figures.brdf_images([10, 60], 1.5, 4.0, step_deg=5.0)
     np.testing.assert_array_equal(grid, np.arange(-90.0, 91.0, 5.0))
