@@ -190,10 +190,13 @@ def test_the_correction_summed_over_chunks_of_rays_is_the_one_pass_sum(monkeypat
     r = jnp.broadcast_to(TRUTH.edge_radius_um, g.g_ti.shape)
     rf = jnp.broadcast_to(TRUTH.fillet_radius_um, g.g_ti.shape)
     stack = lambda a: jnp.stack([a, a])  # noqa: E731
-    rays = model.fillet_rays(g.g_ti, g.g_b2, g.g_layer, r, rf, rays=64, bounces=16)
+    # compiled: eagerly, each of its operations compiles as a program of its own (this test
+    # took 13.6 s that way, 9.3 s so)
+    trace = jax.jit(model.fillet_rays, static_argnames=("rays", "bounces"))
+    rays = trace(g.g_ti, g.g_b2, g.g_layer, r, rf, rays=64, bounces=16)
     r_moved = jnp.stack([1.1 * r, 0.9 * r])
-    moved = model.fillet_rays(*map(stack, (g.g_ti, g.g_b2, g.g_layer)), r_moved, stack(rf),
-                              rays=64, bounces=16)  # fmt: skip
+    moved = trace(*map(stack, (g.g_ti, g.g_b2, g.g_layer)), r_moved, stack(rf),
+                  rays=64, bounces=16)  # fmt: skip
 
     def make() -> Callable:  # a fresh function each time: the chunk size is chosen in tracing
         def both(x: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
