@@ -312,8 +312,8 @@ def diffuse_curve_values(
 ) -> NDArray:
     """The curves of `diffuse_curves` at `theta_o` (radians), shape (wedges + 1, angles): one
     row per wedge, the flat material last; dimensionless [conventions §4]. One compiled
-    program for all wedges (an eager evaluation compiled each operation: 1.5 s against 0.2 s
-    for the notebook's six wedges)."""
+    program for all wedges (evaluated eagerly, JAX compiled each operation on its own;
+    benchmarks/bench_notebooks.py)."""
     to = np.asarray(theta_o, float)
     b2 = np.asarray(beta2_deg, float) * DEG
     out = _compiled("curves")(
