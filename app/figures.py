@@ -308,17 +308,31 @@ def diffuse_curve_values(
     n: complex | float,
     sigma_deg: float,
     cosine_weighted: bool,
-    theta_o: NDArray,
+    theta_o_deg: Sequence[float] | NDArray,
 ) -> NDArray:
-    """The curves of `diffuse_curves` at `theta_o` (radians), shape (wedges + 1, angles): one
-    row per wedge, the flat material last; dimensionless [conventions §4]. One compiled
-    program for all wedges (evaluated eagerly, JAX compiled each operation on its own;
-    benchmarks/bench_notebooks.py)."""
-    to = np.asarray(theta_o, float)
-    b2 = np.asarray(beta2_deg, float) * DEG
+    """The curves of `diffuse_curves` at viewing angles `theta_o_deg` (degrees), shape
+    (wedges + 1, angles): one row per wedge, the flat material last; dimensionless
+    [conventions §1, §4]. One compiled program for all wedges (evaluated eagerly, JAX compiled
+    each operation on its own; benchmarks/bench_notebooks.py). A ValueError names an argument
+    outside its range: wedges strictly between 0 and 90 deg, viewing angles within [-90, 90],
+    `sigma_deg` >= 0."""
+    b2 = np.atleast_1d(np.asarray(beta2_deg, float))
+    to = np.atleast_1d(np.asarray(theta_o_deg, float))
+    for name, values, ok in (
+        ("beta2_deg", b2, (b2 > 0) & (b2 < 90)),
+        ("theta_o_deg", to, (to >= -90) & (to <= 90)),
+        ("sigma_deg", np.atleast_1d(float(sigma_deg)), np.atleast_1d(float(sigma_deg) >= 0)),
+    ):
+        bad = values[~(ok & np.isfinite(values))]
+        if bad.size:
+            raise ValueError(
+                f"diffuse_curve_values: {name} = {bad[0]:g} is outside its range (wedges in "
+                "(0, 90) deg, viewing angles in [-90, 90] deg, sigma_deg >= 0); fix the value"
+            )
     out = _compiled("curves")(
-        to, b2, n, float(sigma_deg) * DEG, broadened=sigma_deg > 0, cosine_weighted=cosine_weighted
-    )
+        to * DEG, b2 * DEG, n, float(sigma_deg) * DEG,
+        broadened=sigma_deg > 0, cosine_weighted=cosine_weighted,
+    )  # fmt: skip
     return np.asarray(out, float)
 
 
@@ -331,13 +345,13 @@ def diffuse_curves(
 ) -> Figure:
     """Paper Fig. 5: reflectance under diffuse light against viewing angle, plus the flat
     material (dimensionless) [conventions §4]."""
-    to = np.arange(-90, 90 + step_deg / 2, step_deg) * DEG
-    curves = diffuse_curve_values(beta2_deg, n, sigma_deg, cosine_weighted, to)
+    to_deg = np.arange(-90, 90 + step_deg / 2, step_deg)
+    curves = diffuse_curve_values(beta2_deg, n, sigma_deg, cosine_weighted, to_deg)
     fig = Figure(figsize=(6.5, 4))
     ax = fig.subplots()
     for b, d in zip(beta2_deg, curves[:-1], strict=True):
-        ax.plot(to / DEG, d, label=f"{b:g} deg")
-    ax.plot(to / DEG, curves[-1], "-.", color="0.5", label="material")
+        ax.plot(to_deg, d, label=f"{b:g} deg")
+    ax.plot(to_deg, curves[-1], "-.", color="0.5", label="material")
     ax.set(xlabel="theta_o (deg)", ylabel="reflectance", xlim=(-90, 90))
     ax.legend(title="wedge", fontsize="small")
     fig.tight_layout()

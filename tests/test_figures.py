@@ -75,7 +75,7 @@ def test_diffuse_curves_are_the_model_per_wedge(n, sigma_deg, cosine_weighted):
     """Paper Fig. 5's curves, all wedges in one compiled program, against the model called
     per wedge (the flat material times cos theta_o where cosine-weighted)."""
     to = np.arange(-90.0, 90.1, 7.5) * DEG
-    curves = figures.diffuse_curve_values([10, 45, 60], n, sigma_deg, cosine_weighted, to)
+    curves = figures.diffuse_curve_values([10, 45, 60], n, sigma_deg, cosine_weighted, to / DEG)
     assert curves.shape == (4, to.size)
     for k, b in enumerate((10, 45, 60)):
         if sigma_deg > 0:
@@ -88,6 +88,19 @@ def test_diffuse_curves_are_the_model_per_wedge(n, sigma_deg, cosine_weighted):
     flat = np.asarray(model.flat_reflectance(to, n)) * (np.cos(to) if cosine_weighted else 1.0)
     np.testing.assert_allclose(curves[-1], flat, rtol=1e-12, atol=1e-15)
     assert np.all(np.isfinite(curves)) and curves.min() >= 0
+
+
+@pytest.mark.parametrize(
+    ("beta2", "theta_o", "sigma", "name"),
+    [([30, 90], [0.0], 0.0, "beta2_deg = 90"), ([0], [0.0], 0.0, "beta2_deg = 0"),
+     ([30], [0.0, 95.0], 0.0, "theta_o_deg = 95"), ([30], [np.nan], 0.0, "theta_o_deg = nan"),
+     ([30], [0.0], -1.0, "sigma_deg = -1")],
+)  # fmt: skip
+def test_diffuse_curve_values_refuse_angles_out_of_range(beta2, theta_o, sigma, name):
+    """(The model itself returns numbers for a wedge of 95 or 0 deg, so without the check a
+    mistyped angle gave a plausible-looking curve.)"""
+    with pytest.raises(ValueError, match=rf"{name} is outside its range.*fix the value"):
+        figures.diffuse_curve_values(beta2, 1.46, sigma, False, theta_o)
 
 
 def test_brdf_images_match_model_brdf():
