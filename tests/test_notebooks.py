@@ -64,3 +64,20 @@ def test_notebook_runs(name, tmp_path, monkeypatch):
         if out.get("output_type") == "error"
     ]
     assert not errors
+
+
+def test_paper_figures_asserts_its_checks():
+    """paper_figures' checks of the paper's claims stop the notebook when one does not hold
+    (its `check` helper asserts), so `test_notebook_runs` fails on a wrong figure; printed
+    booleans would let it pass. Every section's claim goes through `check`."""
+    book = nbformat.read(NOTEBOOKS / "paper_figures.ipynb", as_version=4)
+    code = [cell.source for cell in book.cells if cell.cell_type == "code"]
+    helper = next(src for src in code if "def check(" in src)
+    assert "assert holds" in helper
+    claims = sum(src.count("check(") for src in code) - 1  # minus the definition
+    assert claims >= 12, claims
+    for src in code:  # no claim left as a printed boolean
+        for line in src.splitlines():
+            stripped = line.strip()
+            if stripped.startswith("print(") and stripped.endswith(")"):
+                assert not any(op in stripped for op in ("==", "np.all", "allclose", " < 1e")), line
