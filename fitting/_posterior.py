@@ -423,8 +423,9 @@ class Target(NamedTuple):
         if n < self.batch:  # pad with copies of the first walker; their values are dropped
             theta = np.concatenate([theta, np.repeat(theta[:1], self.batch - n, axis=0)])
         # NumPy arrays go to the compiled program as they are (its C++ dispatch transfers
-        # them): `jnp.asarray` of the three took about 0.25 ms of each call's 0.55 ms, and the
-        # sampler makes thousands of calls (same values either way; same program keys)
+        # them): `jnp.asarray` of the three took about 0.2 ms of each 0.5-0.8 ms call, and the
+        # sampler makes thousands of calls (same values either way; same program keys;
+        # benchmarks/bench_posterior_calls.py)
         out = _export.call(
             "log_probability",
             lambda th, d, z, s: _batched_log_probability(th, self.static, self.priors, d, z, s),
