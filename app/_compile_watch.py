@@ -34,7 +34,7 @@ KNOWN_PROGRAMS = {
     "solve_one": "the least-squares fit",
     "evaluate": "the fit's evaluation at its optimum",
     "log_probability": "the posterior's log probability",
-    "_batched_log_probability": "the posterior's log probability",
+    "batched_log_probability": "the posterior's log probability",
     "_batched_physical": "the posterior's parameter transform",
 }
 """What the user is told is compiling, for the programs that take long."""

@@ -12,6 +12,9 @@ hits them alike):
   which is not timed) with one variant and no posterior (`--model VARIANT --no-posterior`),
   cold (empty JAX cache, no measurement cache) and warm (the user's second run: both caches
   filled by the cold run); the same for the default fit (ladder, selection, posterior);
+* (`--known-design`) the default fit of a second new scene of the same design (another truth,
+  noise and seed), timed with the JAX cache that a fit of the first scene filled: a study's
+  later folders, a new specimen photographed as the last one;
 * the baseline: NumPy + `scipy.optimize.least_squares` fitting the same variant to the rows the
   cold stairfit run measured (`scipy_sharp_fit.py`, a fresh process: imports included). It
   does not decode the photos; compare it with the fits' `fit_s` (from results.json) as well
@@ -32,6 +35,7 @@ Run:
     python benchmarks/bench_cold.py                 # 5 repeats, the 2 MP x 9-view scene
     python benchmarks/bench_cold.py --quick         # 1 repeat, 0.5 MP x 5 views: does it run?
     python benchmarks/bench_cold.py --rounded       # also --model rounded+floor, cold and warm
+    python benchmarks/bench_cold.py --known-design  # also a new scene of a design fitted before
     python benchmarks/bench_cold.py --compare-exe OTHER/bin/stairfit   # an earlier version's
                                                     # default fit beside this one's
 
@@ -109,10 +113,12 @@ def env_with_cache(folder: Path) -> dict[str, str]:
     return {**os.environ, "STAIRFIT_JAX_CACHE": str(folder)}
 
 
-def simulate_scene(exe: str, photos: Path, megapixels: float, views: int) -> float:
+def simulate_scene(
+    exe: str, photos: Path, megapixels: float, views: int, extra: tuple[str, ...] = ()
+) -> float:
     """Render the benchmark scene once (not part of any case); returns its wall time."""
     cmd = [exe, "simulate", str(photos), "--megapixels", str(megapixels), "--views", str(views),
-           "--quiet"]  # fmt: skip
+           "--quiet", *extra]  # fmt: skip
     wall, _, _ = peak_of(cmd, {**os.environ, "STAIRFIT_JAX_CACHE": "off"})
     return wall
 
@@ -133,6 +139,29 @@ def fit_cases(exe: str, photos: Path, out: Path, label: str, extra: list[str]) -
         return [exe, "fit", str(photos), "-o", str(out), "--force", "--quiet", *extra]
 
     return {f"{label}, cold": cold, f"{label}, warm (second run)": warm}
+
+
+SECOND_SCENE = ("--seed", "5", "--sigma-deg", "7", "--floor", "3000")
+"""Another specimen of the benchmark scene's design: other truth, noise and seed (its faces'
+flags, its evaluation keys and its floor prior differ from the first's)."""
+
+
+def known_design_case(exe: str, first: Path, second: Path, out: Path, label: str) -> Run:
+    """The default `stairfit fit` of a new scene whose design an earlier fit compiled: the
+    first scene fitted with an empty JAX cache (not timed), then the second scene, timed, with
+    the cache the first filled (a study's second folder, a new specimen of a known design)."""
+
+    def run() -> tuple[float, float, float]:
+        cache = Path(tempfile.mkdtemp(prefix="jax-", dir=out.parent))
+        for photos in (first, second):
+            shutil.rmtree(photos / ".stairfit-cache", ignore_errors=True)
+        peak_of(fit_cmd(first), env_with_cache(cache))
+        return peak_of(fit_cmd(second), env_with_cache(cache))
+
+    def fit_cmd(photos: Path) -> list[str]:
+        return [exe, "fit", str(photos), "-o", str(out), "--force", "--quiet"]
+
+    return run
 
 
 def predict_cases(exe: str, tmp: Path) -> dict[str, Run]:
@@ -238,6 +267,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="another installation's `stairfit` script (e.g. an earlier commit in its own "
         "environment): its default fit, cold and warm, runs beside this one's in every repeat",
     )
+    p.add_argument(
+        "--known-design",
+        action="store_true",
+        help="also the default fit of a second new scene of the same design, with the JAX cache "
+        "a fit of the first filled (and so for --compare-exe)",
+    )
     p.add_argument("--quick", action="store_true", help="1 repeat, 0.5 MP x 5 views")
     p.add_argument("--out", type=Path, default=RESULTS / "cold.md")
     p.add_argument("--no-write", action="store_true")
@@ -274,11 +309,22 @@ def main(argv: list[str] | None = None) -> int:
             "NumPy + SciPy least_squares, same variant and rows (imports included)":
                 scipy_case(photos, variant_dir, args.variant, baseline),
         }  # fmt: skip
+        dirs: dict[str, Path] = {}  # the output folders of cases named here
         if not args.no_default_fit:
             cases.update(fit_cases(exe, photos, default_dir, "stairfit fit (default)", []))
         if args.compare_exe:
             cases.update(fit_cases(args.compare_exe, photos, tmp / "fit-compare",
                                    f"{COMPARED} fit (default)", []))  # fmt: skip
+        if args.known_design:
+            second = tmp / "photos-2"
+            simulate_scene(exe, second, args.megapixels, args.views, SECOND_SCENE)
+            runs = [(exe, "stairfit fit (default)", tmp / "fit-known")]
+            if args.compare_exe:
+                runs.append((args.compare_exe, f"{COMPARED} fit (default)", tmp / "fit-known-c"))
+            for who, label, folder in runs:
+                name = f"{label}, new scene of a known design"
+                cases[name] = known_design_case(who, photos, second, folder, label)
+                dirs[name] = folder
         if args.rounded:
             cases.update(fit_cases(exe, photos, tmp / "fit-rounded", "stairfit fit --model "
                                    f"{ROUNDED} --no-posterior", ["--model", ROUNDED,
@@ -291,7 +337,9 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"repeat {r + 1}/{args.repeats}: {name}: {samples[name][-1][0]:.2f} s",
                       file=sys.stderr, flush=True)  # fmt: skip
                 fit_dir = (
-                    tmp / "fit-compare"
+                    dirs[name]
+                    if name in dirs
+                    else tmp / "fit-compare"
                     if name.startswith(COMPARED)
                     else tmp / "fit-rounded"
                     if ROUNDED in name

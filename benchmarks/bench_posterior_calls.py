@@ -59,13 +59,14 @@ def baseline_log_prob(self: _posterior.Target, theta: np.ndarray) -> np.ndarray:
     n = theta.shape[0]
     if n < self.batch:
         theta = np.concatenate([theta, np.repeat(theta[:1], self.batch - n, axis=0)])
+    slots, dists = _posterior.split_priors(self.priors)
     out = _export.call(
         "log_probability",
-        lambda th, d, z, s: _posterior._batched_log_probability(
-            th, self.static, self.priors, d, z, s
+        lambda th, p, d, z, s: _posterior._batched_log_probability(
+            th, self.static, slots, p, d, z, s
         ),
-        _posterior._program_key(self.static, self.priors),
-        (jnp.asarray(theta), self.data, jnp.asarray(self.base_z), jnp.asarray(self.slots)),
+        _posterior._program_key(self.static, slots),
+        (jnp.asarray(theta), dists, self.data, jnp.asarray(self.base_z), jnp.asarray(self.slots)),
         lambda leaves: leaves[0],
     )
     return np.array(out)[:n]

@@ -170,6 +170,9 @@ Fig. 8), delta_n 0, sharp edges, scale 1, no floor, no model error, no fillets."
 
 
 # --- priors ---------------------------------------------------------------------------------
+# A prior's numbers are pytree leaves (NamedTuple fields) and `log_pdf` takes them traced: the
+# compiled log priors get them as data (`split_priors`), so that a scene's data-derived priors
+# (the floor's scale, the radii's bound) do not make a program of their own.
 
 
 class Normal(NamedTuple):
@@ -181,7 +184,7 @@ class Normal(NamedTuple):
     def log_pdf(self, x: ArrayLike) -> Array:
         """Log density at the physical value `x`."""
         u = (jnp.asarray(x) - self.mean) / self.sd
-        return -0.5 * u * u - math.log(self.sd * math.sqrt(2.0 * math.pi))
+        return -0.5 * u * u - jnp.log(self.sd * math.sqrt(2.0 * math.pi))
 
     def width(self) -> tuple[str, float]:
         """(space, standard deviation) used by the identifiability rule."""
@@ -197,7 +200,7 @@ class HalfNormal(NamedTuple):
         """Log density at `x` (`-inf` for `x < 0`)."""
         x = jnp.asarray(x)
         u = x / self.sd
-        val = -0.5 * u * u + math.log(math.sqrt(2.0 / math.pi) / self.sd)
+        val = -0.5 * u * u + jnp.log(math.sqrt(2.0 / math.pi) / self.sd)
         return jnp.where(x >= 0.0, val, -jnp.inf)
 
     def width(self) -> tuple[str, float]:
@@ -215,7 +218,7 @@ class Uniform(NamedTuple):
         """Log density at `x` (`-inf` outside the interval)."""
         x = jnp.asarray(x)
         inside = (x >= self.lower) & (x <= self.upper)
-        return jnp.where(inside, -math.log(self.upper - self.lower), -jnp.inf)
+        return jnp.where(inside, -jnp.log(self.upper - self.lower), -jnp.inf)
 
     def width(self) -> tuple[str, float]:
         """(space, standard deviation) of the uniform: `(upper - lower) / sqrt(12)`."""
@@ -233,7 +236,7 @@ class LogUniform(NamedTuple):
         x = jnp.asarray(x)
         inside = (x >= self.lower) & (x <= self.upper)
         x_safe = jnp.where(inside, x, 1.0)
-        val = -jnp.log(x_safe) - math.log(math.log(self.upper / self.lower))
+        val = -jnp.log(x_safe) - jnp.log(jnp.log(self.upper / self.lower))
         return jnp.where(inside, val, -jnp.inf)
 
     def width(self) -> tuple[str, float]:
@@ -508,6 +511,29 @@ def log_prior_z(
     for slot, prior in priors:
         total = total + prior.log_pdf(x[slot]) + jac[slot]
     return total
+
+
+def split_priors(priors: PriorSpec) -> tuple[tuple[int, ...], tuple[Prior, ...]]:
+    """`(slots, distributions)` of a prior specification, for a compiled function: the slots
+    (and the distributions' kinds, their pytree structure) are its static configuration, the
+    distributions' numbers (float64 leaves) its data. Before, the whole specification was
+    static, and the floor's prior, whose scale is the scene's largest measured value, gave
+    every new scene a posterior program of its own (issue 14)."""
+    slots = tuple(int(slot) for slot, _ in priors)
+    dists = tuple(type(p)(*(np.float64(v) for v in p)) for _, p in priors)
+    return slots, dists
+
+
+def log_prior_split(
+    z: Array,
+    kinds: Sequence[str],
+    r_max_um: ArrayLike,
+    slots: tuple[int, ...],
+    dists: tuple[Prior, ...],
+    fixed: tuple[Array, Array] | None = None,
+) -> Array:
+    """`log_prior_z` with the specification as `split_priors` gives it."""
+    return log_prior_z(z, kinds, r_max_um, tuple(zip(slots, dists, strict=True)), fixed)
 
 
 # --- model variants -------------------------------------------------------------------------

@@ -40,7 +40,17 @@ from ._diagnostics import (
 )
 from ._errors import FitError, FitInputError, FitWarning, emit, with_overrides
 from ._forward import Data, Static, log_likelihood_z, physical
-from ._params import ABS, SIN, SIN_REST, Parameter, PriorSpec, in_support, log_prior_z
+from ._params import (
+    ABS,
+    SIN,
+    SIN_REST,
+    Parameter,
+    Prior,
+    PriorSpec,
+    in_support,
+    log_prior_z,
+    split_priors,
+)
 from ._result import FitResult
 
 
@@ -78,10 +88,26 @@ def log_probability(
     return jnp.where(jnp.isfinite(lp), lp + ll, -jnp.inf)
 
 
-_batched_log_probability = jax.jit(
-    jax.vmap(log_probability, in_axes=(0, None, None, None, None, None)), static_argnums=(1, 2)
-)
-"""All walkers at once; compiled once per scene shape, variant and prior specification."""
+def batched_log_probability(
+    theta: Array,
+    static: Static,
+    prior_slots: tuple[int, ...],
+    prior_dists: tuple[Prior, ...],
+    data: Data,
+    base_z: Array,
+    free_slots: Array,
+) -> Array:
+    """`log_probability` of every walker (rows of `theta`), the priors as `split_priors` gives
+    them."""
+    priors = tuple(zip(prior_slots, prior_dists, strict=True))
+    one = functools.partial(log_probability, static=static, priors=priors, data=data,
+                            base_z=base_z, free_slots=free_slots)  # fmt: skip
+    return jax.vmap(one)(theta)
+
+
+_batched_log_probability = jax.jit(batched_log_probability, static_argnums=(1, 2))
+"""All walkers at once; compiled once per scene shape, variant, free slots and their priors'
+kinds (the priors' numbers are data: a new scene's floor prior needs no program of its own)."""
 
 DIAGNOSE_GROWTH = 1.5
 """After a failed R-hat / ESS check the next one waits until the chain is this many times
@@ -392,10 +418,11 @@ class PosteriorResult:
 
 
 @functools.lru_cache(maxsize=8)
-def _program_key(static: Static, priors: PriorSpec) -> str:
-    """The exported log posterior's static key (`_export.call`), made once per configuration
-    rather than at each of the sampler's hundreds of calls."""
-    return repr((static, priors))
+def _program_key(static: Static, prior_slots: tuple[int, ...]) -> str:
+    """The exported log posterior's static key (`_export.call`; the priors' kinds are in the
+    arguments' tree structure), made once per configuration rather than at each of the
+    sampler's hundreds of calls."""
+    return repr((static, prior_slots))
 
 
 class Target(NamedTuple):
@@ -426,13 +453,15 @@ class Target(NamedTuple):
         # them): `jnp.asarray` of the three took about 0.2 ms of each 0.5-0.8 ms call, and the
         # sampler makes thousands of calls (same values either way; same program keys;
         # benchmarks/bench_posterior_calls.py)
+        prior_slots, dists = split_priors(self.priors)
         out = _export.call(
             "log_probability",
-            lambda th, d, z, s: _batched_log_probability(th, self.static, self.priors, d, z, s),
-            _program_key(self.static, self.priors),
-            (theta, self.data, self.base_z, self.slots),
+            lambda th, p, d, z, s: _batched_log_probability(th, self.static, prior_slots, p, d,
+                                                            z, s),
+            _program_key(self.static, prior_slots),
+            (theta, dists, self.data, self.base_z, self.slots),
             lambda leaves: leaves[0],
-        )
+        )  # fmt: skip
         return np.array(out)[:n]  # a writable copy: walkers outside the support are re-drawn
 
     def physical(self, kept_z: np.ndarray) -> np.ndarray:
@@ -460,11 +489,18 @@ def _fingerprint(fit: FitResult, data: Data) -> str:
     for name in ("theta_i", "theta_o", "beta2", "layer_um", "value", "stderr", "use", "r_n",
                  "r_w", "free", "x_fixed", "sigma_source"):  # fmt: skip
         h.update(np.ascontiguousarray(np.asarray(getattr(data, name))).tobytes())
+    # without the shape buckets' padding (`_problem.bucket`): a chain written before the
+    # padding still resumes (padded groups are empty and last; padded keys come after the
+    # real ones, which every row's `r_key` names)
     if fit.problem.correlated:  # independent rows keep the fingerprint they always had
+        real = np.asarray(data.grp_mask).sum(axis=1) > 0
         for name in ("grp_rows", "grp_mask", "grp_corr"):
-            h.update(np.ascontiguousarray(np.asarray(getattr(data, name))).tobytes())
-    if not np.all(np.asarray(data.r_so) == 1.0):  # whole-face spreads keep their fingerprint
-        h.update(np.ascontiguousarray(np.asarray(data.r_so)).tobytes())
+            h.update(np.ascontiguousarray(np.asarray(getattr(data, name))[real]).tobytes())
+    r_so = np.asarray(data.r_so)
+    if r_so.shape[0] > 1:
+        r_so = r_so[: int(np.max(np.asarray(data.r_key))) + 1]
+    if not np.all(r_so == 1.0):  # whole-face spreads keep their fingerprint
+        h.update(np.ascontiguousarray(r_so).tobytes())
     h.update(repr((fit.names, fit.problem.priors, fit.problem.aperture)).encode())
     return h.hexdigest()[:32]
 

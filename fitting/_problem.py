@@ -17,7 +17,7 @@ from ._errors import FitInputError
 from ._forward import Data, Resolution, Static, light_nodes, resolution_parts
 from ._observations import Observations, Spectral, check_compatible
 from ._params import DEFAULTS, PARAM_NAMES, Layout, Parameter, Params, Priors, Variant
-from ._whiten import group_arrays
+from ._whiten import GroupArrays, group_arrays
 
 
 def max_edge_radius_um(obs: Observations) -> float:
@@ -222,8 +222,9 @@ def _data(
     replaced by `Problem.arrays_for`), moved to the device in one batched transfer."""
     grid = evaluation_grid(obs, np.asarray(spectral.n_base), np.asarray(spectral.weights, float),
                            aperture)  # fmt: skip
+    grid = padded_grid(grid)
     corr = np.stack([obs.corr_01, obs.corr_02, obs.corr_12], axis=1)
-    groups = group_arrays(obs.use, obs.roi_index, obs.channel_index, corr)
+    groups = padded_groups(group_arrays(obs.use, obs.roi_index, obs.channel_index, corr))
     data = Data(
         theta_i=np.asarray(obs.theta_i_rad, float),
         theta_o=np.asarray(obs.theta_o_rad, float),
@@ -242,6 +243,53 @@ def _data(
         grp_corr=groups.corr,
     )
     return jax.device_put(data)
+
+
+def bucket(n: int) -> int:
+    """`n` rounded up to a shape bucket: a multiple of 8, or of a quarter of the largest power
+    of two not above `n` once that is larger (56 for 54, 160 for 130; at most 7 entries or 25%
+    more). Scenes of one design whose evaluation keys or groups differ by a few entries (a face
+    flagged in one photo, angles that coincide in one scene and not in the other) get arrays of
+    one shape, so that one compiled program serves them all (issue 14)."""
+    step = max(8, (1 << (max(n, 1).bit_length() - 1)) // 4)
+    return -(-max(n, 1) // step) * step
+
+
+def _pad_rows(a: np.ndarray, size: int) -> np.ndarray:
+    """`a` with its last entry (along axis 0) repeated up to `size` entries."""
+    extra = size - a.shape[0]
+    return a if extra <= 0 else np.concatenate([a, np.repeat(a[-1:], extra, axis=0)])
+
+
+def padded_grid(grid: dict) -> dict:
+    """The evaluation grid with its keys (R) and geometry entries (G) padded to `bucket` sizes
+    by copies of their last entry: valid angles, evaluated and never read (no row points at a
+    padded key, no key at a padded geometry entry; rows gather from keys, keys from geometry,
+    and nothing sums over either)."""
+    n_keys, n_geo = grid["r_ti"].shape[0], grid["g_ti"].shape[0]
+    out = dict(grid)
+    for k in ("r_ti", "r_b2", "r_layer", "r_wedge", "r_geo"):
+        out[k] = _pad_rows(np.asarray(grid[k]), bucket(n_keys))
+    for k in ("r_to", "r_so"):  # per key `(R, .)`, or one row shared by every key `(1, T)`
+        a = np.asarray(grid[k])
+        out[k] = _pad_rows(a, bucket(n_keys)) if a.shape[0] == n_keys > 1 else a
+    for k in ("g_ti", "g_b2", "g_layer"):
+        out[k] = _pad_rows(np.asarray(grid[k]), bucket(n_geo))
+    return out
+
+
+def padded_groups(groups: GroupArrays) -> GroupArrays:
+    """The groups padded to a `bucket` count by empty groups (mask 0, row 0, identity
+    correlation: the padded slots' convention of `group_arrays`), which whiten to 0 and add
+    nothing to any sum."""
+    n = groups.rows.shape[0]
+    extra = bucket(n) - n
+    eye = np.broadcast_to(np.eye(groups.corr.shape[-1]), (extra, *groups.corr.shape[1:]))
+    return GroupArrays(
+        np.concatenate([groups.rows, np.zeros((extra, groups.rows.shape[1]), groups.rows.dtype)]),
+        np.concatenate([groups.mask, np.zeros((extra, groups.mask.shape[1]))]),
+        np.concatenate([groups.corr, eye]),
+    )
 
 
 def evaluation_grid(

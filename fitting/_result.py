@@ -16,12 +16,21 @@ import numpy as np
 from ._core import CoreFit
 from ._errors import FitWarning
 from ._identify import covariance, within_stderr_of_bound
-from ._params import Parameter, Params, Variant, dx_matrix, log_prior_z, parameter_label
+from ._params import (
+    Parameter,
+    Params,
+    Variant,
+    dx_matrix,
+    log_prior_split,
+    parameter_label,
+    split_priors,
+)
 from ._problem import FreeSpec, Problem
 
-_log_prior_z = jax.jit(log_prior_z, static_argnums=(1, 3))
-"""`log_prior_z` as one compiled program per layout and prior specification (evaluated op by
-op it dispatched about 50 small programs per fitted variant)."""
+_log_prior_z = jax.jit(log_prior_split, static_argnums=(1, 3))
+"""`log_prior_z` as one compiled program per layout and free slots with their priors' kinds
+(evaluated op by op it dispatched about 50 small programs per fitted variant); the priors'
+numbers are data (`split_priors`)."""
 
 
 @dataclass(frozen=True)
@@ -149,7 +158,7 @@ class FitResult:
         fixed = None if d is None else (d.free, d.x_fixed)  # a fixed r bounds a free r_f
         z = jnp.asarray(self.z)
         r_max = self.problem.r_max_um
-        log_prior = float(_log_prior_z(z, tuple(lay.kinds), r_max, spec, fixed))
+        log_prior = float(_log_prior_z(z, tuple(lay.kinds), r_max, *split_priors(spec), fixed))
         logdet = float(np.linalg.slogdet(self.covariance_z)[1])
         return self.log_likelihood + log_prior + 0.5 * k * math.log(2 * math.pi) + 0.5 * logdet
 
