@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from checks import all_finite
 
 from stairfit import model
 
@@ -29,10 +30,6 @@ _DIFFUSE_SHARP = jax.jit(model.diffuse_sharp, static_argnames="cosine_weighted")
 _DIFFUSE = jax.jit(model.diffuse_broadened, static_argnames=("cosine_weighted", "n_nodes"))
 
 
-def _finite(tree) -> bool:
-    return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(tree))
-
-
 @jax.jit
 def _lobes_and_grads(ti, b, nn):
     def total(ti, b, nn):
@@ -47,9 +44,9 @@ def _lobes_and_grads(ti, b, nn):
 def test_lobes_finite_values_and_gradients_at_extremes(beta2, n):
     angles = jnp.array(_extreme_angles(beta2))
     lobes, grads = _lobes_and_grads(angles, beta2, n)
-    assert _finite(lobes)
+    assert all_finite(lobes)
     np.testing.assert_allclose(jnp.sum(lobes.weight, axis=-1), 1.0, atol=1e-12)
-    assert _finite(grads)
+    assert all_finite(grads)
 
 
 @jax.jit
@@ -67,8 +64,8 @@ def test_brdf_finite_values_and_gradients_at_extremes(beta2, sigma):
     angles = _extreme_angles(beta2)
     ti, to = np.meshgrid(angles, [*angles, HALF - 2 * beta2], indexing="ij")
     val, grads = _brdf_and_grads(jnp.asarray(ti), jnp.asarray(to), beta2, 1.46, sigma)
-    assert _finite(val) and bool(jnp.all(val >= 0))
-    assert _finite(grads)
+    assert all_finite(val) and bool(jnp.all(val >= 0))
+    assert all_finite(grads)
 
 
 @jax.jit
@@ -83,7 +80,7 @@ def _complex_brdf_and_grads(ti, to, nr, k, s):
 def test_complex_index_values_and_gradients():
     ti, to = np.meshgrid(_extreme_angles(30 * DEG), [-HALF, 0.1, HALF], indexing="ij")
     v, g = _complex_brdf_and_grads(jnp.ravel(ti), jnp.ravel(to), 1.5, 0.3, 0.05)
-    assert _finite(v) and _finite(g)
+    assert all_finite(v) and all_finite(g)
     # an absorbing index reflects more at normal incidence: |(n-1)/(n+1)|^2
     r = float(model.flat_reflectance(0.0, 1.5 + 0.3j))
     assert r == pytest.approx(abs((0.5 + 0.3j) / (2.5 + 0.3j)) ** 2, rel=1e-12)
@@ -144,7 +141,7 @@ def _diffuse_and_grads(theta_o, b, n, s):
 def test_diffuse_finite_values_and_gradients(sigma):
     theta_o = jnp.array([-HALF, -HALF + 1e-9, -70 * DEG, 0.0, HALF - 1e-9, HALF])
     for beta2 in BETAS:
-        assert _finite(_diffuse_and_grads(theta_o, beta2, 1.46, sigma))
+        assert all_finite(_diffuse_and_grads(theta_o, beta2, 1.46, sigma))
 
 
 def test_broadening_conserves_each_lobes_energy():

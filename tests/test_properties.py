@@ -12,6 +12,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from checks import all_finite
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -59,15 +60,11 @@ def _brdf_complex_grads(ti, to, b2, nr, k, s):
     return f(ti, to, b2, nr, k, s), jax.grad(f, argnums=(0, 1, 2, 3, 4, 5))(ti, to, b2, nr, k, s)
 
 
-def _finite(tree) -> bool:
-    return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(tree))
-
-
 @SETTINGS
 @given(ti=angles, b2=beta2s, n=real_n)
 def test_lobes_finite_bounded_and_differentiable(ti, b2, n):
     lobes, grads = _lobes_grads(ti, b2, n)
-    assert _finite(lobes) and _finite(grads)
+    assert all_finite(lobes) and all_finite(grads)
     w, r = np.asarray(lobes.weight), np.asarray(lobes.ratio)
     assert np.all(w >= 0) and abs(w.sum() - 1) < 1e-12
     assert np.all(r >= 0) and r.sum() <= 1.0 + 1e-12
@@ -79,16 +76,16 @@ def test_lobes_finite_bounded_and_differentiable(ti, b2, n):
 @given(ti=angles, to=angles, b2=beta2s, n=real_n, s=sigmas)
 def test_brdf_finite_nonnegative_and_differentiable(ti, to, b2, n, s):
     val, grads = _brdf_grads(ti, to, b2, n, s)
-    assert _finite(val) and float(val) >= 0
-    assert _finite(grads)
+    assert all_finite(val) and float(val) >= 0
+    assert all_finite(grads)
 
 
 @SETTINGS
 @given(ti=angles, to=angles, b2=beta2s, nr=real_n, k=st.floats(0.0, 2.0), s=sigmas)
 def test_complex_index_finite_and_differentiable(ti, to, b2, nr, k, s):
     val, grads = _brdf_complex_grads(ti, to, b2, nr, k, s)
-    assert _finite(val) and float(val) >= 0
-    assert _finite(grads)
+    assert all_finite(val) and float(val) >= 0
+    assert all_finite(grads)
 
 
 # one compiled program per dtype (an eager call compiles each operation on its own)
@@ -125,7 +122,7 @@ def _diffuse(to, b2, n, s):
 @given(to=angles, b2=beta2s, n=real_n, s=sigmas)
 def test_diffuse_integrals_finite_bounded_and_differentiable(to, b2, n, s):
     sharp, broad, grads = _diffuse(to, b2, n, s)
-    assert _finite(sharp) and _finite(broad) and _finite(grads)
+    assert all_finite(sharp) and all_finite(broad) and all_finite(grads)
     # a reflectance under diffuse light: between 0 and the sum of three Fresnel maxima (<= 3)
     assert 0 <= float(sharp) <= 3 and 0 <= float(broad) <= 3
 

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from checks import all_finite
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -48,10 +49,6 @@ real_n = st.floats(1.0001, 3.0)
 APERTURE = model.Aperture(2.5 * DEG, 1.5 * DEG, 3)
 
 
-def _finite(tree) -> bool:
-    return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(tree))
-
-
 @jax.jit
 def _lobes_and_brdf(ti, to, b2, n, s):
     def total(ti, to, b2, n, s):
@@ -68,7 +65,7 @@ def _lobes_and_brdf(ti, to, b2, n, s):
 @given(ti=angles, to=angles, b2=beta2_ends, n=real_n, s=sigmas)
 def test_wedge_angles_at_the_open_ends(ti, to, b2, n, s):
     lobes, rho, grads = _lobes_and_brdf(ti, to, b2, n, s)
-    assert _finite(lobes) and _finite(rho) and _finite(grads)
+    assert all_finite(lobes) and all_finite(rho) and all_finite(grads)
     w = np.asarray(lobes.weight)
     assert np.all(w >= 0) and abs(w.sum() - 1) < 1e-12
     assert 0 <= float(np.sum(lobes.ratio)) <= 1 + 1e-12
@@ -87,7 +84,7 @@ def _complex_lobes(ti, b2, nr, k):
 @given(ti=angles, b2=beta2s, nr=real_n, k=st.floats(0.0, 5.0))
 def test_lobes_with_complex_index(ti, b2, nr, k):
     lobes, grads = _complex_lobes(ti, b2, nr, k)
-    assert _finite(lobes) and _finite(grads)
+    assert all_finite(lobes) and all_finite(grads)
     f = np.asarray(lobes.fresnel)
     assert np.all(f >= 0) and np.all(f <= 1 + 1e-12)
     assert float(np.sum(lobes.ratio)) <= 1 + 1e-12
@@ -116,7 +113,7 @@ def test_measurement_model_finite_nonnegative_and_differentiable(ti, to, b2, n, 
     # band_density with a finite aperture (nodes clipped at +-90 deg) and the radiance of
     # conventions §9, whose cos(theta_o) is floored at grazing views
     dens, val, grads = _measurement(ti, to, b2, n, s)
-    assert _finite(dens) and _finite(val) and _finite(grads)
+    assert all_finite(dens) and all_finite(val) and all_finite(grads)
     assert float(dens[0]) >= 0 and float(val) >= 0
 
 
@@ -228,5 +225,5 @@ def _rounded(p, b2):
 )
 def test_rounded_model_finite_over_the_radius_range(ti, b2, n, s, frac):
     val, jac = _rounded(jnp.array([ti, s, n, frac]), b2)
-    assert _finite(val) and np.all(np.asarray(val) >= 0)
-    assert _finite(jac)
+    assert all_finite(val) and np.all(np.asarray(val) >= 0)
+    assert all_finite(jac)

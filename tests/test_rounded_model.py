@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from checks import all_finite
 
 from stairfit import model
 from stairfit.model import _rounded
@@ -41,10 +42,6 @@ def _paths_weight(theta_i, beta2: float, radius: float) -> jax.Array:
     padded = np.zeros(_N_PATHS)
     padded[: ti.size] = ti
     return PATHS(jnp.asarray(padded), beta2, 1.46, L1, radius).weight[: ti.size]
-
-
-def _finite(tree) -> bool:
-    return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(tree))
 
 
 # ------------------------------------------------------------------------------------------
@@ -181,7 +178,7 @@ def test_finite_values_and_gradients_at_extremes(beta2_deg, sigma, n):
         for ti in angles:
             p = jnp.array([sigma, n, radius, ti])
             v, j, d = _rho_jac_dto(p, _TO, b2)
-            assert _finite((v, j, d)), (radius, ti)
+            assert all_finite((v, j, d)), (radius, ti)
             assert bool(jnp.all(v >= 0))
 
 
@@ -196,7 +193,7 @@ def _complex_value_and_jac(nr, k, r, ti):
 def test_complex_index_values_and_gradients():
     for r in (0.0, 40.0, float(model.max_edge_radius(30 * DEG, L1))):
         for ti in (-HALF, -0.3, 0.5, HALF):
-            assert _finite(_complex_value_and_jac(1.5, 0.3, r, ti))
+            assert all_finite(_complex_value_and_jac(1.5, 0.3, r, ti))
 
 
 # ------------------------------------------------------------------------------------------
