@@ -146,10 +146,13 @@ SECOND_SCENE = ("--seed", "5", "--sigma-deg", "7", "--floor", "3000")
 flags, its evaluation keys and its floor prior differ from the first's)."""
 
 
-def known_design_case(exe: str, first: Path, second: Path, out: Path, label: str) -> Run:
-    """The default `stairfit fit` of a new scene whose design an earlier fit compiled: the
-    first scene fitted with an empty JAX cache (not timed), then the second scene, timed, with
-    the cache the first filled (a study's second folder, a new specimen of a known design)."""
+def known_design_case(
+    exe: str, first: Path, second: Path, out: Path, extra: tuple[str, ...] = ()
+) -> Run:
+    """`stairfit fit` (options `extra`) of a new scene whose design an earlier fit compiled:
+    the first scene fitted with an empty JAX cache (not timed), then the second scene, timed,
+    with the cache the first filled (a study's second folder, a new specimen of a known
+    design)."""
 
     def run() -> tuple[float, float, float]:
         cache = Path(tempfile.mkdtemp(prefix="jax-", dir=out.parent))
@@ -159,7 +162,7 @@ def known_design_case(exe: str, first: Path, second: Path, out: Path, label: str
         return peak_of(fit_cmd(second), env_with_cache(cache))
 
     def fit_cmd(photos: Path) -> list[str]:
-        return [exe, "fit", str(photos), "-o", str(out), "--force", "--quiet"]
+        return [exe, "fit", str(photos), "-o", str(out), "--force", "--quiet", *extra]
 
     return run
 
@@ -270,8 +273,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument(
         "--known-design",
         action="store_true",
-        help="also the default fit of a second new scene of the same design, with the JAX cache "
-        "a fit of the first filled (and so for --compare-exe)",
+        help="also the default fit (and with --rounded the forced rounded one) of a second new "
+        "scene of the same design, with the JAX cache a fit of the first filled (and so for "
+        "--compare-exe)",
     )
     p.add_argument("--quick", action="store_true", help="1 repeat, 0.5 MP x 5 views")
     p.add_argument("--out", type=Path, default=RESULTS / "cold.md")
@@ -318,13 +322,20 @@ def main(argv: list[str] | None = None) -> int:
         if args.known_design:
             second = tmp / "photos-2"
             simulate_scene(exe, second, args.megapixels, args.views, SECOND_SCENE)
-            runs = [(exe, "stairfit fit (default)", tmp / "fit-known")]
+            kinds: list[tuple[str, tuple[str, ...]]] = []
+            if not args.no_default_fit:
+                kinds.append(("fit (default)", ()))
+            if args.rounded:
+                kinds.append((f"fit --model {ROUNDED} --no-posterior",
+                              ("--model", ROUNDED, "--no-posterior")))  # fmt: skip
+            exes = [(exe, "stairfit")]
             if args.compare_exe:
-                runs.append((args.compare_exe, f"{COMPARED} fit (default)", tmp / "fit-known-c"))
-            for who, label, folder in runs:
-                name = f"{label}, new scene of a known design"
-                cases[name] = known_design_case(who, photos, second, folder, label)
-                dirs[name] = folder
+                exes.append((args.compare_exe, COMPARED))
+            for k, (what, extra) in enumerate(kinds):
+                for who, prefix in exes:
+                    name = f"{prefix} {what}, new scene of a known design"
+                    dirs[name] = tmp / f"fit-known-{k}-{len(dirs)}"
+                    cases[name] = known_design_case(who, photos, second, dirs[name], extra)
         if args.rounded:
             cases.update(fit_cases(exe, photos, tmp / "fit-rounded", "stairfit fit --model "
                                    f"{ROUNDED} --no-posterior", ["--model", ROUNDED,
