@@ -30,17 +30,20 @@ FIT_PROGRAMS = ("_solve_one", "evaluate", "batched_log_probability", "log_prior_
 """The programs a fit, its posterior and its Laplace evidence compile (`jit(name)`)."""
 
 
-def _scene(seed: int, gain: float, flagged_roi: int | None) -> tuple[fitting.Observations, ...]:
+def _scene(
+    seed: int, gain: float, flagged_roi: int | None, spread: float = 1.0
+) -> tuple[fitting.Observations, ...]:
     """Two wedges x 5 views x 3 channels, each photo x wedge a group of 3 correlated rows;
     values scaled by `gain` (the floor's prior scales with the largest value); the rows of ROI
-    `flagged_roi` excluded."""
+    `flagged_roi` excluded; every row's viewing spread `spread` (a share of the aperture's)."""
     spec = fitting.spectral_setup("pla", sampling="effective")
     design = fitting.Design((20.0, 45.0), (20.0,) * 5, (-60.0, -30.0, 0.0, 30.0, 60.0))
     obs = fitting.simulate_observations(TRUTH, design, spec, fitting.Noise(0.02), seed=seed)
     roi = obs.photo_index * 100 + obs.wedge_index
     use = np.ones(obs.n_rows, bool) if flagged_roi is None else roi != flagged_roi
     corr = dict(zip(("corr_01", "corr_02", "corr_12"), CORR, strict=True))
-    arrays = {**obs._asdict(), "value": obs.value * gain, "stderr": obs.stderr * gain}
+    arrays = {**obs._asdict(), "value": obs.value * gain, "stderr": obs.stderr * gain,
+              "view_spread": np.full(obs.n_rows, spread)}  # fmt: skip
     obs = fitting.Observations.from_arrays(**{**arrays, "roi_index": roi, "use": use, **corr})
     return obs, spec
 
@@ -95,7 +98,7 @@ def test_a_second_scene_of_the_design_compiles_no_fit_or_posterior_program() -> 
 
 
 def test_the_padding_changes_no_number(monkeypatch: pytest.MonkeyPatch) -> None:
-    obs, spec = _scene(3, 1.0, flagged_roi=1)
+    obs, spec = _scene(3, 1.0, flagged_roi=1, spread=0.6)
     padded = fitting.fit_least_squares(obs, spec, VARIANT, emit_warnings=False)
     monkeypatch.setattr(_problem, "bucket", lambda n: n)
     plain = fitting.fit_least_squares(obs, spec, VARIANT, emit_warnings=False)
@@ -112,3 +115,7 @@ def test_the_padding_changes_no_number(monkeypatch: pytest.MonkeyPatch) -> None:
     rng = np.random.default_rng(0)
     theta = t0.base_z[t0.slots] + 0.01 * rng.standard_normal((8, t0.slots.size))
     np.testing.assert_allclose(t1.log_prob(theta), t0.log_prob(theta), rtol=1e-12)
+    # a chain file written before the padding resumes: the fingerprint leaves it out (the
+    # groups and the per-key viewing spreads, both padded here, are part of it)
+    assert d1.r_so.shape[0] > d0.r_so.shape[0] > 1 and not np.all(np.asarray(d0.r_so) == 1.0)
+    assert t1.fingerprint == t0.fingerprint
