@@ -37,6 +37,7 @@ fixed floor or edge radius can be exactly 0).
 from __future__ import annotations
 
 import enum
+import functools
 import math
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -513,6 +514,7 @@ def log_prior_z(
     return total
 
 
+@functools.lru_cache(maxsize=8)  # the sampler asks for the same specification at every call
 def split_priors(priors: PriorSpec) -> tuple[tuple[int, ...], tuple[Prior, ...]]:
     """`(slots, distributions)` of a prior specification, for a compiled function: the slots
     (and the distributions' kinds, their pytree structure) are its static configuration, the
