@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import zoo
+from checks import jacobian_by_columns
 
 from stairfit import fitting, model
 from stairfit.fitting import _forward, _params, _problem
@@ -202,21 +203,27 @@ def test_the_correction_summed_over_chunks_of_rays_is_the_one_pass_sum(monkeypat
                   rays=64, bounces=16)  # fmt: skip
 
     def make() -> Callable:  # a fresh function each time: the chunk size is chosen in tracing
-        def both(x: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
+        def both(x: jnp.ndarray, dx: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
             f = lambda x: _forward._fillet_impl(sigma_k * jnp.exp(x[0]), x[1], rays, cfg, g)  # noqa: E731
             at = jax.vmap(lambda rr: _forward._fillet_impl(sigma_k, x[1], rr, cfg, g))(moved)
-            return f(x), jax.jacfwd(f)(x), at
+            return *jax.jvp(f, (x,), (dx,)), at
 
         return both
 
+    def outputs(program: Callable) -> tuple[np.ndarray, ...]:
+        """Value, Jacobian (column by column through the one program: tests/checks.py) and
+        the values at the other rays."""
+        value, _, at = program(x, jnp.zeros(2))
+        return value, jacobian_by_columns(lambda dx: program(x, dx)[1], 2), at
+
     x = jnp.array([0.0, 0.0])
-    scans = str(jax.make_jaxpr(make())(x)).count("scan[")
-    one = jax.jit(make())(x)
+    scans = str(jax.make_jaxpr(make())(x, x)).count("scan[")
+    one = outputs(jax.jit(make()))
     per_ray = _forward._fillet_bytes_per_ray(g, g.r_to.shape[-1], g.r_n.size, 8)
     monkeypatch.setattr(_forward, "FILLET_CHUNK_BYTES", 8 * per_ray)
     assert _forward._ray_chunk(64, per_ray, budget=8 * per_ray) == 8
-    assert str(jax.make_jaxpr(make())(x)).count("scan[") >= scans + 2  # value and vmap chunked
-    chunked = jax.jit(make())(x)
+    assert str(jax.make_jaxpr(make())(x, x)).count("scan[") >= scans + 2  # value and vmap chunked
+    chunked = outputs(jax.jit(make()))
     for a, b in zip(one, chunked, strict=True):
         np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-15 * float(np.max(np.abs(a))))
     assert float(np.max(np.abs(one[0]))) > 0 and float(np.max(np.abs(one[2][0] - one[2][1]))) > 0
