@@ -1,9 +1,10 @@
 """The filleted staircase (issue 15; docs/rounded.md §11), without the reference tracer.
 
-`r_f = 0` is the rounded model to the bit, in value and in every derivative; values and
-forward-mode Jacobians are finite over the whole domain (r_f -> 0 and at its bound, r_tip -> 0,
-grazing incidence, n -> 1, wedges near 0 and 90 deg); d/d r_f agrees with central differences;
-broadening keeps the power of the correction; the result converges as the ray count grows.
+At `r_f = 0` the correction is exactly 0, in value and in every derivative, and the whole is the
+rounded model to the last bit; values and forward-mode Jacobians are finite over the whole
+domain (r_f -> 0 and at its bound, r_tip -> 0, grazing incidence, n -> 1, wedges near 0 and 90
+deg); d/d r_f agrees with central differences; broadening keeps the power of the correction; the
+result converges as the ray count grows.
 """
 
 from __future__ import annotations
@@ -76,8 +77,8 @@ def test_zero_fillet_is_the_rounded_model_in_value_and_gradient(beta2_deg, theta
     (v, v0, c), (j, j0, dc) = _values_and_jacobians(p, b2)
     # to the last bit: the two models' values come out of one program that also carries their
     # derivatives, where XLA fuses the two copies of the rounded model differently (1 ulp
-    # seen; with the values alone in the program they were bit-identical); that the
-    # correction is exactly 0 is asserted bitwise below
+    # seen; in the earlier program with `jax.jacfwd`'s Jacobians they were bit-identical);
+    # that the correction is exactly 0 is asserted bitwise below
     np.testing.assert_allclose(v, v0, rtol=1e-15, atol=0)
     keep = [0, 1, 2, 4, 5]  # every parameter but r_f (which the rounded model does not have)
     # the Jacobians are two differently structured programs: equal to the last bits (the
