@@ -37,7 +37,8 @@ def jacobian_by_columns(tangent: Callable[[np.ndarray], Any], n: int) -> Any:
     """The Jacobian of a function of `n` inputs, one column at a time: `tangent(e_k)` is its
     derivative along the k-th unit vector, from one compiled program that takes the tangent as
     an argument (`jax.jvp` inside `jax.jit`). `jax.jacfwd` compiles a program `n` tangents wide,
-    which for the rounded and filleted models took 1.5-1.8x longer to compile (issue 14); its
+    which for the rounded and filleted models took 1.8x longer to trace, lower and compile
+    (issue 14; benchmarks/bench_jvp_programs.py); its
     one call runs faster than the `n`, so the gain is largest where a test needs one direction
     (one column, or `generic_direction`) at many points. Each leaf of the result has the
     columns on a last axis, as `jax.jacfwd` gives them."""
