@@ -62,7 +62,7 @@ class Preset:
     * `rounded_rungs`: "always" fits the rounded-edge variants of the ladder; "when_needed"
       fits them only when the best sharp variant does not describe the data (it needs a
       model-error term, or its chi^2 tail probability is below 1e-3; `stairfit.fitting.
-      rounding_needed`). A rounded fit costs minutes (compilation), a sharp one seconds.
+      rounding_needed`). A rounded fit compiles several times longer than a sharp one.
     * `posterior_tau_factor`: the chain must be this many autocorrelation times long;
       `posterior_max_steps`: the step limit (then a warning); `posterior_chunk_steps`: how
       often (in steps) the stopping rule is checked (a chain stops at a multiple of it).
