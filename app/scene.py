@@ -84,11 +84,26 @@ class Specimen:
 @dataclass(frozen=True)
 class Light:
     """The light source: spectrum by name, angular diameter and shape [conventions §8, §9]:
-    "uniform" (every in-plane offset across the diameter alike) or "disk" (a round light)."""
+    "uniform" (every in-plane offset across the diameter alike) or "disk" (a round light).
+
+    A near lamp (docs/scene.md "A near lamp") has a position in the base frame (mm):
+    `position_mm`, one point for every photo, or `distance_mm` from the base frame's origin,
+    placed by each photo's `light_deg`; a photo's own `light_position_mm` wins over both.
+    `diameter_mm` is its physical size; `angular_diameter_deg` is then the size seen from the
+    origin. All None: a distant light, the same direction at every face.
+    """
 
     illuminant: str = "D65"
     angular_diameter_deg: float = 0.0
     shape: str = "uniform"
+    diameter_mm: float | None = None
+    distance_mm: float | None = None
+    position_mm: tuple[float, float, float] | None = None
+
+    @property
+    def near(self) -> bool:
+        """Whether the lamp has a position (a near lamp) rather than only a direction."""
+        return self.distance_mm is not None or self.position_mm is not None
 
 
 @dataclass(frozen=True)
@@ -163,6 +178,8 @@ class Photo:
     iso: float | None = None
     roi_px: tuple[tuple[str, Polygon], ...] = ()
     bracket: tuple[BracketFile, ...] = ()
+    light_position_mm: tuple[float, float, float] | None = None
+    """This photo's lamp position in the base frame (mm), overriding `[light]`'s."""
 
     @property
     def files(self) -> tuple[str, ...]:
@@ -281,6 +298,23 @@ class Scene:
         """
         files = [Path(self.path).resolve(), *(path for _, _, path in self.input_fields())]
         return tuple(dict.fromkeys(files))
+
+    def lamp_position_mm(self, photo: Photo) -> tuple[float, float, float] | None:
+        """The lamp's centre in the base frame (mm) for this photo, or None for a distant light.
+
+        The photo's `light_position_mm`, else `[light] position_mm`, else the point at
+        `[light] distance_mm` from the origin in the direction of the photo's `light_deg`:
+        `distance_mm * (-sin L, 0, cos L)` (a positive `light_deg` is on the downhill side,
+        [conventions §1]; docs/scene.md "A near lamp").
+        """
+        if photo.light_position_mm is not None:
+            return photo.light_position_mm
+        if self.light.position_mm is not None:
+            return self.light.position_mm
+        if self.light.distance_mm is None or photo.light_deg is None:
+            return None
+        a, d = math.radians(photo.light_deg), self.light.distance_mm
+        return (-d * math.sin(a), 0.0, d * math.cos(a))
 
     def face_angles_deg(self, photo: Photo, wedge: Wedge) -> tuple[float, float]:
         """(theta_i, theta_o) of this photo in this wedge's face frame, degrees.
@@ -657,7 +691,8 @@ def _per_channel_index(r: _Reader, params: dict[str, Any], w: str) -> IndexSpec:
 
 
 def _light(r: _Reader, d: dict[str, Any]) -> Light:
-    r.table(d, "light", ["illuminant", "angular_diameter_deg", "shape"])
+    r.table(d, "light", ["illuminant", "angular_diameter_deg", "shape", "diameter_mm",
+                         "distance_mm", "position_mm"])  # fmt: skip
     ill = r.get(d, "illuminant", str, "light", default="D65")
     from stairfit.model import spectral
 
@@ -669,8 +704,49 @@ def _light(r: _Reader, d: dict[str, Any]) -> Light:
         "uniform": "a bar across the plane of incidence: every in-plane offset alike",
         "disk": "a round light",
     })  # fmt: skip
-    diameter = r.get(d, "angular_diameter_deg", float, "light", default=0.0, lo=0, hi=30)
-    return Light(ill, diameter, shape)
+    distance = r.get(d, "distance_mm", float, "light", default=None, lo=1.0, hi=1e6)
+    position = _point_mm(r, d, "position_mm", "light")
+    if distance is not None and position is not None:
+        r.fail("light.position_mm", "give either distance_mm or position_mm, not both")
+    size = r.get(d, "diameter_mm", float, "light", default=None, lo=0.0, hi=1e4)
+    if size is not None and "angular_diameter_deg" in d:
+        r.fail("light.diameter_mm", "give either diameter_mm or angular_diameter_deg, not both")
+    if size is None:
+        diameter = r.get(d, "angular_diameter_deg", float, "light", default=0.0, lo=0, hi=30)
+    else:
+        reach = distance if distance is not None else _norm(position)
+        if reach is None:
+            r.fail("light.diameter_mm", "needs the lamp's distance_mm or position_mm as well "
+                   "(or give angular_diameter_deg instead)")  # fmt: skip
+        if size >= reach:
+            r.fail("light.diameter_mm", f"{size:g} mm is not smaller than the lamp's distance "
+                   f"({reach:g} mm); check the units (millimetres)")  # fmt: skip
+        diameter = math.degrees(2.0 * math.atan(0.5 * size / reach))
+        if diameter > 30:
+            r.fail("light.diameter_mm", f"the lamp would span {diameter:.3g} deg; at most 30")
+    return Light(ill, diameter, shape, size, distance, position)
+
+
+def _point_mm(
+    r: _Reader, d: dict[str, Any], key: str, where: str
+) -> tuple[float, float, float] | None:
+    """An optional [x, y, z] point in base-frame millimetres, above the base (z > 0)."""
+    if key not in d:
+        return None
+    v = d[key]
+    if not (isinstance(v, list) and len(v) == 3 and all(_is_real(c) for c in v)):
+        r.fail(_join(where, key), "must be [x, y, z] in millimetres of the base frame, "
+               "e.g. [0, 0, 500]")  # fmt: skip
+    x, y, z = (float(c) for c in v)
+    if not all(math.isfinite(c) and abs(c) <= 1e6 for c in (x, y, z)):
+        r.fail(_join(where, key), "must be finite, at most 1e6 mm from the origin")
+    if z <= 0:
+        r.fail(_join(where, key), f"z = {z:g} mm: the lamp must be above the base (z > 0)")
+    return (x, y, z)
+
+
+def _norm(p: tuple[float, float, float] | None) -> float | None:
+    return None if p is None else math.sqrt(sum(c * c for c in p))
 
 
 def _camera(r: _Reader, d: dict[str, Any]) -> Camera:
@@ -791,8 +867,9 @@ def _photos(
     for k, p in enumerate(items):
         w = f"photos[{k}]"
         r.table(
-            p, w, ["file", "light_deg", "view_deg", "exposure_time_s", "f_number", "iso", "roi_px"]
-        )
+            p, w, ["file", "light_deg", "view_deg", "exposure_time_s", "f_number", "iso", "roi_px",
+                   "light_position_mm"],
+        )  # fmt: skip
         rois = p.get("roi_px", {})
         if not isinstance(rois, dict):
             r.fail(f"{w}.roi_px", "must be a table of wedge name = polygon")
@@ -807,10 +884,18 @@ def _photos(
             roi_items.append((name, r.polygon(rois, name, f"{w}.roi_px")))
         files = _file_list(r, p, "file", w)
         overrides = _exposure_overrides(r, p, w, len(files))
+        lamp = _point_mm(r, p, "light_position_mm", w)
+        if lamp is not None and "light_deg" in p:
+            r.fail(f"{w}.light_position_mm", "give either light_deg or light_position_mm, not both")
+        light_deg = (
+            r.get(p, "light_deg", float, w, default=angle, lo=-90, hi=90)
+            if lamp is None
+            else math.degrees(math.atan2(-lamp[0], lamp[2]))  # about y [conventions §1]
+        )
         photos.append(
             Photo(
                 file=files[0],
-                light_deg=r.get(p, "light_deg", float, w, default=angle, lo=-90, hi=90),
+                light_deg=light_deg,
                 view_deg=r.get(p, "view_deg", float, w, default=angle, lo=-90, hi=90),
                 exposure_time_s=overrides[0][0],
                 f_number=overrides[0][1],
@@ -819,6 +904,7 @@ def _photos(
                 bracket=tuple(
                     BracketFile(f, *o) for f, o in zip(files[1:], overrides[1:], strict=True)
                 ),
+                light_position_mm=lamp,
             )
         )
     return tuple(photos)
