@@ -28,6 +28,7 @@ from ._errors import UnidentifiedParameterWarning as UnidentifiedParameterWarnin
 from ._forward import Resolution as Resolution
 from ._identify import IDENTIFIABILITY_THRESHOLD as IDENTIFIABILITY_THRESHOLD
 from ._jacobian import model_jacobian as model_jacobian
+from ._lab import LabGeometry as LabGeometry
 from ._least_squares import DEFAULT_SIGMA_STARTS_RAD as DEFAULT_SIGMA_STARTS_RAD
 from ._least_squares import LeastSquaresOptions as LeastSquaresOptions
 from ._least_squares import fit_least_squares as fit_least_squares

@@ -41,6 +41,7 @@ from ._placement import (
     face_polygon,
     fit_camera_pose,
     hidden_fraction,
+    roi_face_points,
     roi_view_half_width_deg,
     view_parallax_deg,
 )
@@ -48,7 +49,7 @@ from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
 from ._roi import INCIDENCE_AXES, Polygon, RoiMask, as_polygon, roi_mask, view_spread
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 11
+TABLE_VERSION = 12
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
@@ -62,6 +63,7 @@ TABLE_VERSION = 11
 9: each channel's value moved by its plane to the ROI's centroid (docs/imaging.md §Channel sites).
 10: face_view_deg is the mean view angle over the eroded ROI's pixels (was: at the face's centre).
 11: the view_half_width_deg column (a pinhole-placed ROI's own spread of viewing angles).
+12: the face_points_mm and camera_mm columns (the lab model's 3-D geometry of each ROI).
 """
 
 
@@ -495,7 +497,13 @@ def _marker_columns(
     outline = dict(spec.faces_mm)[name]
     parallax = view_parallax_deg(pose, spec.markers, outline, angle, pixels)
     own = None if parallax is None or spec.view_deg is None else spec.view_deg + parallax
+    points, weights = roi_face_points(pose, outline, angle, pixels)
+    centre = pose.camera_centre_mm()
     return {
+        "face_points_mm": ";".join(
+            " ".join(f"{v:.6g}" for v in (*p, w)) for p, w in zip(points, weights, strict=True)
+        ),
+        "camera_mm": "" if centre is None else " ".join(f"{v:.8g}" for v in centre),
         "marker_ids": " ".join(str(i) for i in pose.ids),
         "marker_cell_px": min(cells[i] for i in pose.ids),
         "placement": pose.model,

@@ -36,13 +36,31 @@ LAB_KERNELS: tuple[str, ...] = ("gaussian", *DISTRIBUTIONS)
 """How the facets spread their reflections: "gaussian" (the paper's broadening, lifted to 3-D)
 or a microfacet distribution ("ggx", "beckmann") [conventions §12]."""
 
-ARC_SIGMA_PER_ALPHA = 2.0**0.5
-"""The arcs of rounded edges spread their light with a Gaussian of width
-`ARC_SIGMA_PER_ALPHA * alpha` (rad) when the facets are microfacet-rough: a reflection doubles
-a micro-normal's tilt, and Beckmann's slopes along one axis have the standard deviation
-`alpha / sqrt(2)` (docs/model.md §7.5)."""
-
 _TINY = 1e-12
+
+
+class _Band(NamedTuple):
+    """The refractive index at a channel's wavelength samples, `n` `(..., L)`, and their
+    weights `(..., L)` (rows sum to 1) [conventions §8]: every Fresnel factor is evaluated at
+    each sample and band-averaged at once, so that no geometry is repeated per wavelength."""
+
+    n: Array
+    weight: Array
+
+
+def _band(n: ArrayLike, spectral_weight: ArrayLike | None) -> _Band:
+    """`_Band` of an index without wavelength axis (`spectral_weight` None: one sample of
+    weight 1) or with one (`n` and `spectral_weight` of shape `(..., L)`)."""
+    n = jnp.asarray(n)
+    if spectral_weight is None:
+        return _Band(n[..., None], jnp.ones((1,), jnp.result_type(n.real.dtype, float)))
+    return _Band(n, jnp.asarray(spectral_weight))
+
+
+def _fresnel_u(cos: Array, band: _Band) -> Array:
+    """Band-averaged unpolarised Fresnel reflectance at local cosine `cos`."""
+    c, n, w = same_rank(cos[..., None], band.n, band.weight)
+    return jnp.sum(fresnel_unpolarised(c, n) * w, axis=-1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -137,6 +155,13 @@ def lobe_fresnel_3d(
     return jnp.stack([0.5 * (tread.s + tread.p), 0.5 * (riser.s + riser.p), retro], axis=-1)
 
 
+def _lobe_fresnel_band(theta_i: Array, t_i: Array, beta2: Array, band: _Band) -> Array:
+    """`lobe_fresnel_3d` band-averaged: `(..., 3)`."""
+    f = lobe_fresnel_3d(theta_i[..., None], t_i[..., None], beta2[..., None], band.n)
+    f, w = same_rank(f, band.weight[..., None])
+    return jnp.sum(f * w, axis=-2)
+
+
 class Lobes3D(NamedTuple):
     """The sharp staircase's three lobes for one direction of incidence [conventions §3, §11]:
     in-plane directions `theta_o` (rad), the shared component along the layer lines `t_o`
@@ -154,16 +179,20 @@ class Lobes3D(NamedTuple):
         return self.weight * self.fresnel
 
 
-def lab_lobes(w_i: ArrayLike, beta2: ArrayLike, n: ArrayLike) -> Lobes3D:
-    """The sharp lobes for light from the 3-D direction `w_i` (face frame) [conventions §11]."""
+def lab_lobes(
+    w_i: ArrayLike, beta2: ArrayLike, n: ArrayLike, spectral_weight: ArrayLike | None = None
+) -> Lobes3D:
+    """The sharp lobes for light from the 3-D direction `w_i` (face frame) [conventions §11].
+
+    `n` is the index; with `spectral_weight`, `n` and it have a last axis of wavelength
+    samples and the Fresnel factors are band-averaged over it [conventions §8]."""
     inc = projected_incidence(w_i)
-    ti, t, b, n = same_rank(inc.theta, inc.t, beta2, n)
-    ti, t, b, n = jnp.broadcast_arrays(ti, t, b, n)
+    ti, t, b = same_rank(inc.theta, inc.t, beta2)
+    fresnel = _lobe_fresnel_band(ti, t, b, _band(n, spectral_weight))
+    lead = fresnel.shape[:-1]
+    ti, t, b = (jnp.broadcast_to(a, lead) for a in (ti, t, b))
     return Lobes3D(
-        theta_o=lobe_directions(ti, b),
-        t_o=-t,
-        weight=lobe_weights(ti, b),
-        fresnel=lobe_fresnel_3d(ti, t, b, n),
+        theta_o=lobe_directions(ti, b), t_o=-t, weight=lobe_weights(ti, b), fresnel=fresnel
     )
 
 
@@ -192,9 +221,11 @@ def lab_density_gaussian(
     n: ArrayLike,
     sigma: ArrayLike,
     sigma_perp: ArrayLike | None = None,
+    spectral_weight: ArrayLike | None = None,
 ) -> Float[Array, "..."]:
     """Reflected power per steradian (per unit incident power) of the sharp staircase with the
     paper's Gaussian broadening, for 3-D directions (face frame) [conventions §5, §11].
+    `spectral_weight`: band-average over the last axis of `n` (`lab_lobes`).
 
     Each lobe's delta becomes the in-plane hemisphere Gaussian of `brdf` (width `sigma`, rad) in
     the projected viewing angle times `line_gaussian` (width `sigma_perp`, default `sigma`) in
@@ -203,7 +234,7 @@ def lab_density_gaussian(
     sigma_perp)`.
     """
     sigma_perp = sigma if sigma_perp is None else sigma_perp
-    lobes = lab_lobes(w_i, beta2, n)
+    lobes = lab_lobes(w_i, beta2, n, spectral_weight)
     view = projected_view(w_o)
     to, t_o, s, sp, tc = same_rank(view.theta, view.t, sigma, sigma_perp, lobes.t_o)
     k_in = hemisphere_gaussian(to[..., None], lobes.theta_o, s[..., None])
@@ -248,7 +279,7 @@ def facet_normals(beta2: ArrayLike) -> Float[Array, "... 2 3"]:
 
 
 def microfacet_lobe(
-    w_i: Array, w_o: Array, normal: Array, n: Array, alpha: Array, kind: str
+    w_i: Array, w_o: Array, normal: Array, band: _Band, alpha: Array, kind: str
 ) -> Array:
     """`D(h) F(w_i . h) G1(w_i) G1(w_o) / 4` of a rough facet with outward `normal` (the
     microfacet reflection without its `1 / (w_i . n)(w_o . n)`), `h` the half vector; unit
@@ -260,7 +291,7 @@ def microfacet_lobe(
     cos_i = jnp.sum(w_i * normal, axis=-1)
     cos_o = jnp.sum(w_o * normal, axis=-1)
     g = smith_g1(cos_i, cos_ih, alpha, kind) * smith_g1(cos_o, cos_ih, alpha, kind)
-    f = fresnel_unpolarised(jnp.clip(cos_ih, 0.0, 1.0), n)
+    f = _fresnel_u(jnp.clip(cos_ih, 0.0, 1.0), band)
     return ndf(cos_h, alpha, kind) * f * g / 4.0
 
 
@@ -364,7 +395,7 @@ def _combined_scale(a: Array, b: Array, kind: str) -> Array:
 
 
 def _retro_one_way(
-    w_i: Array, w_o: Array, beta2: Array, n: Array, alpha: Array, kind: str
+    w_i: Array, w_o: Array, beta2: Array, band: _Band, alpha: Array, kind: str
 ) -> Array:
     """The rough two-bounce path's reflected power per steradian for light from `w_i`, seen
     from `w_o` (unit vectors, face frame; broadcast) [conventions §11, §12].
@@ -384,7 +415,7 @@ def _retro_one_way(
     paths = rough_retro(inc.theta, beta2, alpha, kind)
     u = beta2 + inc.theta
     a, b = inc.c * jnp.cos(u), inc.c * jnp.sin(u)
-    fresnel = lobe_fresnel_3d(inc.theta, inc.t, beta2, n)[..., 2]
+    fresnel = _lobe_fresnel_band(inc.theta, inc.t, beta2, band)[..., 2]
     shadow = (smith_g1(a, a, alpha, kind) * smith_g1(b, b, alpha, kind)) ** 2
     s1 = (2.0 * alpha)[..., None, None]
     s2 = (2.0 * alpha * _combined_scale(jnp.abs(a), jnp.abs(b), kind))[..., None, None]
@@ -405,6 +436,7 @@ def lab_density_microfacet(
     n: ArrayLike,
     alpha: ArrayLike,
     kind: str = "ggx",
+    spectral_weight: ArrayLike | None = None,
 ) -> Float[Array, "..."]:
     """Reflected power per steradian (per unit incident power) of the sharp staircase whose
     facets are microfacet-rough (roughness `alpha`, distribution `kind`), for 3-D directions
@@ -417,7 +449,17 @@ def lab_density_microfacet(
     The two-bounce retroreflection follows `_retro_one_way`, averaged with its reverse (light
     and viewer swapped) so that it is reciprocal.
     """
-    w_i, w_o, (beta2, n, alpha) = _broadcast(w_i, w_o, beta2, n, alpha)
+    w_i, w_o, (beta2, alpha) = _broadcast(w_i, w_o, beta2, alpha)
+    single, retro = microfacet_parts(w_i, w_o, beta2, _band(n, spectral_weight), alpha, kind)
+    return jnp.sum(single, axis=-1) + retro
+
+
+def microfacet_parts(
+    w_i: Array, w_o: Array, beta2: Array, band: _Band, alpha: Array, kind: str
+) -> tuple[Array, Array]:
+    """The terms of `lab_density_microfacet` (unit `w_i`, `w_o` and the scalars broadcast to one
+    leading shape, `_broadcast`): the single reflections per facet `(..., 2)` (tread, riser) and
+    the two-bounce path `(...)`, 0 below the horizon [conventions §11, §12]."""
     inc, view = projected_incidence(w_i), projected_view(w_o)
     cos_i, cos_o = w_i[..., 2], w_o[..., 2]
     up = (cos_i > 0.0) & (cos_o > 0.0)
@@ -425,16 +467,16 @@ def lab_density_microfacet(
     normals = facet_normals(beta2)
     length = jnp.stack([jnp.cos(beta2), jnp.sin(beta2)], axis=-1)  # L_k / l
     lobes = jnp.stack(
-        [microfacet_lobe(w_i, w_o, normals[..., k, :], n, alpha, kind) for k in range(2)], -1
+        [microfacet_lobe(w_i, w_o, normals[..., k, :], band, alpha, kind) for k in range(2)], -1
     )
     cos_i_safe = jnp.where(up, cos_i, 1.0)
-    single = jnp.sum(length * visible * lobes, axis=-1) / cos_i_safe
+    single = length * visible * lobes / cos_i_safe[..., None]
     # the two-bounce path, made reciprocal: the mean of the path from the light and the
     # reversed path from the viewer (p(w_o -> w_i) cos_o / cos_i)
-    forward = _retro_one_way(w_i, w_o, beta2, n, alpha, kind)
-    backward = _retro_one_way(w_o, w_i, beta2, n, alpha, kind)
+    forward = _retro_one_way(w_i, w_o, beta2, band, alpha, kind)
+    backward = _retro_one_way(w_o, w_i, beta2, band, alpha, kind)
     retro = 0.5 * (forward + backward * jnp.where(up, cos_o, 0.0) / cos_i_safe)
-    return jnp.where(up, single + retro, 0.0)
+    return jnp.where(up[..., None], single, 0.0), jnp.where(up, retro, 0.0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -442,24 +484,36 @@ def lab_density_microfacet(
 # --------------------------------------------------------------------------------------------
 
 
-def lab_body(w_i: ArrayLike, w_o: ArrayLike, beta2: ArrayLike, n: ArrayLike) -> Float[Array, "..."]:
+def lab_body(
+    w_i: ArrayLike,
+    w_o: ArrayLike,
+    beta2: ArrayLike,
+    n: ArrayLike,
+    spectral_weight: ArrayLike | None = None,
+) -> Float[Array, "..."]:
     """The diffuse body of the staircase's material, per unit albedo (1/sr x pi): light that
     enters a facet (transmittance `1 - F`), is scattered inside and leaves through a facet
     (`1 - F` again), Lambertian, each facet weighted by its visible lit share:
     `sum_k (L_k / l) V_k (w_i . n_k)(w_o . n_k) T_i T_o / (w_i . z)` [conventions §11].
     For a flat surface it is `cos(theta_o) T_i T_o`, so `floor * lab_body / cos(theta_o)` is a
     Lambertian radiance per unit irradiance (`floor cos(theta_i)` when `n -> 1`)."""
-    w_i, w_o, (beta2, n) = _broadcast(w_i, w_o, beta2, n)
+    w_i, w_o, (beta2,) = _broadcast(w_i, w_o, beta2)
+    band = _band(n, spectral_weight)
     inc, view = projected_incidence(w_i), projected_view(w_o)
     visible = jnp.minimum(lit_fractions(inc.theta, beta2), lit_fractions(-view.theta, beta2))
     normals = facet_normals(beta2)
     cos_i = jnp.clip(jnp.einsum("...j,...kj->...k", w_i, normals), 0.0, 1.0)
     cos_o = jnp.clip(jnp.einsum("...j,...kj->...k", w_o, normals), 0.0, 1.0)
-    trans = (1.0 - fresnel_unpolarised(cos_i, n[..., None])) * (
-        1.0 - fresnel_unpolarised(cos_o, n[..., None])
+    ci, co, bn, bw = same_rank(  # (..., 2, L): the facet axis before the samples
+        cos_i[..., None], cos_o[..., None], band.n[..., None, :], band.weight[..., None, :]
     )
+    trans = (1.0 - fresnel_unpolarised(ci, bn)) * (1.0 - fresnel_unpolarised(co, bn))
+    trans = jnp.sum(trans * bw, axis=-1)  # (..., 2)
     length = jnp.stack([jnp.cos(beta2), jnp.sin(beta2)], axis=-1)
-    up = (w_i[..., 2] > 0.0) & (w_o[..., 2] > 0.0)
-    cos_z = jnp.where(up, w_i[..., 2], 1.0)
-    body = jnp.sum(length * visible * cos_i * cos_o * trans, axis=-1) / cos_z
+    geometry = length * visible * cos_i * cos_o  # (..., 2)
+    geometry, trans = same_rank(geometry, trans)
+    lead = jnp.broadcast_shapes(geometry.shape, trans.shape)[:-1]
+    up = jnp.broadcast_to((w_i[..., 2] > 0.0) & (w_o[..., 2] > 0.0), lead)
+    cos_z = jnp.where(up, jnp.broadcast_to(w_i[..., 2], lead), 1.0)
+    body = jnp.sum(geometry * trans, axis=-1) / cos_z
     return jnp.where(up, body, 0.0)
