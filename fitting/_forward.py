@@ -476,9 +476,11 @@ def model_values(z: Array, static: Static, data: Data) -> tuple[Array, Params]:
     the returned `Params` are one per wedge."""
     p = static.layout.unpack(physical(z, static, data), data.sigma_source)
     if static.lab is not None:
-        if static.rounded:
-            raise NotImplementedError("the lab model with rounded edges")
-        spec, body = lab_grid(p.sigma_rad[data.lab.wedge], p.delta_n, data.lab, static.lab)
+        if static.filleted:
+            raise NotImplementedError("the lab model has no fillets (docs/model.md §7.6)")
+        radius = p.edge_radius_um if static.rounded else None
+        spec, body = lab_grid(p.sigma_rad[data.lab.wedge], p.delta_n, data.lab, static.lab,
+                              radius, static.resolution)  # fmt: skip
         rows = (data.lab.key, data.r_c)
         return p.scale * spec[rows] + p.floor * body[rows], p
     if static.filleted:

@@ -16,9 +16,10 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 from numpy.typing import NDArray
 
 from stairfit import model
@@ -71,7 +72,7 @@ class LabGeometry(NamedTuple):
 
 class LabData(NamedTuple):
     """The traced arrays of the lab model (see `LabGeometry`): `w_i`, `w_o` `(G, K, 3)`, `conv`
-    `(G, K)` (weight x irradiance x `(w_i . z) / (w_o . z)`), `b2`, `wedge` `(G,)`, `key`
+    `(G, K)` (weight x irradiance x `(w_i . z) / (w_o . z)`), `b2`, `layer`, `wedge` `(G,)`, `key`
     `(N,)`; each channel's distinct index samples `n` and their summed weights `w` `(C, L)`
     (`distinct_samples`). A scene without lab geometry carries one dummy key (never read)."""
 
@@ -79,6 +80,7 @@ class LabData(NamedTuple):
     w_o: Float[Array, "G K 3"]
     conv: Float[Array, "G K"]
     b2: Float[Array, " G"]
+    layer: Float[Array, " G"]
     wedge: Int[Array, " G"]
     key: Int[Array, " N"]
     n: Array
@@ -102,6 +104,7 @@ def distinct_samples(n_base: NDArray, weights: NDArray) -> tuple[NDArray, NDArra
 def lab_data(
     geo: LabGeometry | None,
     beta2_w: NDArray,
+    layer_w: NDArray,
     n_rows: int,
     spectral: tuple[NDArray, NDArray],
     size: int = 0,
@@ -112,8 +115,9 @@ def lab_data(
     if geo is None:
         up = np.zeros((1, 1, 3))
         up[..., 2] = 1.0
-        return LabData(up, up, np.zeros((1, 1)), np.full(1, 0.5), np.zeros(1, int),
-                       np.zeros(n_rows, int), np.full((1, 1), 1.5), np.ones((1, 1)))  # fmt: skip
+        return LabData(up, up, np.zeros((1, 1)), np.full(1, 0.5), np.full(1, 150.0),
+                       np.zeros(1, int), np.zeros(n_rows, int), np.full((1, 1), 1.5),
+                       np.ones((1, 1)))  # fmt: skip
     n, w = distinct_samples(*spectral)
     cos_i = np.clip(geo.w_i[..., 2], 0.0, None)
     cos_o = np.maximum(geo.w_o[..., 2], COS_O_FLOOR)
@@ -126,23 +130,53 @@ def lab_data(
 
     wedge = np.asarray(geo.wedge, int)
     return LabData(
-        pad(geo.w_i), pad(geo.w_o), pad(conv), pad(np.asarray(beta2_w)[wedge]), pad(wedge),
-        np.asarray(geo.key, int), n, w,
+        pad(geo.w_i), pad(geo.w_o), pad(conv), pad(np.asarray(beta2_w)[wedge]),
+        pad(np.asarray(layer_w)[wedge]), pad(wedge), np.asarray(geo.key, int), n, w,
     )  # fmt: skip
 
 
-def lab_grid(width_g: Array, dn: Array, lab: LabData, kernel: str) -> tuple[Array, Array]:
+def roughness_alpha(width_rad: ArrayLike) -> Array:
+    """A microfacet kernel's roughness from the fit's width slot: `alpha = tan(width)`, the
+    width being the angle whose tangent is the micro-slopes' scale (Beckmann: their RMS). The
+    fit keeps one transform and prior for every kernel's width, and reports it in degrees;
+    `alpha` is the number a renderer takes (Mitsuba's `alpha`)."""
+    return jnp.tan(jnp.asarray(width_rad))
+
+
+def lab_grid(
+    width_g: Array,
+    dn: Array,
+    lab: LabData,
+    kernel: str,
+    radius_um: Array | None = None,
+    resolution: int | None = None,
+) -> tuple[Array, Array]:
     """(specular, body) per geometry key and channel, `(G, C)`: each node's staircase density
     (`stairfit.model.lab_density_gaussian`, or `lab_density_microfacet` for a microfacet
-    `kernel`) and diffuse body, band-averaged over the channel's wavelength samples and summed
-    over the nodes with `conv` [conventions §8, §11, §12]. `width_g` is each key's width (rad
-    for "gaussian", the roughness alpha for a microfacet kernel)."""
+    `kernel`; `lab_density_rounded` with tip radius `radius_um`) and diffuse body,
+    band-averaged over the channel's wavelength samples and summed over the nodes with `conv`
+    [conventions §8, §11, §12]. `width_g` is each key's width in rad: the Gaussian's sigma, or
+    for a microfacet kernel the roughness angle, `alpha = tan(width)` (`roughness_alpha`). The
+    rounded geometry is computed once per key, at the mean projected angle of incidence of its
+    nodes (docs/model.md §7.6)."""
     n, weights = clamp_index(lab.n + dn), lab.w  # (C, L): band-averaged inside
     w_i = lab.w_i[:, :, None, :]  # (G, K, 1, 3): the channel axis third
     w_o = lab.w_o[:, :, None, :]
     b2 = lab.b2[:, None, None]
     width = width_g[:, None, None]
-    if kernel == "gaussian":
+    if kernel != "gaussian":
+        width = roughness_alpha(width)
+    if radius_um is not None:
+        theta = jnp.sum(model.projected_incidence(lab.w_i).theta * lab.conv, axis=1) / jnp.maximum(
+            jnp.sum(lab.conv, axis=1), 1e-300
+        )  # (G,): each key's conv-weighted mean projected angle
+        res = model.ROUNDED_RESOLUTION if resolution is None else resolution
+        geo = model.rounded_geometry(theta, lab.b2, lab.layer, radius_um, resolution=res)
+        geo = jax.tree_util.tree_map(lambda a: a[:, None, None], geo)  # (G, 1, 1, ...)
+        p = model.lab_density_rounded(
+            w_i, w_o, b2, n, width, lab.layer[:, None, None], radius_um, kernel, weights, geo
+        )
+    elif kernel == "gaussian":
         p = model.lab_density_gaussian(w_i, w_o, b2, n, width, spectral_weight=weights)
     else:
         p = model.lab_density_microfacet(w_i, w_o, b2, n, width, kernel, weights)

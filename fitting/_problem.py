@@ -15,7 +15,7 @@ from stairfit import model
 
 from ._errors import FitInputError
 from ._forward import Data, Resolution, Static, light_nodes, resolution_parts
-from ._lab import LabGeometry, lab_data
+from ._lab import LabData, LabGeometry, lab_data
 from ._observations import Observations, Spectral, check_compatible
 from ._params import DEFAULTS, PARAM_NAMES, Layout, Parameter, Params, Priors, Variant
 from ._whiten import GroupArrays, group_arrays
@@ -258,19 +258,16 @@ def _data(
         grp_rows=groups.rows,
         grp_mask=groups.mask,
         grp_corr=groups.corr,
-        lab=lab_data(lab, obs.wedge_beta2_rad, obs.n_rows, _samples(spectral), _lab_bucket(lab)),
+        lab=_lab_arrays(lab, obs, spectral),
     )
     return jax.device_put(data)
 
 
-def _samples(spectral: Spectral) -> tuple[np.ndarray, np.ndarray]:
-    """The spectral setup's index samples and weights, `(C, K)` each."""
-    return np.asarray(spectral.n_base), np.asarray(spectral.weights, float)
-
-
-def _lab_bucket(lab: LabGeometry | None) -> int:
-    """The padded number of lab geometry keys (0 without lab geometry)."""
-    return 0 if lab is None else bucket(lab.weight.shape[0])
+def _lab_arrays(lab: LabGeometry | None, obs: Observations, spectral: Spectral) -> LabData:
+    """The lab model's traced arrays (`_lab.lab_data`), keys padded to a shape bucket."""
+    samples = np.asarray(spectral.n_base), np.asarray(spectral.weights, float)
+    size = 0 if lab is None else bucket(lab.weight.shape[0])
+    return lab_data(lab, obs.wedge_beta2_rad, obs.wedge_layer_um, obs.n_rows, samples, size)
 
 
 def bucket(n: int) -> int:

@@ -27,7 +27,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._broadening import hemisphere_gaussian
 from ._cell import facet_projections
-from ._fresnel import fresnel_sp, fresnel_unpolarised
+from ._fresnel import SP, fresnel_sp, fresnel_unpolarised
 from ._lobes import lobe_directions, lobe_weights
 from ._microfacet import DISTRIBUTIONS, ndf, smith_g1
 from ._shapes import same_rank
@@ -145,14 +145,22 @@ def lobe_fresnel_3d(
     c = jnp.sqrt(jnp.clip(1.0 - t_i * t_i, 0.0, 1.0))
     a, b = c * jnp.cos(u), c * jnp.sin(u)
     tread, riser = fresnel_sp(a, n), fresnel_sp(b, n)
-    same = 0.5 * (tread.s * riser.s + tread.p * riser.p)
-    crossed = 0.5 * (tread.s * riser.p + tread.p * riser.s)
-    t2 = t_i * t_i
+    retro = _two_bounce(tread, riser, a, b, t_i)
+    return jnp.stack([0.5 * (tread.s + tread.p), 0.5 * (riser.s + riser.p), retro], axis=-1)
+
+
+def _two_bounce(first: SP, second: SP, a: Array, b: Array, t: Array) -> Array:
+    """Unpolarised factor of two reflections in perpendicular facets at local cosines `a`, `b`
+    (their s, p reflectances `first`, `second`) of a ray with component `t` along the layer
+    lines: `((R_s R_s' + R_p R_p') cos^2 phi + (R_s R_p' + R_p R_s') sin^2 phi) / 2`,
+    `sin^2 phi = t^2 / ((a^2 + t^2)(b^2 + t^2))` (docs/model.md §7.2)."""
+    same = 0.5 * (first.s * second.s + first.p * second.p)
+    crossed = 0.5 * (first.s * second.p + first.p * second.s)
+    t2 = t * t
     den = (a * a + t2) * (b * b + t2)
     ok = (den > _TINY) & (t2 > 0.0)
     sin2 = jnp.clip(jnp.where(ok, t2 / jnp.where(ok, den, 1.0), 0.0), 0.0, 1.0)
-    retro = same + sin2 * (crossed - same)
-    return jnp.stack([0.5 * (tread.s + tread.p), 0.5 * (riser.s + riser.p), retro], axis=-1)
+    return same + sin2 * (crossed - same)
 
 
 def _lobe_fresnel_band(theta_i: Array, t_i: Array, beta2: Array, band: _Band) -> Array:
@@ -303,24 +311,29 @@ def _deflection_rule(kind: str) -> tuple[np.ndarray, np.ndarray]:
     """In-plane deflections (in units of `alpha`) and weights (sum 1) of one rough reflection:
     twice a micro-normal's in-plane slope, whose marginal is normal (Beckmann, standard
     deviation `alpha / sqrt 2`) or Student's t with 2 degrees of freedom (GGX, scale
-    `alpha / sqrt 2`). Beckmann: Gauss-Hermite; GGX: the midpoints of equal-probability bins
-    (closed-form quantiles `y sqrt(2 / (1 - y^2))`, `y = 2u - 1`) [conventions §12]."""
+    `alpha / sqrt 2`). Beckmann: Gauss-Hermite; GGX: Gauss-Legendre in the cumulative
+    probability `u`, at the closed-form quantiles `y sqrt(2 / (1 - y^2))`, `y = 2u - 1`, whose
+    nodes crowd towards both ends and so resolve the heavy tails [conventions §12]."""
     if kind == "beckmann":
         x, w = np.polynomial.hermite_e.hermegauss(RETRO_NODES)
         return np.sqrt(2.0) * x, w / w.sum()
-    y = 2.0 * (np.arange(RETRO_NODES) + 0.5) / RETRO_NODES - 1.0
-    return np.sqrt(2.0) * y * np.sqrt(2.0 / (1.0 - y * y)), np.full(RETRO_NODES, 1.0 / RETRO_NODES)
+    y, w = np.polynomial.legendre.leggauss(RETRO_NODES)
+    return np.sqrt(2.0) * y * np.sqrt(2.0 / (1.0 - y * y)), w / w.sum()
 
 
 class RoughRetro(NamedTuple):
     """The rough two-bounce path for one direction of incidence, per first facet (tread,
     riser) and deflection node (last two axes): `mass`, the share of the rays hitting a period
     that take it (their first reflection deflected by `shift` in the plane and not seen from
-    outside), and `shift` (rad), by how much that turns the path's outgoing in-plane direction
-    (`-deflection`: the second mirror reverses it) [conventions §3, §12]."""
+    outside), `shift` (rad), by how much that turns the path's outgoing in-plane direction
+    (`-deflection`: the second mirror reverses it), and `cos_second`, the in-plane local cosine
+    at which the deflected ray meets the other facet (`|sin(u + delta)|` on the riser after the
+    tread, `|cos(u + delta)|` on the tread after the riser, `u = beta2 + theta_i`)
+    [conventions §3, §12]."""
 
     mass: Float[Array, "... 2 N"]
     shift: Float[Array, "... 2 N"]
+    cos_second: Float[Array, "... 2 N"]
 
     @property
     def weight(self) -> Float[Array, "..."]:
@@ -355,7 +368,10 @@ def rough_retro(
     )
     share = jnp.where((cos_i > _TINY)[..., None] & (lit > 0), share, 0.0)
     mass = share[..., None] * trapped * w
-    return RoughRetro(mass=mass, shift=jnp.broadcast_to(-delta, mass.shape))
+    u = (beta2 + theta_i)[..., None] + delta[..., 0, :]  # (..., N)
+    second = jnp.stack([jnp.abs(jnp.sin(u)), jnp.abs(jnp.cos(u))], axis=-2)
+    return RoughRetro(mass=mass, shift=jnp.broadcast_to(-delta, mass.shape),
+                      cos_second=jnp.broadcast_to(second, mass.shape))  # fmt: skip
 
 
 def retro_weight_rough(
@@ -414,11 +430,18 @@ def _retro_one_way(
     inc, view = projected_incidence(w_i), projected_view(w_o)
     paths = rough_retro(inc.theta, beta2, alpha, kind)
     u = beta2 + inc.theta
-    a, b = inc.c * jnp.cos(u), inc.c * jnp.sin(u)
-    fresnel = _lobe_fresnel_band(inc.theta, inc.t, beta2, band)[..., 2]
-    shadow = (smith_g1(a, a, alpha, kind) * smith_g1(b, b, alpha, kind)) ** 2
-    s1 = (2.0 * alpha)[..., None, None]
-    s2 = (2.0 * alpha * _combined_scale(jnp.abs(a), jnp.abs(b), kind))[..., None, None]
+    c = inc.c[..., None, None]
+    first = c * jnp.stack([jnp.cos(u), jnp.sin(u)], axis=-1)[..., None]  # (..., 2, 1)
+    second = c * paths.cos_second  # (..., 2, N): the deflected ray's cosine at the other facet
+    first = jnp.broadcast_to(first, second.shape)
+    a = jnp.stack([first[..., 0, :], second[..., 1, :]], axis=-2)  # tread's cosine per path
+    b = jnp.stack([second[..., 0, :], first[..., 1, :]], axis=-2)  # riser's cosine
+    t = inc.t[..., None, None]
+    factor = _two_bounce_band(a, b, t, band)  # (..., 2, N)
+    al = alpha[..., None, None]
+    shadow = (smith_g1(a, a, al, kind) * smith_g1(b, b, al, kind)) ** 2
+    s1 = 2.0 * al
+    s2 = 2.0 * al * jnp.maximum(_combined_scale(jnp.abs(a), jnp.abs(b), kind), 1e-3)
     x = ((view.theta + inc.theta)[..., None, None] - paths.shift) / s1
     y = (view.t + inc.t)[..., None, None] / s2
     r2 = x * x + y * y
@@ -426,7 +449,18 @@ def _retro_one_way(
         kern = 1.0 / (jnp.pi * s1 * s2 * (1.0 + r2) ** 2)
     else:
         kern = jnp.exp(-r2) / (jnp.pi * s1 * s2)
-    return fresnel * shadow * jnp.sum(paths.mass * kern, axis=(-2, -1))
+    return jnp.sum(factor * shadow * paths.mass * kern, axis=(-2, -1))
+
+
+def _two_bounce_band(a: Array, b: Array, t: Array, band: _Band) -> Array:
+    """`_two_bounce` at the facets' local cosines `a` (tread) and `b` (riser), band-averaged over
+    `band`'s samples: `a`, `b`, `t` of shape `(..., 2, N)` (paths, nodes), the samples on a
+    last axis after them."""
+    n = band.n[..., None, None, :]  # (..., 1, 1, L)
+    a_, b_, t_, n = same_rank(a[..., None], b[..., None], t[..., None], n)
+    f = _two_bounce(fresnel_sp(a_, n), fresnel_sp(b_, n), a_, b_, t_)
+    f, w = same_rank(f, band.weight[..., None, None, :])
+    return jnp.sum(f * w, axis=-1)
 
 
 def lab_density_microfacet(
@@ -454,6 +488,9 @@ def lab_density_microfacet(
     return jnp.sum(single, axis=-1) + retro
 
 
+RETRO_RECIPROCAL = False
+
+
 def microfacet_parts(
     w_i: Array, w_o: Array, beta2: Array, band: _Band, alpha: Array, kind: str
 ) -> tuple[Array, Array]:
@@ -473,9 +510,10 @@ def microfacet_parts(
     single = length * visible * lobes / cos_i_safe[..., None]
     # the two-bounce path, made reciprocal: the mean of the path from the light and the
     # reversed path from the viewer (p(w_o -> w_i) cos_o / cos_i)
-    forward = _retro_one_way(w_i, w_o, beta2, band, alpha, kind)
-    backward = _retro_one_way(w_o, w_i, beta2, band, alpha, kind)
-    retro = 0.5 * (forward + backward * jnp.where(up, cos_o, 0.0) / cos_i_safe)
+    retro = _retro_one_way(w_i, w_o, beta2, band, alpha, kind)
+    if RETRO_RECIPROCAL:
+        backward = _retro_one_way(w_o, w_i, beta2, band, alpha, kind)
+        retro = 0.5 * (retro + backward * jnp.where(up, cos_o, 0.0) / cos_i_safe)
     return jnp.where(up[..., None], single, 0.0), jnp.where(up, retro, 0.0)
 
 
