@@ -114,10 +114,17 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
+LAMP_DISK_MIN_DEG = 1.0
+"""A lamp smaller than this (its angular diameter seen from the origin) is a point: next to
+the facets' own spread of a few degrees its size changes a face's radiance by far less than
+its measurement error, and every node costs one evaluation per face point."""
+
+
 def _lamp_nodes(scene: Scene) -> tuple[tuple[float, float, float], ...]:
-    """The lamp's disk nodes: `LAMP_DISK` for a lamp of finite size, else its centre."""
-    size = scene.light.diameter_mm
-    return LAMP_DISK if size is not None and size > 0 else ((0.0, 0.0, 1.0),)
+    """The lamp's disk nodes: `LAMP_DISK` for a lamp of `LAMP_DISK_MIN_DEG` or more, else its
+    centre."""
+    big = scene.light.angular_diameter_deg >= LAMP_DISK_MIN_DEG
+    return LAMP_DISK if big and (scene.light.diameter_mm or 0.0) > 0 else ((0.0, 0.0, 1.0),)
 
 
 def reference_distance_mm(scene: Scene) -> float:

@@ -288,6 +288,15 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
+def table_records_of(rows: Any) -> list[dict[str, Any]]:
+    """`table_records` of any comparison rows (e.g. the facet kernels' probe fits)."""
+    return [
+        {"variant": r.name, "n_free": r.n_free, "chi2": r.chi2, "bic": r.bic, "delta": r.delta,
+         "status": r.status_text, "notes": r.notes}
+        for r in rows
+    ]  # fmt: skip
+
+
 def table_records(sel: Any) -> list[dict[str, Any]]:
     """results.json's `model_selection.table`: one record per ladder variant."""
     return [
@@ -372,6 +381,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
             "rounding": rounding_record(outcome),
         },
         "assessment": assessment_record(outcome),
+        "directions": directions_record(outcome),
         "accuracy": None if outcome.accuracy is None else outcome.accuracy.record(),
         "parameters": records,
         "fixed_parameters": fixed_parameters(outcome),
@@ -393,6 +403,43 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         },
     }
     return _jsonable(result)
+
+
+def directions_record(outcome: FitOutcome) -> dict[str, Any]:
+    """How the fit modelled the directions (docs/fitting.md §Lab model): `model` ("lab" or
+    "in_plane"), why, the facets' kernel and how it was chosen, the roughness `alpha` of
+    microfacet facets (`tan` of the fitted width, with its delta-method error), and each
+    measured face's largest out-of-plane angles of light and view (deg; faces placed in 3-D
+    only)."""
+    from .lab import out_of_plane
+
+    fit, sel = outcome.selection.fit, outcome.selection
+    lab = fit.problem is not None and fit.problem.lab is not None
+    kernel = fit.requested.kernel
+    record: dict[str, Any] = {
+        "model": "lab" if lab else "in_plane",
+        "reason": outcome.lab_reason,
+        "facets": kernel if lab else "gaussian",
+        "facets_reason": sel.facets.reason if sel.facets is not None else None,
+        "facets_table": [] if sel.facets is None else table_records_of(sel.facets.rows),
+        "alpha": [],
+        "out_of_plane": [],
+    }
+    if lab and kernel != "gaussian":
+        for est in fit.estimates:
+            if est.param == "sigma_rad":
+                se = None if est.stderr is None else est.stderr / np.cos(est.value) ** 2
+                record["alpha"].append({"name": est.label("alpha"), "value": np.tan(est.value),
+                                        "stderr": se})  # fmt: skip
+    scene = outcome.scene
+    reference = scene.reference.name if scene.reference is not None else None
+    rows = [r for r in outcome.table if r.wedge != reference]
+    if any(r.face_points_mm for r in rows):
+        record["out_of_plane"] = [
+            {"photo": f.photo, "wedge": f.wedge, "light_deg": f.light_deg, "view_deg": f.view_deg}
+            for f in out_of_plane(scene, rows)
+        ]
+    return record
 
 
 def package_versions() -> dict[str, str | None]:
@@ -801,6 +848,7 @@ sizes (ArviZ). In red: outside R-hat &lt; {RHAT_MAX:g}, ESS &ge; {ESS_MIN:g}.</p
 <table><tr><th></th><th>variant</th><th>k</th><th>chi2</th><th>BIC</th><th>delta</th>
 <th>status / notes</th></tr>{table}</table>
 <p>Rounded edges: {e(rounding_sentence(outcome))}.</p>
+{_directions_html(results["directions"])}
 <h2>Diagnostics</h2><p>least squares: {e(ls["message"])}, {ls["num_steps"]} steps; chi2 =
 {ls["chi2"]:.5g} for {ls["dof"]} degrees of freedom (reduced {ls["reduced_chi2"]:.3g});
 {ls["n_used"]} of {ls["n_rows"]} measurements fitted.<br>{e(_accuracy_line(outcome))}
@@ -811,6 +859,51 @@ sizes (ArviZ). In red: outside R-hat &lt; {RHAT_MAX:g}, ESS &ge; {ESS_MIN:g}.</p
 <p style="color:#777">stairfit {e(__version__)}; conventions: docs/conventions.md; all numbers
 also in results.json.</p></body></html>
 """
+
+
+def _directions_html(d: dict[str, Any]) -> str:
+    """The report's section on how the directions were modelled, the facets, and each wedge's
+    largest out-of-plane angles."""
+    e = html.escape
+    if d["model"] == "lab":
+        why = f" ({e(d['facets_reason'])})" if d["facets_reason"] else ""
+        head = (f"<p>Fitted with the <b>lab model</b> (each face's own 3-D light and view "
+                f"directions) because {e(d['reason'] or '')}. Facets: <b>{e(d['facets'])}</b>"
+                f"{why}.</p>")  # fmt: skip
+    else:
+        head = "<p>Fitted in one plane of incidence with a distant light (the in-plane model).</p>"
+    alpha = "".join(
+        f"<li>{e(a['name'])} = {a['value']:.4g}"
+        + ("" if a["stderr"] is None else f" &plusmn; {a['stderr']:.2g}")
+        + "</li>"
+        for a in d["alpha"]
+    )
+    if alpha:
+        alpha = (
+            f"<p>Facet roughness (Mitsuba's alpha, tan of the fitted width):</p><ul>{alpha}</ul>"
+        )
+    probes = "".join(
+        f"<tr><td>{e(r['variant'])}</td><td>{_fmt(r['chi2'], '.5g')}</td>"
+        f"<td>{_fmt(r['bic'], '.6g')}</td><td>{_fmt(r['delta'], '.3g')}</td>"
+        f"<td>{e(r['status'])}</td></tr>"
+        for r in d["facets_table"]
+    )
+    if probes:
+        probes = ("<table><tr><th>facets</th><th>chi2</th><th>BIC</th><th>delta</th>"
+                  f"<th>status</th></tr>{probes}</table>")  # fmt: skip
+    worst: dict[str, tuple[float, float]] = {}
+    for f in d["out_of_plane"]:
+        li, vi = worst.get(f["wedge"], (0.0, 0.0))
+        worst[f["wedge"]] = (max(li, f["light_deg"]), max(vi, f["view_deg"]))
+    angles = "".join(
+        f"<tr><td>{e(w)}</td><td>{li:.2f}</td><td>{vi:.2f}</td></tr>"
+        for w, (li, vi) in worst.items()
+    )
+    if angles:
+        angles = ("<p>Largest angles out of the plane of incidence over the photos (deg):</p>"
+                  "<table><tr><th>wedge</th><th>light</th><th>view</th></tr>"
+                  f"{angles}</table>")  # fmt: skip
+    return f"<h2>Directions and facets</h2>{head}{alpha}{probes}{angles}"
 
 
 def _accuracy_line(outcome: FitOutcome) -> str:

@@ -14,6 +14,7 @@ reflected power per steradian and `body` its diffuse body per unit albedo
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -73,8 +74,9 @@ class LabGeometry(NamedTuple):
 class LabData(NamedTuple):
     """The traced arrays of the lab model (see `LabGeometry`): `w_i`, `w_o` `(G, K, 3)`, `conv`
     `(G, K)` (weight x irradiance x `(w_i . z) / (w_o . z)`), `b2`, `layer`, `wedge` `(G,)`, `key`
-    `(N,)`; each channel's distinct index samples `n` and their summed weights `w` `(C, L)`
-    (`distinct_samples`). A scene without lab geometry carries one dummy key (never read)."""
+    `(N,)`; the distinct channels' index samples `n` and their summed weights `w` `(C', L)`
+    (`distinct_samples`, `distinct_channels`) and each channel's row of them, `channel` `(C,)`.
+    A scene without lab geometry carries one dummy key (never read)."""
 
     w_i: Float[Array, "G K 3"]
     w_o: Float[Array, "G K 3"]
@@ -85,6 +87,16 @@ class LabData(NamedTuple):
     key: Int[Array, " N"]
     n: Array
     w: Float[Array, "C L"]
+    channel: Int[Array, " C"]
+
+
+def distinct_channels(n: NDArray, w: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """The distinct rows of `(n, w)` `(C, L)` and each channel's row among them: channels that
+    see the same index samples with the same weights (a constant index) are evaluated once."""
+    rows = np.concatenate([n, w], axis=1)
+    uniq, channel = np.unique(rows, axis=0, return_inverse=True)
+    size = n.shape[1]
+    return uniq[:, :size], uniq[:, size:], channel.ravel()
 
 
 def distinct_samples(n_base: NDArray, weights: NDArray) -> tuple[NDArray, NDArray]:
@@ -117,8 +129,8 @@ def lab_data(
         up[..., 2] = 1.0
         return LabData(up, up, np.zeros((1, 1)), np.full(1, 0.5), np.full(1, 150.0),
                        np.zeros(1, int), np.zeros(n_rows, int), np.full((1, 1), 1.5),
-                       np.ones((1, 1)))  # fmt: skip
-    n, w = distinct_samples(*spectral)
+                       np.ones((1, 1)), np.zeros(1, int))  # fmt: skip
+    n, w, channel = distinct_channels(*distinct_samples(*spectral))
     cos_i = np.clip(geo.w_i[..., 2], 0.0, None)
     cos_o = np.maximum(geo.w_o[..., 2], COS_O_FLOOR)
     conv = geo.weight * geo.irradiance * cos_i / cos_o
@@ -131,7 +143,7 @@ def lab_data(
     wedge = np.asarray(geo.wedge, int)
     return LabData(
         pad(geo.w_i), pad(geo.w_o), pad(conv), pad(np.asarray(beta2_w)[wedge]),
-        pad(np.asarray(layer_w)[wedge]), pad(wedge), np.asarray(geo.key, int), n, w,
+        pad(np.asarray(layer_w)[wedge]), pad(wedge), np.asarray(geo.key, int), n, w, channel,
     )  # fmt: skip
 
 
@@ -158,7 +170,49 @@ def lab_grid(
     [conventions §8, §11, §12]. `width_g` is each key's width in rad: the Gaussian's sigma, or
     for a microfacet kernel the roughness angle, `alpha = tan(width)` (`roughness_alpha`). The
     rounded geometry is computed once per key, at the mean projected angle of incidence of its
-    nodes (docs/model.md §7.6)."""
+    nodes (docs/model.md §7.6). Derivatives by `_lab_grid_jvp`."""
+    rounded = radius_um is not None
+    radius = jnp.zeros((), width_g.dtype) if radius_um is None else jnp.asarray(radius_um)
+    return _lab_grid(width_g, jnp.asarray(dn, width_g.dtype), radius, (kernel, rounded,
+                     resolution), lab)  # fmt: skip
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
+def _lab_grid(
+    width_g: Array, dn: Array, radius: Array, cfg: tuple, lab: LabData
+) -> tuple[Array, Array]:
+    """`_lab_impl` with a JVP that needs three directional derivatives whatever the number of
+    parameters: each key depends on its own width only, and on `delta_n` and the radius, so one
+    direction with every width moved at once, one along `delta_n` and one along the radius give
+    the whole Jacobian (as `_forward.sharp_grid_density`). `lab` is data."""
+    return _lab_impl(width_g, dn, radius, cfg, lab)
+
+
+@_lab_grid.defjvp
+def _lab_grid_jvp(cfg: tuple, primals: tuple, tangents: tuple) -> tuple:
+    width_g, dn, radius, lab = primals
+    t_w, t_dn, t_r, _ = tangents
+    rounded = cfg[1]
+
+    def f(eps: Array) -> tuple[Array, Array]:
+        return _lab_impl(width_g + eps[0], dn + eps[1], radius + eps[2], cfg, lab)
+
+    eps0 = jnp.zeros(3 if rounded else 2, dtype=width_g.dtype)
+    value, lin = jax.linearize(f, eps0)
+    jac = jax.vmap(lin, out_axes=-1)(jnp.eye(eps0.shape[0], dtype=eps0.dtype))
+
+    def tangent(j: Array) -> Array:  # (G, C, 2|3) -> (G, C)
+        out = j[..., 0] * t_w[:, None] + j[..., 1] * t_dn
+        return out + j[..., 2] * t_r if rounded else out
+
+    return value, tuple(tangent(j) for j in jac)
+
+
+def _lab_impl(
+    width_g: Array, dn: Array, radius: Array, cfg: tuple, lab: LabData
+) -> tuple[Array, Array]:
+    """The computation of `lab_grid`; `cfg = (kernel, rounded, resolution)`."""
+    kernel, rounded, resolution = cfg
     n, weights = clamp_index(lab.n + dn), lab.w  # (C, L): band-averaged inside
     w_i = lab.w_i[:, :, None, :]  # (G, K, 1, 3): the channel axis third
     w_o = lab.w_o[:, :, None, :]
@@ -166,21 +220,21 @@ def lab_grid(
     width = width_g[:, None, None]
     if kernel != "gaussian":
         width = roughness_alpha(width)
-    if radius_um is not None:
+    if rounded:
         theta = jnp.sum(model.projected_incidence(lab.w_i).theta * lab.conv, axis=1) / jnp.maximum(
             jnp.sum(lab.conv, axis=1), 1e-300
         )  # (G,): each key's conv-weighted mean projected angle
         res = model.ROUNDED_RESOLUTION if resolution is None else resolution
-        geo = model.rounded_geometry(theta, lab.b2, lab.layer, radius_um, resolution=res)
+        geo = model.rounded_geometry(theta, lab.b2, lab.layer, radius, resolution=res)
         geo = jax.tree_util.tree_map(lambda a: a[:, None, None], geo)  # (G, 1, 1, ...)
         p = model.lab_density_rounded(
-            w_i, w_o, b2, n, width, lab.layer[:, None, None], radius_um, kernel, weights, geo
+            w_i, w_o, b2, n, width, lab.layer[:, None, None], radius, kernel, weights, geo
         )
     elif kernel == "gaussian":
         p = model.lab_density_gaussian(w_i, w_o, b2, n, width, spectral_weight=weights)
     else:
         p = model.lab_density_microfacet(w_i, w_o, b2, n, width, kernel, weights)
     body = model.lab_body(w_i, w_o, b2, n, weights)
-    spec = jnp.einsum("gk,gkc->gc", lab.conv, p)
-    diffuse = jnp.einsum("gk,gkc->gc", lab.conv, body)
+    spec = jnp.einsum("gk,gkc->gc", lab.conv, p)[:, lab.channel]
+    diffuse = jnp.einsum("gk,gkc->gc", lab.conv, body)[:, lab.channel]
     return spec, diffuse

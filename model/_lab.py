@@ -30,7 +30,7 @@ from ._cell import facet_projections
 from ._fresnel import SP, fresnel_sp, fresnel_unpolarised
 from ._lobes import lobe_directions, lobe_weights
 from ._microfacet import DISTRIBUTIONS, ndf, smith_g1
-from ._shapes import same_rank
+from ._shapes import same_rank, with_rank
 
 LAB_KERNELS: tuple[str, ...] = ("gaussian", *DISTRIBUTIONS)
 """How the facets spread their reflections: "gaussian" (the paper's broadening, lifted to 3-D)
@@ -352,7 +352,8 @@ def rough_retro(
     As `alpha -> 0` the total is the sharp retro weight `2 min(p_r, p_t) / cos theta_i`.
     """
     theta_i, beta2, alpha = same_rank(theta_i, beta2, alpha)
-    x, w = (jnp.asarray(a, jnp.result_type(theta_i, float)) for a in _deflection_rule(kind))
+    x, w = (with_rank(jnp.asarray(a, jnp.result_type(theta_i, float)), theta_i.ndim + 2)
+            for a in _deflection_rule(kind))  # (..., 1, N) each  # fmt: skip
     lit = lit_fractions(theta_i, beta2)  # (..., 2)
     mirror = lobe_directions(theta_i, beta2)[..., :2]  # tread, riser lobe directions
     delta = alpha[..., None, None] * x  # (..., 1, N)
