@@ -208,6 +208,12 @@ def _lab_grid_jvp(cfg: tuple, primals: tuple, tangents: tuple) -> tuple:
     return value, tuple(tangent(j) for j in jac)
 
 
+def _mean_direction(w: Array, conv: Array) -> Array:
+    """Each key's `conv`-weighted mean unit direction, `(G, 3)`."""
+    m = jnp.einsum("gk,gkj->gj", conv, w)
+    return m / jnp.maximum(jnp.linalg.norm(m, axis=-1, keepdims=True), 1e-300)
+
+
 def _lab_impl(
     width_g: Array, dn: Array, radius: Array, cfg: tuple, lab: LabData
 ) -> tuple[Array, Array]:
@@ -226,10 +232,17 @@ def _lab_impl(
         )  # (G,): each key's conv-weighted mean projected angle
         res = model.ROUNDED_RESOLUTION if resolution is None else resolution
         geo = model.rounded_geometry(theta, lab.b2, lab.layer, radius, resolution=res)
-        geo = jax.tree_util.tree_map(lambda a: a[:, None, None], geo)  # (G, 1, 1, ...)
-        p = model.lab_density_rounded(
-            w_i, w_o, b2, n, width, lab.layer[:, None, None], radius, kernel, weights, geo
+        nodes = jax.tree_util.tree_map(lambda a: a[:, None, None], geo)  # (G, 1, 1, ...)
+        p = model.rounded_flats(
+            w_i, w_o, b2, n, width, lab.layer[:, None, None], radius, nodes, kernel, weights
         )
+        # the arcs' broad lobes once per key, at its nodes' mean directions (docs/model.md §7.6)
+        mean_i, mean_o = (_mean_direction(w, lab.conv)[:, None, :] for w in (lab.w_i, lab.w_o))
+        arcs = model.rounded_arcs(
+            mean_i, mean_o, lab.b2[:, None], n, width[:, :, 0],
+            jax.tree_util.tree_map(lambda a: a[:, None], geo), kernel, weights,
+        )  # (G, C')  # fmt: skip
+        p = p + arcs[:, None, :]  # every node of a key gets its key's arcs
     elif kernel == "gaussian":
         p = model.lab_density_gaussian(w_i, w_o, b2, n, width, spectral_weight=weights)
     else:

@@ -96,6 +96,8 @@ from ._lab import retro_weight_rough as retro_weight_rough
 from ._lab import rough_retro as rough_retro
 from ._lab_rounded import ARC_SIGMA_PER_ALPHA as ARC_SIGMA_PER_ALPHA
 from ._lab_rounded import lab_density_rounded as lab_density_rounded
+from ._lab_rounded import rounded_arcs as rounded_arcs
+from ._lab_rounded import rounded_flats as rounded_flats
 from ._microfacet import DISTRIBUTIONS as DISTRIBUTIONS
 from ._microfacet import ndf as ndf
 from ._microfacet import smith_g1 as smith_g1
