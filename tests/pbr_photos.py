@@ -1308,6 +1308,7 @@ def patch_radiance(
     view_dir: Sequence[float],
     *,
     light_distance_mm: float | None = None,
+    frame: str = "base",
     surface: str = "staircase",
     min_length_mm: float = 5.0,
     periods: int | None = None,
@@ -1320,26 +1321,34 @@ def patch_radiance(
     """Render one wedge's face, seen from far along `view_dir` and lit along `light_dir`, and
     return its mean radiance per unit irradiance (`PatchRadiance.value`, 1/sr).
 
-    Directions are unit vectors in the wedge's base frame (x uphill, y along the layer lines,
-    z the plate's normal; the face's mean-plane normal is `(-sin beta2, 0, cos beta2)`), pointing
-    from the surface towards the light and towards the camera; both must be above the mean
-    plane. The light is distant (a `directional` emitter of unit irradiance normal to the
-    beam), or with `light_distance_mm` the lab's LED ball (`setup.lamp_diameter_mm`) at that
-    distance from the patch centre along `light_dir`, normalised so that its irradiance normal
-    to the beam at the patch centre is 1 (Mitsuba's single-precision sphere sampling makes it
-    0.08% higher at 6 mm and 500 mm, tests/test_pbr_photos.py). The camera is orthographic;
-    the patch is a rectangle on the mean plane spanning exactly `periods` layer periods across
-    the layer lines (default: the fewest that reach `min_length_mm`), so that no part of a
-    period is over- or under-counted, cut from a staircase extending 10 mm beyond it on every
-    side (shadows and masking from the neighbouring steps included). The material, layers,
-    edges and Mitsuba variant are the setup's. `surface="flat"` renders the mean plane itself
-    (a flat sheet of the facets' material), whose value is the material's `f cos theta_i`.
+    Directions are unit vectors pointing from the surface towards the light and towards the
+    camera, both above the face's mean plane, in the wedge's base frame (`frame="base"`: x
+    uphill, y along the layer lines, z the plate's normal; the face's normal is
+    `(-sin beta2, 0, cos beta2)`) or in its face frame (`frame="face"`, conventions §11: x
+    uphill along the face, y along the layers, z the face's normal). In §11's units the value is
+    `(w_i . z) p / (w_o . z)`, p = f cos(theta_o) the lab model's density.
+
+    The light is distant (a `directional` emitter of unit irradiance normal to the beam), or
+    with `light_distance_mm` the lab's LED ball (`setup.lamp_diameter_mm`) at that distance
+    from the patch centre along `light_dir`, normalised so that its irradiance normal to the
+    beam at the patch centre is 1 (Mitsuba's single-precision sphere sampling makes it 0.08%
+    higher at 6 mm and 500 mm, tests/test_pbr_photos.py). The camera is orthographic; the patch
+    is a rectangle on the mean plane spanning exactly `periods` layer periods across the layer
+    lines (default: the fewest that reach `min_length_mm`), so that no part of a period is
+    over- or under-counted, cut from a staircase extending 10 mm beyond it on every side
+    (shadows and masking from the neighbouring steps included). The material, layers, edges and
+    Mitsuba variant are the setup's. `surface="flat"` renders the mean plane itself (a flat
+    sheet of the facets' material), whose value is the material's `f cos theta_i`.
     """
     mi = _mitsuba(setup.variant, threads)
     b = beta2_deg * DEG
     n = face_normal(beta2_deg)
     e = np.array([math.cos(b), 0.0, math.sin(b)])
     light, view = _unit(light_dir), _unit(view_dir)
+    if frame == "face":
+        light, view = face_to_base(light, beta2_deg), face_to_base(view, beta2_deg)
+    elif frame != "base":
+        raise ValueError(f"frame {frame!r}: use 'base' or 'face'")
     if light @ n <= 0.0 or view @ n <= 0.0:
         raise ValueError("light_dir and view_dir must point above the face's mean plane")
     period = setup.layer_um * 1e-3 / math.sin(b)
@@ -1362,6 +1371,23 @@ def patch_radiance(
         means_arr.std(axis=0, ddof=1) / math.sqrt(repeats) if repeats > 1 else np.full(3, np.nan)
     )
     return PatchRadiance(means_arr.mean(axis=0), stderr, m, (along, width))
+
+
+def base_to_face(w: Sequence[float], beta2_deg: float) -> np.ndarray:
+    """A direction in a wedge's base frame in its face frame (conventions §11):
+    `x_face = x cos b2 + z sin b2`, `z_face = -x sin b2 + z cos b2`."""
+    b = beta2_deg * DEG
+    return np.array(
+        [w[0] * math.cos(b) + w[2] * math.sin(b), w[1], -w[0] * math.sin(b) + w[2] * math.cos(b)]
+    )
+
+
+def face_to_base(w: Sequence[float], beta2_deg: float) -> np.ndarray:
+    """A direction in a wedge's face frame in its base frame (the inverse of `base_to_face`)."""
+    b = beta2_deg * DEG
+    return np.array(
+        [w[0] * math.cos(b) - w[2] * math.sin(b), w[1], w[0] * math.sin(b) + w[2] * math.cos(b)]
+    )
 
 
 def _unit(v: Sequence[float]) -> np.ndarray:

@@ -255,6 +255,10 @@ def test_patch_radiance_counts_whole_periods() -> None:
     assert a.periods == math.ceil(5.0 / (0.15 / math.sin(math.radians(30.0))))
     assert abs(a.value[1] - b.value[1]) < 4 * math.hypot(a.stderr[1], b.stderr[1])
     assert a.stderr[1] < 0.01 * a.value[1]
+    in_face = pb.patch_radiance(
+        s, 30.0, pb.base_to_face(light, 30.0), pb.base_to_face(view, 30.0), spp=64, frame="face"
+    )
+    assert in_face.value[1] == pytest.approx(a.value[1], rel=1e-6)  # the same render
     # the tread (horizontal) mirrors light from above-uphill into the camera above-downhill
     mirror = pb.patch_radiance(s, 30.0, (0.3, 0.0, 1.0), (-0.3, 0.0, 1.0), spp=64)
     assert mirror.value[1] > 20 * a.value[1]
