@@ -905,34 +905,75 @@ def _unit_mean(vectors: np.ndarray) -> list[float]:
     return (m / np.linalg.norm(m)).tolist()
 
 
+def roi_mask(
+    cam: Pinhole, corners: np.ndarray, erode_px: int, width: int, height: int
+) -> np.ndarray:
+    """(H, W) the face's outline through our camera, rasterised and eroded by the rule
+    docs/imaging.md states for stairfit's ROIs (cv2.fillPoly with vertices to 1/256 px, then
+    cv2.erode with a disk of radius `erode_px`, the image border not an edge): the region a
+    measurement of that face averages, drawn here from the renderer's own projection."""
+    poly = np.round(cam.project(corners) * 256).astype(np.int32)
+    mask = np.zeros((height, width), np.uint8)
+    cv2.fillPoly(mask, [poly], 1, lineType=cv2.LINE_8, shift=8)
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
+    return cv2.erode(mask, disk).astype(bool)
+
+
+def _region_mean(setup: PbrSetup, render: Render, mask: np.ndarray) -> dict[str, Any]:
+    """The mean relative radiance per channel over `mask` and its Monte Carlo error."""
+    n = int(mask.sum())
+    if n == 0:
+        return {"radiance": None, "mc_stderr": None, "n_pixels": 0}
+    mean = setup.k_cam * render.radiance[mask].mean(axis=0)
+    mc = setup.k_cam * np.sqrt(render.mc_variance[mask].sum(axis=0)) / n
+    return {"radiance": mean.tolist(), "mc_stderr": mc.tolist(), "n_pixels": n}
+
+
 def face_truths(
     setup: PbrSetup, render: Render, cam: Pinhole, light_deg: float, view_deg: float
 ) -> dict[str, dict[str, Any] | None]:
     """Per wedge: None where the face is not measured (turned away, face_visible), else its mean
-    relative radiance per channel (`k_cam` x the render's mean over the face's interior:
-    stairfit's units), the Monte Carlo standard error of that mean, the pixel count and the
-    mean directions (`_face_directions`)."""
+    relative radiance per channel (`k_cam` x the render's mean over the pixels whose centre lies
+    `truth_erode_px` inside the face's projected outline: stairfit's units), the Monte Carlo
+    standard error of that mean, the pixel count and the mean directions (`_face_directions`);
+    and the same mean over the region stairfit's ROI would cover (`roi_mask` with the scene's
+    erosion, default 8 px) as `roi_radiance`, `roi_mc_stderr`, `roi_n_pixels`. The two differ
+    where a face's resolved layer stripes or gradients make its mean depend on the region."""
     out: dict[str, dict[str, Any] | None] = {}
     lamp = lamp_centre(setup, light_deg)
+    erode = 8 if setup.erode_px is None else setup.erode_px
     for k, beta2 in enumerate(setup.wedges_deg):
-        if not face_visible(setup, light_deg, view_deg, k):
+        corners = face_corners(setup, k)
+        mask = face_mask(cam, corners, setup.truth_erode_px, setup.width, setup.height)
+        if not face_visible(setup, light_deg, view_deg, k) or not mask.any():
             out[wedge_name(beta2)] = None
             continue
-        mask = face_mask(
-            cam, face_corners(setup, k), setup.truth_erode_px, setup.width, setup.height
-        )
-        n = int(mask.sum())
-        if n == 0:
-            out[wedge_name(beta2)] = None
-            continue
-        rad = render.radiance[mask]
+        roi = _region_mean(setup, render, roi_mask(cam, corners, erode, setup.width, setup.height))
         out[wedge_name(beta2)] = {
-            "radiance": (setup.k_cam * rad.mean(axis=0)).tolist(),
-            "mc_stderr": (setup.k_cam * np.sqrt(render.mc_variance[mask].sum(axis=0)) / n).tolist(),
-            "n_pixels": n,
+            **_region_mean(setup, render, mask),
+            **{f"roi_{key}": value for key, value in roi.items()},
             **_face_directions(setup, cam, k, mask, lamp),
         }
     return out
+
+
+def retruth(folder: str | Path) -> dict[str, Any]:
+    """Take every photo's truth again from its kept render (`keep_render`) with this module's
+    `face_truths`, rewrite the truth parts and truth.json; return the truth."""
+    folder = Path(folder)
+    setup = setup_from_truth(json.loads((folder / "truth.json").read_text()))
+    photos = []
+    for i, (light_deg, view_deg) in enumerate(setup.photos):
+        part = folder / "truth_parts" / f"{photo_name(i)}.json"
+        photo = json.loads(part.read_text())
+        cam = camera_for(setup, view_deg)
+        photo["faces"] = face_truths(setup, load_render(folder, i), cam, light_deg, view_deg)
+        _write_text(part, json.dumps(photo, indent=1))
+        photos.append(photo)
+    truth = json.loads((folder / "truth.json").read_text())
+    truth = _truth(setup, truth["seed"], photos, truth["flat_fields"])
+    _write_text(folder / "truth.json", json.dumps(truth, indent=1))
+    return truth
 
 
 # --- the sensor and its files --------------------------------------------------------------------
@@ -1200,7 +1241,9 @@ UNITS = (
     "facing the lamp at that distance reads 1/pi). Each value is the mean of the photo's own "
     "noise-free render (before vignetting, mosaic and sensor noise) over the pixels whose centre "
     "lies truth_erode_px inside the face's mean-plane outline projected through the camera; "
-    "mc_stderr is its Monte Carlo error against the infinitely sampled render."
+    "mc_stderr is its Monte Carlo error against the infinitely sampled render. roi_radiance is "
+    "the same mean over the region stairfit's ROI covers (that outline filled and eroded by "
+    "roi_erode_px as docs/imaging.md says), for comparing a measurement over the same pixels."
 )
 
 
@@ -1257,6 +1300,7 @@ def _truth(
         "seed": seed,
         "setup": asdict(setup),
         "units": UNITS,
+        "roi_erode_px": 8 if setup.erode_px is None else setup.erode_px,
         "k_cam": setup.k_cam,
         "lamp": {
             "radiance_per_e_ref": lamp_radiance(setup),
@@ -1275,6 +1319,23 @@ def _truth(
             [p["faces"][w]["radiance"] if p["faces"][w] else None for w in names] for p in photos
         ],
     }
+
+
+def load_render(folder: str | Path, i: int) -> Render:
+    """Photo i's noise-free render kept by `render_folder(..., keep_render=True)`: with
+    `face_truths(replace(setup, truth_erode_px=...), render, camera_for(setup, view), light,
+    view)` it gives the truth over other regions without rendering again."""
+    with np.load(Path(folder) / "renders" / f"{photo_name(i)}.npz") as z:
+        return Render(z["radiance"].astype(np.float64), z["mc_variance"].astype(np.float64))
+
+
+def setup_from_truth(truth: dict[str, Any]) -> PbrSetup:
+    """The `PbrSetup` a truth.json was rendered with (JSON's lists back to tuples)."""
+
+    def tup(v: Any) -> Any:
+        return tuple(tup(x) for x in v) if isinstance(v, list) else v
+
+    return PbrSetup(**{k: tup(v) for k, v in truth["setup"].items()})
 
 
 # --- one patch under chosen directions: the BRDF-level check -------------------------------------
