@@ -159,8 +159,11 @@ def _inner(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("pyx,qyx->pq", a, b)
 
 
-def _plane_fit(n: np.ndarray, s: np.ndarray, y: np.ndarray, x: np.ndarray) -> _Fit | None:
-    """Weighted least-squares plane through the block means; None if no block is left over."""
+def _plane_fit(
+    n: np.ndarray, s: np.ndarray, y: np.ndarray, x: np.ndarray, degree: int = 1
+) -> _Fit | None:
+    """Weighted least-squares plane (degree 1) or quadratic surface (degree 2) through the
+    block means; None if no block is left over."""
     ok = n > 0
     k = int(ok.sum())
     if k == 0:
@@ -169,13 +172,12 @@ def _plane_fit(n: np.ndarray, s: np.ndarray, y: np.ndarray, x: np.ndarray) -> _F
     safe = np.where(ok, n, 1.0)
     yc, xc = y / safe, x / safe
     scale = max(float(np.ptp(xc[ok])), float(np.ptp(yc[ok])), 1.0)
-    design = np.stack(
-        [
-            ok.astype(float),
-            np.where(ok, (xc - x.sum() / n_tot) / scale, 0.0),
-            np.where(ok, (yc - y.sum() / n_tot) / scale, 0.0),
-        ]
-    )
+    u = np.where(ok, (xc - x.sum() / n_tot) / scale, 0.0)
+    v = np.where(ok, (yc - y.sum() / n_tot) / scale, 0.0)
+    terms = [ok.astype(float), u, v]
+    if degree >= 2:
+        terms += [u * u, u * v, v * v]
+    design = np.stack(terms)
     xtdx = _inner(design * n, design)
     lam, vec = np.linalg.eigh(xtdx)
     keep = lam > 1e-12 * lam[-1]  # a row or column of blocks leaves one slope undefined
@@ -304,9 +306,9 @@ def _solve_gamma(g: np.ndarray, q: np.ndarray, s: np.ndarray) -> np.ndarray | No
     return gamma
 
 
-def _channel_level(f: _Fit) -> _ChannelLevel | None:
+def _channel_level(f: _Fit, min_fit: int = MIN_FIT_BLOCKS) -> _ChannelLevel | None:
     """The 1-dependent fit of one channel's block residuals (None with too few blocks)."""
-    if f.k < MIN_FIT_BLOCKS:
+    if f.k < min_fit:
         return None
     g, s = _moment_matrix(f, f)
     gamma = _solve_gamma(g, _quadratic(f, f), s)
@@ -343,40 +345,50 @@ def _start_factor(base: Blocks) -> int:
     return LEVELS[-1]
 
 
-def _fits(blocks: Blocks) -> list[_Fit | None]:
-    return [_plane_fit(blocks.n[c], blocks.s[c], blocks.y[c], blocks.x[c]) for c in range(3)]
+def _fits(blocks: Blocks, degree: int = 1) -> list[_Fit | None]:
+    return [
+        _plane_fit(blocks.n[c], blocks.s[c], blocks.y[c], blocks.x[c], degree) for c in range(3)
+    ]
 
 
-def adaptive_covariance(base: Blocks) -> BlockEstimate:
+def adaptive_covariance(
+    base: Blocks, degree: int = 1, min_fit: int = MIN_FIT_BLOCKS, max_rho: float = MAX_EDGE_RHO
+) -> BlockEstimate:
     """The covariance of the three channel means at the block size the data call for.
 
     Levels (LEVELS x the base block) are tried from the first with at most MAX_BLOCKS blocks;
     the first at which edge neighbours are correlated by at most MAX_EDGE_RHO is used. When
     even the coarsest level with MIN_FIT_BLOCKS blocks fails that, the estimate is returned
     with dof 0 (the texture is correlated over more than the ROI allows to measure).
+    `degree` 2 detrends the block means by a quadratic surface instead of a plane (a near
+    lamp's fall-off, a radiance that changes steeply across a face); the moments stay exact.
+    `min_fit` is the fewest blocks a level needs (MIN_FIT_BLOCKS for a 2-D grid; a row of
+    strips has 2 covariances to fit instead of 5 and needs fewer), `max_rho` the largest edge
+    correlation accepted (strips of whole layers may share a layer with their neighbours and
+    no further one: their covariance is 1-dependent at any neighbour correlation up to 0.5).
     """
     f0 = _start_factor(base)
     chosen = None
     for f in (f for f in LEVELS if f >= f0 and f % f0 == 0):
         blocks = aggregate(base, f)
-        fits = _fits(blocks)
-        levels = [_channel_level(x) if x is not None else None for x in fits]
+        fits = _fits(blocks, degree)
+        levels = [_channel_level(x, min_fit) if x is not None else None for x in fits]
         if chosen is not None and all(lv is None for lv in levels):
             break  # too few blocks to go coarser: keep the last level
         chosen = (blocks, fits, levels)
-        if _resolved(levels):
+        if _resolved(levels, max_rho):
             break
     blocks, fits, levels = chosen  # type: ignore[misc]
-    return _estimate(blocks, fits, levels, _resolved(levels))
+    return _estimate(blocks, fits, levels, _resolved(levels, max_rho))
 
 
-def _resolved(levels: list[_ChannelLevel | None]) -> bool:
+def _resolved(levels: list[_ChannelLevel | None], max_rho: float = MAX_EDGE_RHO) -> bool:
     """Whether the correlation at this level stays within the 8 neighbours (module docstring)."""
     ok = [lv for lv in levels if lv is not None]
     if not ok:
         return True
     rho = np.mean([lv.edge_rho for lv in ok], axis=0)
-    return float(np.max(rho)) <= MAX_EDGE_RHO
+    return float(np.max(rho)) <= max_rho
 
 
 def _estimate(
