@@ -28,7 +28,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._blockvar import LEVELS, MAX_BLOCKS, BlockEstimate, Blocks, adaptive_covariance
+from ._blockvar import (
+    LEVELS,
+    MAX_BLOCKS,
+    BlockEstimate,
+    Blocks,
+    adaptive_covariance,
+    edge_correlation,
+)
 from ._decode import RawFrame
 from ._errors import ImagingError
 from ._noise import NoiseModel
@@ -303,15 +310,31 @@ def roi_data(
     return RoiData(blocks, est, base, noise_local, lev, weights, plain, fit)  # type: ignore[arg-type]
 
 
+STRIP_OFFSETS = (0.0, 0.25, 0.5, 0.75)
+"""Where the strips' edges are tried, in layers from the fitted phase's zero."""
+
+RHO_INDEPENDENT = 0.2
+"""Strips whose neighbours correlate by less than this (at the best of STRIP_OFFSETS) are taken
+as independent (each holds its own layers)."""
+
+
 def _with_strips(est: BlockEstimate, px: Pixels, fit: StripeFit) -> BlockEstimate:
     """The block estimate, or that of strips along the layer lines when it is larger than the
     blocks' by more than twice its own relative precision, or when the blocks could not
     resolve the correlation (docs/imaging.md §Layer stripes). Irregular layers are correlated
     along their whole line, beyond the 8 neighbours of square blocks."""
-    n, s, y, x = strip_blocks(px, fit, px.value - fit.periodic)
+    values = px.value - fit.periodic
+    options = [Blocks(*strip_blocks(px, fit, values, offset), 1) for offset in STRIP_OFFSETS]
+    rho = [edge_correlation(b, degree=2, min_fit=MIN_FIT_STRIPS) for b in options]
+    if all(math.isnan(r) for r in rho):
+        return est
+    k = int(np.nanargmin(rho))
+    # strips aligned with the layers' edges are independent when each layer is its own: then
+    # one covariance, about three times the degrees of freedom of a 1-dependent estimate
     strips = adaptive_covariance(
-        Blocks(n, s, y, x, 1), degree=2, min_fit=MIN_FIT_STRIPS, max_rho=0.5
-    )
+        options[k], degree=2, min_fit=MIN_FIT_STRIPS, max_rho=0.5,
+        max_lag=0 if rho[k] < RHO_INDEPENDENT else 1,
+    )  # fmt: skip
     g = 1  # green: the most pixels; the structure is the same in every channel
     v2, v1 = float(est.cov[g, g]), float(strips.cov[g, g])
     d2, d1 = float(est.dof[g]), float(strips.dof[g])

@@ -316,16 +316,19 @@ class _Design:
 
 
 class _Layout:
-    """Where each parameter sits in the parameter vector."""
+    """Where each parameter sits in the parameter vector: the levels, the shared harmonics of
+    `orders` (their first GRADIENT_HARMONICS with amplitudes changing across the ROI), R's and
+    B's own harmonics (`colour`), the phase."""
 
-    def __init__(self, harmonics: int, colour: dict[int, list[int]]) -> None:
-        self.harmonics = harmonics
+    def __init__(self, orders: tuple[int, ...], colour: dict[int, list[int]]) -> None:
+        self.orders = orders
+        self.harmonics = len(orders)
         self.colour = colour
         k = LEVEL_PARAMS
         self.shared = k
-        k += 2 * harmonics
+        k += 2 * self.harmonics
         self.gradient = k
-        self.n_grad = min(GRADIENT_HARMONICS, harmonics)
+        self.n_grad = min(GRADIENT_HARMONICS, self.harmonics)
         k += 4 * self.n_grad
         self.colour_start: dict[int, int] = {}
         for c in (0, 2):
@@ -351,14 +354,18 @@ def _design(
     n = q.shape[0]
     qs = q / scale
     phi = _phase(q, nu, kmat)
-    hmax = lay.harmonics
-    cos = np.empty((hmax, n))
-    sin = np.empty((hmax, n))
+    orders = lay.orders
+    hmax = len(orders)
+    top = max([*orders, *(h for c in (0, 2) for h in lay.colour.get(c, []))], default=1)
+    every_c = np.empty((top, n))
+    every_s = np.empty((top, n))
     c1, s1 = np.cos(phi), np.sin(phi)
     ch, sh = c1, s1
-    for h in range(hmax):  # cos(h phi), sin(h phi) by the angle-addition recursion
-        cos[h], sin[h] = ch, sh
+    for h in range(top):  # cos(h phi), sin(h phi) by the angle-addition recursion
+        every_c[h], every_s[h] = ch, sh
         ch, sh = ch * c1 - sh * s1, sh * c1 + ch * s1
+    idx = np.asarray(orders, dtype=int) - 1
+    cos, sin = every_c[idx], every_s[idx]
     onehot = np.stack([colour == c for c in range(3)]).astype(float)  # (3, n)
     a = onehot.T @ theta[0:3]
     b = theta[3:9].reshape(3, 2)
@@ -366,7 +373,7 @@ def _design(
     curv = 1 + theta[9:12] @ quad_terms
     m = a * curv + np.einsum("cn,cd,nd->n", onehot, b, qs)
     al = theta[lay.shared : lay.shared + 2 * hmax].reshape(hmax, 2)
-    harm = np.arange(1, hmax + 1)
+    harm = np.asarray(orders, dtype=float)
     pat = al[:, 0] @ cos + al[:, 1] @ sin
     dpat = (harm * al[:, 1]) @ cos - (harm * al[:, 0]) @ sin
     g = theta[lay.gradient : lay.gradient + 4 * lay.n_grad].reshape(lay.n_grad, 2, 2)
@@ -374,14 +381,14 @@ def _design(
         amp_c = g[h, 0] @ qs.T  # the cos amplitude's change across the ROI
         amp_s = g[h, 1] @ qs.T
         pat = pat + amp_c * cos[h] + amp_s * sin[h]
-        dpat = dpat + (h + 1) * (amp_s * cos[h] - amp_c * sin[h])
+        dpat = dpat + orders[h] * (amp_s * cos[h] - amp_c * sin[h])
     full, dfull = pat.copy(), dpat.copy()
     for c in (0, 2):
         start = lay.colour_start[c]
         for j, h in enumerate(lay.colour.get(c, [])):
             e, z = theta[start + 2 * j], theta[start + 2 * j + 1]
-            full += onehot[c] * (e * cos[h - 1] + z * sin[h - 1])
-            dfull += onehot[c] * h * (z * cos[h - 1] - e * sin[h - 1])
+            full += onehot[c] * (e * every_c[h - 1] + z * every_s[h - 1])
+            dfull += onehot[c] * h * (z * every_c[h - 1] - e * every_s[h - 1])
     one_p = 1 + full
     if not jacobian:
         empty = np.zeros((n, 0))
@@ -405,8 +412,8 @@ def _design(
     for c in (0, 2):
         start = lay.colour_start[c]
         for j, h in enumerate(lay.colour.get(c, [])):
-            cols[:, start + 2 * j] = m * onehot[c] * cos[h - 1]
-            cols[:, start + 2 * j + 1] = m * onehot[c] * sin[h - 1]
+            cols[:, start + 2 * j] = m * onehot[c] * every_c[h - 1]
+            cols[:, start + 2 * j + 1] = m * onehot[c] * every_s[h - 1]
     # phase: d phi / d (nu_x, nu_y) = 2 pi q (steps in units of 1 / scale), d / dK likewise
     dphi = m * dfull * 2 * np.pi
     p0 = lay.phase
@@ -436,7 +443,7 @@ COLOUR_HARMONICS = 4
 
 
 def _colour_harmonics(q: np.ndarray, colour: np.ndarray, nu: np.ndarray, kmat: np.ndarray,
-                      hmax: int) -> dict[int, list[int]]:  # fmt: skip
+                      orders: tuple[int, ...]) -> dict[int, list[int]]:  # fmt: skip
     """For R and B, the harmonics whose phases their own sites sample evenly enough that a
     channel-specific amplitude costs its mean at most 10% more variance."""
     out: dict[int, list[int]] = {}
@@ -448,7 +455,7 @@ def _colour_harmonics(q: np.ndarray, colour: np.ndarray, nu: np.ndarray, kmat: n
             continue
         qc = q[sel] - q[sel].mean(axis=0)
         keep = []
-        for h in range(1, min(hmax, COLOUR_HARMONICS) + 1):
+        for h in (h for h in orders if h <= COLOUR_HARMONICS):
             design = np.column_stack(
                 [np.ones(sel.sum()), qc, np.cos(h * phi[sel]), np.sin(h * phi[sel])]
             )
@@ -465,12 +472,13 @@ def _colour_harmonics(q: np.ndarray, colour: np.ndarray, nu: np.ndarray, kmat: n
 
 
 def _fit(
-    q: np.ndarray, colour: np.ndarray, v: np.ndarray, nu: np.ndarray, hmax: int, scale: float,
-    iterations: int = 8,
+    q: np.ndarray, colour: np.ndarray, v: np.ndarray, nu: np.ndarray,
+    orders: tuple[int, ...], scale: float, iterations: int = 8,
 ) -> tuple[np.ndarray, _Layout, np.ndarray, np.ndarray, float] | None:  # fmt: skip
     """Gauss-Newton: (theta, layout, nu, K, rss) or None."""
     kmat = np.zeros((2, 2))
-    lay = _Layout(hmax, _colour_harmonics(q, colour, nu, kmat, hmax))
+    lay = _Layout(orders, _colour_harmonics(q, colour, nu, kmat, orders))
+    hmax = lay.harmonics
     theta = np.zeros(lay.size)
     for c in range(3):  # start: each channel's plane, no curvature
         sel = colour == c
@@ -529,26 +537,38 @@ def _sample(n: int, limit: int) -> np.ndarray:
     return np.linspace(0, n - 1, limit).round().astype(int)
 
 
-def _harmonics(nu: np.ndarray, across: np.ndarray | None, limit: int) -> int:
-    """Harmonics to fit: those whose wavelength is at least 0.4 px on the true period (shorter
-    ones are averaged away by the pixel's square), at least 2. The true period is known when
-    the direction is; otherwise the alias's period stands in for it (at least 2 px)."""
+def _orders(nu: np.ndarray, q: np.ndarray, limit: int) -> tuple[int, ...]:
+    """The harmonics to fit: those whose wavelength is at least 0.4 px on the true period
+    (shorter ones are averaged away by the pixel's square; the alias's period stands in for the
+    true one when the direction is unknown), at least 2 of them, less those that the pixel grid
+    folds to fewer than 2 cycles across the ROI (pixels at q): on the grid they are a smooth
+    change of the level, which the fit cannot tell from the face's own, and the pixel's square
+    averages them away (exactly, for a whole number of cycles per pixel)."""
     f = float(np.hypot(*nu))
-    return int(min(limit, max(2, math.floor(2.5 / f))))
+    top = int(min(limit, max(2, math.floor(2.5 / f))))
+    kept = []
+    for h in range(1, top + 1):
+        alias = _wrap(h * nu)
+        if float(np.ptp(q @ alias)) >= 2.0:  # cycles of the folded harmonic across the ROI
+            kept.append(h)
+    return tuple(kept)
 
 
-def _quick_rss(q: np.ndarray, colour: np.ndarray, v: np.ndarray, nu: np.ndarray, hmax: int,
-               scale: float) -> tuple[float, np.ndarray, np.ndarray]:  # fmt: skip
-    """RSS of a linear fit (each channel's plane times 1 + a pattern of `hmax` harmonics, the
-    planes from the data without stripes), the harmonics' amplitudes over their errors, and
-    their amplitudes (relative)."""
+def _quick_rss(
+    q: np.ndarray, colour: np.ndarray, v: np.ndarray, nu: np.ndarray,
+    orders: tuple[int, ...], scale: float,
+) -> tuple[float, np.ndarray, np.ndarray]:  # fmt: skip
+    """RSS of a linear fit (each channel's plane times 1 + a pattern of the harmonics
+    `orders`, the planes from the data without stripes), the harmonics' amplitudes over their
+    errors, and their amplitudes (relative)."""
+    hmax = len(orders)
     phi = _phase(q, nu, np.zeros((2, 2)))
     plane = np.zeros_like(v)
     for c in range(3):
         sel = colour == c
         design = np.column_stack([np.ones(sel.sum()), q[sel] / scale])
         plane[sel] = design @ np.linalg.lstsq(design, v[sel], rcond=None)[0]
-    cols = [plane * f(h * phi) for h in range(1, hmax + 1) for f in (np.cos, np.sin)]
+    cols = [plane * f(h * phi) for h in orders for f in (np.cos, np.sin)]
     onehot = [(colour == c).astype(float) for c in range(3)]
     cols += onehot + [o * q[:, d] / scale for o in onehot for d in (0, 1)]
     design = np.column_stack(cols)
@@ -602,23 +622,28 @@ def fit_stripes(
         f = float(np.hypot(*nu0))
         if float(np.ptp(q_all[good] @ (nu0 / f))) * f < MIN_PERIODS:
             continue
-        hmax = _harmonics(nu0, across, max_harmonics)
-        rss, z, amp = _quick_rss(q, colour, v, nu0, hmax, scale)
-        scored.append((rss, nu0, z, amp))
+        orders = _orders(nu0, q, max_harmonics)
+        if not orders:
+            continue
+        rss, z, amp = _quick_rss(q, colour, v, nu0, orders, scale)
+        scored.append((rss, nu0, z, amp, orders))
     if not scored:
         return None
     halves = [item for item in scored if any(np.allclose(2 * item[1], o[1]) for o in scored)]
     whole = [item for item in scored if not any(item is h for h in halves)] or scored
-    rss, nu0, z, amp = min(whole, key=lambda item: item[0])
-    for h_rss, h_nu, h_z, h_amp in halves:
+    best = min(whole, key=lambda item: item[0])
+    for half in halves:
         # the peak was the pattern's second harmonic if half its frequency shows odd harmonics
         # comparable to the even ones (irregular layers give the half small odd ones only)
-        odd, even = h_amp[0::2].sum(), h_amp[1::2].sum()
-        if np.allclose(2 * h_nu, nu0) and h_z[0] > 5 and odd > 0.3 * even:
-            rss, nu0, z, amp = h_rss, h_nu, h_z, h_amp
+        odd_h = np.array([h % 2 == 1 for h in half[4]])
+        odd, even = half[3][odd_h].sum(), half[3][~odd_h].sum()
+        first = half[2][0] if half[4][0] == 1 else 0.0
+        if np.allclose(2 * half[1], best[1]) and first > 5 and odd > 0.3 * even:
+            best = half
+    _, nu0, z, amp, orders = best
     if not np.any(z > 3.0) or amp.max() < MIN_AMPLITUDE:
         return None
-    got = _fit(q, colour, v, nu0, z.size, scale)
+    got = _fit(q, colour, v, nu0, orders, scale)
     if got is None:
         return None
     theta, lay, nu, kmat, _ = got
@@ -694,15 +719,18 @@ def layer_coordinate(fit: StripeFit, x: np.ndarray, y: np.ndarray) -> np.ndarray
     return _phase(q, fit.nu, fit.curvature) / (2 * np.pi)
 
 
-def strip_blocks(px: Pixels, fit: StripeFit, values: np.ndarray) -> tuple[np.ndarray, ...]:
+def strip_blocks(
+    px: Pixels, fit: StripeFit, values: np.ndarray, offset: float = 0.0
+) -> tuple[np.ndarray, ...]:
     """Per channel sums over strips along the layer lines, each a whole number of layers and
-    at least 2 px wide: (n, s, y, x) arrays of shape (3, K, 1) for `_blockvar.Blocks`, from the
-    de-striped `values` of the good pixels. Irregular layers are correlated along their whole
-    line; strips hold each layer's pixels together, so that such structure counts in full."""
+    at least 2 px wide, their edges `offset` layers from the fitted phase's zero: (n, s, y, x)
+    arrays of shape (3, K, 1) for `_blockvar.Blocks`, from the de-striped `values` of the good
+    pixels. Irregular layers are correlated along their whole line; strips hold each layer's
+    pixels together, so that such structure counts in full."""
     width = max(1, math.ceil(2.0 / fit.period_px)) if math.isfinite(fit.period_px) else 1
     good = px.good
-    layer = layer_coordinate(fit, px.x[good], px.y[good])
-    k = np.floor((layer - layer.min()) / width).astype(int)
+    layer = layer_coordinate(fit, px.x[good], px.y[good]) - offset
+    k = np.floor((layer - math.floor(layer.min())) / width).astype(int)
     n_strips = int(k.max()) + 1
     out = np.zeros((4, 3, n_strips, 1))
     colour = px.colour[good]
