@@ -388,7 +388,10 @@ def marker_crop(frame: RawFrame, corners: np.ndarray, margin: float) -> tuple[np
     Black levels are subtracted per CFA position, and each position is scaled so that the
     crop's bright pixels (the marker's white cells and quiet zone: paper, neutral) have the
     same mean at every position; no CFA pattern is left on the paper whatever the light's colour
-    or the camera's channel gains. A linear file gives the sum of its planes.
+    or the camera's channel gains. Each position's bright pixels are those above the midpoint
+    of its own 5th and 95th percentiles: a threshold common to all positions would count the
+    plate as bright in the channels of high gain and not in the others, and leave a pattern
+    that moves the edges by half a pixel. A linear file gives the sum of its planes.
     """
     x0 = max(0, math.floor(corners[:, 0].min() - margin))
     y0 = max(0, math.floor(corners[:, 1].min() - margin))
@@ -399,14 +402,14 @@ def marker_crop(frame: RawFrame, corners: np.ndarray, margin: float) -> tuple[np
         return crop - np.float32(np.sum(frame.black)), x0, y0
     crop = frame.data[y0:y1, x0:x1].astype(np.float32)
     ph, pw = frame.cfa.shape
-    bright = crop > np.median(crop)
     means = {}
     for dy in range(ph):
         for dx in range(pw):
             py, px = (y0 + dy) % ph, (x0 + dx) % pw
             plane = crop[dy::ph, dx::pw]
             plane -= np.float32(frame.black[py, px])
-            sel = plane[bright[dy::ph, dx::pw]]
+            lo, hi = np.percentile(plane, (5, 95)) if plane.size else (0.0, 0.0)
+            sel = plane[plane > 0.5 * (lo + hi)]
             means[dy, dx] = float(sel.mean()) if sel.size else 0.0
     target = float(np.mean(list(means.values())))
     for (dy, dx), m in means.items():
@@ -558,6 +561,9 @@ def _convex(corners: np.ndarray) -> bool:
     return bool(np.all(cross > 0) or np.all(cross < 0))
 
 
+GRID_OK = 0.1
+"""Corners whose inner grid is placed within this fraction of a cell need no wider search."""
+
 REFINE_PASSES = 3
 """With the marker's bits, the edges are located again from the refined corners up to this many
 times, while the inner grid's error keeps falling (the first pass may start several pixels
@@ -581,13 +587,15 @@ def refine_corners(
 
     Which corners are kept: with the marker's `bits` (`marker_bits`), those that place the
     marker's inner cell edges best (`grid_error`), however far they moved from the detector's
-    (whose corners can be several pixels off on small, foreshortened markers), the edges being
-    located again from each better set (REFINE_PASSES); without the bits, the refined corners
-    when they moved by at most half a cell.
+    (whose corners can be several pixels off on small, foreshortened markers): when the
+    detector's corners misplace the grid by more than GRID_OK of a cell, the sides are also
+    looked for from the square moved by a cell either way, and the edges are located again
+    from each better set (REFINE_PASSES). Without the bits, the refined corners are kept when
+    they moved by at most half a cell.
     """
     c = np.asarray(corners, dtype=np.float64).reshape(4, 2)
     axes = _cell_axes(c, cells)
-    margin = 4.0 + 2.5 * max(float(np.linalg.norm(v)) for v in axes)
+    margin = 4.0 + 3.0 * max(float(np.linalg.norm(v)) for v in axes)
     crop, x0, y0 = marker_crop(frame, c, margin)
     origin = np.array([x0, y0], dtype=np.float64)
     loc = c - origin
@@ -598,6 +606,16 @@ def refine_corners(
             return c
         return out + origin
     best, best_err = loc, grid_error(crop, loc, bits)
+    if not best_err < GRID_OK * min(float(np.linalg.norm(v)) for v in axes):
+        # the detector's corners may be a cell or more off: start also from the square moved
+        # by one cell along either side (the inner grid tells which start was right)
+        starts = [loc + i * axes[0] + j * axes[1] for i in (-1, 0, 1) for j in (-1, 0, 1)]
+        tries = [_refine_once(crop, s, cells, 0.6) for s in starts]
+        scored = [(grid_error(crop, out, bits), out) for out in tries if out is not None]
+        if scored:
+            err, out = min(scored, key=lambda item: item[0])
+            if err < best_err:
+                best, best_err = out, err
     for _ in range(REFINE_PASSES):
         # profiles half a cell each way; a cell and a half when that finds no better corners
         # (a side more than half a cell off has part of its profiles beside its edge)

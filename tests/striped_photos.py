@@ -173,10 +173,10 @@ class Texture:
 class Face:
     """One face: a rectangle of `size_mm` (s across the layers, t along them) mapped to the image.
 
-    Image point p = (A [s, t] + c) / (1 + e s + f t) for face coordinates (s, t) in mm about the
-    face's centre: A = R(angle) diag(period_px / layer_mm, scale_t), c = `centre`, (e, f) =
-    `perspective`. So at the centre the layer period is `period_px` pixels, across the layer
-    lines along the image direction (cos angle, sin angle).
+    Image point p = c + A [s, t] / (1 + e s + f t) for face coordinates (s, t) in mm about the
+    face's centre: A = R(angle) diag(period_px / layer_mm, scale_t) (t turned by `skew_deg`),
+    c = `centre`, (e, f) = `perspective`. So at the centre the layer period is `period_px`
+    pixels, across the layer lines along the image direction (cos angle, sin angle).
 
     Attributes:
         centre: (x, y) image position of the face's centre (px).
@@ -217,10 +217,12 @@ class Face:
         ks = self.period_px / self.layer_mm
         lin = np.array([[ks * math.cos(a), self.scale_t * math.cos(b)],
                         [ks * math.sin(a), self.scale_t * math.sin(b)]])  # fmt: skip
+        # p - c = A q / w with w = 1 + e s + f t: the perspective acts about the face's centre
+        c, e = np.asarray(self.centre), np.asarray(self.perspective)
         h = np.eye(3)
-        h[:2, :2] = lin
-        h[:2, 2] = self.centre
-        h[2, :2] = self.perspective
+        h[:2, :2] = lin + np.outer(c, e)
+        h[:2, 2] = c
+        h[2, :2] = e
         return h
 
     def outline_px(self) -> np.ndarray:
@@ -401,16 +403,20 @@ def _inside(face: Face, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def render(
-    spec: PhotoSpec, rng: np.random.Generator, background: np.ndarray | None = None
+    spec: PhotoSpec,
+    rng: np.random.Generator,
+    background: np.ndarray | None = None,
+    noise_rng: np.random.Generator | None = None,
 ) -> Rendered:
     """The mosaic of one photo (uint16) and its faces' truths; `background` (3, H, W) replaces
-    the plain plate (e.g. with markers drawn on it)."""
+    the plain plate (e.g. with markers drawn on it). The textures are drawn from `rng`, the
+    sensor noise from `noise_rng` (default `rng`): the same surface photographed twice."""
     h, w = spec.size
     radiance = np.full((3, h, w), spec.background) if background is None else background.copy()
     for face in spec.faces:
         _draw_face(radiance, face, spec.sensor.blur_px, rng)
     truths = tuple(FaceTruth(f.outline_px(), f) for f in spec.faces)
-    return Rendered(_sensor(radiance, spec.sensor, rng), truths, spec)
+    return Rendered(_sensor(radiance, spec.sensor, noise_rng or rng), truths, spec)
 
 
 def _draw_face(radiance: np.ndarray, face: Face, blur_px: float, rng: np.random.Generator) -> None:
@@ -500,11 +506,14 @@ def random_face(
     texture: Texture | None = None,
     graded: bool = True,
     axis_aligned: bool = False,
+    thickness_px: float | None = None,
 ) -> Face:
-    """A face about `extent_px` across in the image, random in everything else."""
+    """A face about `extent_px` across in the image, random in everything else; `thickness_px`
+    makes it that thin across its layer lines (a face seen near grazing)."""
     period = period_px if period_px is not None else float(rng.uniform(1.0, 8.0))
     layer_mm = 0.15
-    size = float(rng.uniform(0.7, 1.0)) * extent_px * layer_mm / period  # mm across the layers
+    across_px = thickness_px if thickness_px is not None else rng.uniform(0.7, 1.0) * extent_px
+    size = float(across_px) * layer_mm / period  # mm across the layers
     angle = (
         float(rng.choice([0.0, 90.0, 180.0, 270.0])) if axis_aligned else float(rng.uniform(0, 360))
     )
@@ -545,18 +554,21 @@ def random_photo(
     axis_aligned: bool = False,
     read_noise_dn: float = 3.0,
     gain_e_per_dn: float = 1.0,
+    thickness_px: tuple[float | None, ...] | None = None,
 ) -> PhotoSpec:
-    """Faces in a row, each in its own square cell of a photo (1.5 x `extent_px` wide)."""
+    """Faces in a row, each in its own square cell of a photo (1.5 x `extent_px` wide);
+    `thickness_px` (one per face, None: the default) makes faces thin across their layers."""
     cell = int(1.5 * extent_px) // 2 * 2
     h, w = cell + 40, faces * cell + 40
     out = []
     for k in range(faces):
         centre = (20 + cell * (k + 0.5) + rng.uniform(-3, 3), 20 + cell / 2 + rng.uniform(-3, 3))
         period = periods[k % len(periods)] if periods else None
+        thick = thickness_px[k % len(thickness_px)] if thickness_px else None
         out.append(
             random_face(
                 rng, centre, extent_px, period_px=period, grey=grey, texture=texture,
-                axis_aligned=axis_aligned,
+                axis_aligned=axis_aligned, thickness_px=thick,
             )
         )  # fmt: skip
     level = level_dn if level_dn is not None else float(rng.uniform(300, 4000))
