@@ -564,6 +564,10 @@ def _convex(corners: np.ndarray) -> bool:
 GRID_OK = 0.1
 """Corners whose inner grid is placed within this fraction of a cell need no wider search."""
 
+GRID_FAR = 0.15
+"""Corners more than half a cell from the detector's are kept only when they place the inner
+grid within this fraction of a cell: a faint, noisy marker's best grid is no evidence."""
+
 REFINE_PASSES = 3
 """With the marker's bits, the edges are located again from the refined corners up to this many
 times, while the inner grid's error keeps falling (the first pass may start several pixels
@@ -586,12 +590,13 @@ def refine_corners(
     keeps the corners it started from.
 
     Which corners are kept: with the marker's `bits` (`marker_bits`), those that place the
-    marker's inner cell edges best (`grid_error`), however far they moved from the detector's
-    (whose corners can be several pixels off on small, foreshortened markers): when the
-    detector's corners misplace the grid by more than GRID_OK of a cell, the sides are also
-    looked for from the square moved by a cell either way, and the edges are located again
-    from each better set (REFINE_PASSES). Without the bits, the refined corners are kept when
-    they moved by at most half a cell.
+    marker's inner cell edges best (`grid_error`), also when they moved by more than half a
+    cell from the detector's (whose corners can be several pixels off on small, foreshortened
+    markers), provided they place that grid within GRID_FAR of a cell. When the detector's
+    corners misplace the grid by more than GRID_OK of a cell, the sides are also looked for
+    from the square moved by a cell either way, and the edges are located again from each
+    better set (REFINE_PASSES). Otherwise (and without the bits) the refined corners are kept
+    when they moved by at most half a cell.
     """
     c = np.asarray(corners, dtype=np.float64).reshape(4, 2)
     axes = _cell_axes(c, cells)
@@ -599,13 +604,27 @@ def refine_corners(
     crop, x0, y0 = marker_crop(frame, c, margin)
     origin = np.array([x0, y0], dtype=np.float64)
     loc = c - origin
+    smallest = min(float(np.linalg.norm(v)) for v in axes)
+    near = _refine_once(crop, loc, cells)
+    if near is not None and np.abs(near - loc).max() > 0.5 * smallest:
+        near = None
     if bits is None:
-        out = _refine_once(crop, loc, cells)
-        smallest = min(float(np.linalg.norm(v)) for v in axes)
-        if out is None or np.abs(out - loc).max() > 0.5 * smallest:
-            return c
-        return out + origin
+        return c if near is None else near + origin
+    best = _grid_search(crop, loc, cells, bits, axes)
+    if best is not None and np.abs(best - loc).max() <= 0.5 * smallest:
+        return best + origin
+    if best is not None and grid_error(crop, best, bits) < GRID_FAR * smallest:
+        return best + origin  # far from the detector's, but the marker's grid agrees with it
+    return c if near is None else near + origin
+
+
+def _grid_search(
+    crop: np.ndarray, loc: np.ndarray, cells: int, bits: np.ndarray, axes: tuple
+) -> np.ndarray | None:
+    """The corners that place the marker's inner grid best, searched from `loc` (refine_corners);
+    None when none places it better than `loc` does."""
     best, best_err = loc, grid_error(crop, loc, bits)
+    start_err = best_err
     if not best_err < GRID_OK * min(float(np.linalg.norm(v)) for v in axes):
         # the detector's corners may be a cell or more off: start also from the square moved
         # by one cell along either side (the inner grid tells which start was right)
@@ -625,7 +644,7 @@ def refine_corners(
         if not better:
             break
         best_err, best = min(better, key=lambda item: item[0])
-    return best + origin
+    return best if best_err < start_err else None
 
 
 def _cell_axes(c: np.ndarray, cells: int) -> tuple[np.ndarray, np.ndarray]:

@@ -356,7 +356,10 @@ def measure_frame(
     detection, placement, placed_polygons = place_faces(frame, spec, radiometry)
     polygons |= {n: (p, "markers") for n, p in placed_polygons.items()}
     shape = (frame.height, frame.width)
-    erosion = {n: adaptive_erode_px(polygons[n][0], shape, settings.erode_px) for n in polygons}
+    erosion = {
+        n: adaptive_erode_px(p, shape, settings.erode_px, photo=photo, wedge=n, source=source)
+        for n, (p, source) in polygons.items()
+    }
     rois = {
         n: roi_mask(
             polygons[n][0],

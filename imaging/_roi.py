@@ -229,14 +229,23 @@ def thickness_px(mask: np.ndarray) -> float:
     return 2.0 * float(dist.max()) - 1.0
 
 
-def adaptive_erode_px(polygon: Polygon, image_shape: tuple[int, int], erode_px: int) -> int:
+def adaptive_erode_px(
+    polygon: Polygon,
+    image_shape: tuple[int, int],
+    erode_px: int,
+    *,
+    photo: str = "",
+    wedge: str = "",
+    source: str = "polygon",
+) -> int:
     """The erosion for one ROI: `erode_px`, but at most ERODE_FRACTION of the polygon's
     thickness (never below MIN_ERODE_PX unless `erode_px` is): a face seen near grazing is
     thin in the photo, and the full erosion would leave one or two rows of it, or none
-    (docs/imaging.md §Pixels)."""
+    (docs/imaging.md §Pixels). `photo`, `wedge` and `source` name the ROI in the error for a
+    vertex outside the image (`roi_mask`)."""
     if erode_px <= MIN_ERODE_PX:
         return erode_px
-    filled = roi_mask(polygon, image_shape, 0, photo="", wedge="")
+    filled = roi_mask(polygon, image_shape, 0, photo=photo, wedge=wedge, source=source)
     limit = max(MIN_ERODE_PX, math.floor(ERODE_FRACTION * thickness_px(filled.mask)))
     return min(erode_px, limit)
 
