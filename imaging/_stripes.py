@@ -172,8 +172,14 @@ def _wrap(v: np.ndarray) -> np.ndarray:
     return v - np.round(v)
 
 
-def _local_ratio(spec: np.ndarray, iy: int, ix: int, pad: tuple[float, float]) -> float:
-    """The peak's power over the median power around it (an annulus of a few resolution cells)."""
+def _local_ratio(
+    spec: np.ndarray, fx: np.ndarray, fy: np.ndarray, iy: int, ix: int, pad: tuple[float, float]
+) -> float:
+    """The peak's power over the larger of two medians: of the periodogram around it (a square
+    of a few resolution cells, less the peak's own) and of the ring of frequencies as far from
+    zero as the peak (a random texture is isotropic or nearly: its power at that distance in
+    every direction; a texture's steep spectrum would otherwise stand out against the weaker
+    frequencies beside it)."""
     h, w = spec.shape
     ry, rx = max(2, round(2 * pad[0])), max(2, round(2 * pad[1]))
     wy, wx = max(12, round(10 * pad[0])), max(12, round(10 * pad[1]))
@@ -182,8 +188,14 @@ def _local_ratio(spec: np.ndarray, iy: int, ix: int, pad: tuple[float, float]) -
     win = spec[np.ix_(ys, xs)]
     dy = np.abs(np.arange(-wy, wy + 1))[:, None]
     dx = np.abs(np.arange(-wx, wx + 1))[None, :]
-    ring = win[(dy > ry) | (dx > rx)]
-    med = float(np.median(ring))
+    local = float(np.median(win[(dy > ry) | (dx > rx)]))
+    radius = np.hypot(fx[None, :], fy[:, None])
+    cell = 2 * max(fx[1] - fx[0], fy[1] - fy[0]) * max(pad)
+    ring = np.abs(radius - radius[iy, ix]) <= cell
+    ring &= np.hypot(fx[None, :] - fx[ix], fy[:, None] - fy[iy]) > cell
+    ring &= np.hypot(fx[None, :] + fx[ix], fy[:, None] + fy[iy]) > cell  # its mirror image
+    around = float(np.median(spec[ring])) if ring.any() else 0.0
+    med = max(local, around)
     return float(spec[iy, ix]) / med if med > 0 else math.inf
 
 
@@ -221,7 +233,7 @@ def _candidates(
         iy, ix = index(line)
         power = spec[iy, ix]
         k = int(np.argmax(power))
-        ratio = _local_ratio(spec, int(iy[k]), int(ix[k]), pad)
+        ratio = _local_ratio(spec, fx, fy, int(iy[k]), int(ix[k]), pad)
         if not ratio >= DETECT_RATIO:
             return None
         # the lines' direction may be a little off (a pose, perspective): climb to the
@@ -244,7 +256,7 @@ def _candidates(
     far &= np.hypot(*_wrap(np.stack([gx - 0.5, gy - 0.5]))) >= nu_min
     masked = np.where(far, spec, 0.0)
     iy0, ix0 = np.unravel_index(int(np.argmax(masked)), masked.shape)
-    ratio = _local_ratio(spec, int(iy0), int(ix0), pad)
+    ratio = _local_ratio(spec, fx, fy, int(iy0), int(ix0), pad)
     if not ratio >= DETECT_RATIO:
         return None
     best = _refine_peak(spec, fx, fy, int(iy0), int(ix0))
