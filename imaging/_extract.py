@@ -15,9 +15,18 @@ The same moments of two channels give the R, G, B covariance of the ROI.
 
 The white-noise part of the error (shot, read and quantisation noise, which differ between
 photos) comes from the differences of neighbouring same-colour pixels
-(`_Accumulator.noise_variance`).
+(`_Accumulator.noise_variance`), or from the photo's noise model (`_noise`) when the caller
+has one.
 
-See docs/imaging.md §Standard errors for the checks and for what it does not cover.
+An ROI that shows its layer lines as stripes (`_stripes`) is measured on its pixels with the
+fitted stripes subtracted; its blocks are then detrended by a quadratic surface, strips along
+the layer lines may replace them (`_with_strips`), and the noise the fitted stripes carry into
+the mean is added (`finish_stats`). `roi_data` does the work that needs the pixels, and
+`finish_stats` what needs the photo's noise model, so that the pipeline can fit that model to
+all of a photo's ROIs in between.
+
+See docs/imaging.md §Standard errors and §Layer stripes for the checks and for what they do not
+cover.
 """
 
 from __future__ import annotations

@@ -9,8 +9,9 @@ cut the stripes in incomplete periods. Both are removed by fitting the stripes
 
     x_p = m_c(q_p) (1 + P_c(phi_p, q_p))
 
-for pixel p of colour c at q_p = p - the ROI's centroid: `m_c = a_c + b_c . q` the channel's
-level (a smooth lamp gradient included), P the pattern across a layer, a Fourier series in the
+for pixel p of colour c at q_p = p - the ROI's centroid: `m_c = a_c (1 + q' C q) + b_c . q` the
+channel's level (a near lamp's gradient and curvature), P the pattern across a layer, a Fourier
+series in the
 layer phase `phi = 2 pi (nu . q + q' K q / 2)` with zero mean: harmonics shared by the three
 channels (multiplicative: a grey face's stripes are the same in every channel, relatively),
 their first two with amplitudes that change linearly across the ROI, plus R's and B's own
@@ -18,15 +19,17 @@ deviations for the harmonics that their sites sample evenly (a coloured body und
 highlight). `nu` is the wave vector of the layer lines in cycles per pixel (the true one when
 the direction across the layers is known, otherwise the alias nearest zero; on the pixel grid
 both give the same phases), `K` a chirp (perspective changes the period across a face and turns
-the lines). `a_c` is the channel's period-averaged level at the ROI's centroid, which is what a
-model of the face predicts; it does not depend on which phases each colour's sites sample.
+the lines). The fitted periodic part `m_c P_c` is what the caller subtracts from each pixel
+(`StripeFit.periodic`): the de-striped mean of a colour is its period-averaged level, what a
+model of the face predicts, whatever phases its sites sample.
 
 The stripes are found in the green sites alone (a quincunx lattice that sees every stripe
 orientation, including the 2-px period that puts red and blue sites on opposite phases): the
 highest peak of their periodogram, if it stands `DETECT_RATIO` times above the periodogram's
-local median (a random texture does not). The fit is Gauss-Newton on all parameters (phase
-included) over at most `FIT_PIXELS` pixels; the number of harmonics is the highest one the data
-show (3 standard errors), at most `max_harmonics`.
+median around it and at the same distance from zero (a random texture does not). The fit is
+Gauss-Newton on all parameters (phase included) over at most `FIT_PIXELS` pixels; its harmonics
+are those of wavelength at least 0.4 px, at most `max_harmonics`, less those that the pixel grid
+folds onto the smooth level (`_orders`).
 """
 
 from __future__ import annotations
