@@ -49,6 +49,8 @@ class FitOutcome:
     timings: dict[str, float]
     notes: list[str]
     accuracy: Any = None  # commands._accuracy_check.AccuracyCheck
+    lab_reason: str | None = None
+    """Why the scene was fitted with the lab model (`stairfit.lab.lab_reason`); None: in-plane."""
 
 
 def sha256_of(path: Path) -> str:

@@ -206,6 +206,22 @@ class Patch:
     face_mm: Polygon | None = None
 
 
+GEOMETRIES: dict[str, str] = {
+    "auto": "the lab model when the lamp is near (its position given), else in the plane",
+    "lab": "the lab model: each face's own 3-D light and view directions",
+    "in_plane": "one plane of incidence and a distant light for every face",
+}
+"""`[fit] geometry`: which directions the fit models (docs/scene.md "Which model of the
+directions")."""
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """The optional `[fit]` table: `geometry`, one of `GEOMETRIES`."""
+
+    geometry: str = "auto"
+
+
 @dataclass(frozen=True)
 class Extraction:
     """Settings for turning pixels into measurements (see docs/imaging.md)."""
@@ -265,6 +281,7 @@ class Scene:
     patches: tuple[Patch, ...] = ()
     calibration: CalibrationFrames | None = None
     truth: SceneTruth | None = None
+    fit: FitSettings = field(default_factory=FitSettings)
 
     @property
     def folder(self) -> Path:
@@ -381,6 +398,7 @@ def parse_scene(raw: dict[str, Any], path: Path, measure_only: bool = False) -> 
             "markers",
             "reference",
             "extraction",
+            "fit",
             "patches",
             "calibration",
             "truth",
@@ -401,13 +419,14 @@ def parse_scene(raw: dict[str, Any], path: Path, measure_only: bool = False) -> 
     markers = _markers(r, top["markers"], "markers") if "markers" in top else None
     reference = _reference(r, top["reference"], "reference") if "reference" in top else None
     extraction = _extraction(r, r.opt_table(top, "extraction", ""))
+    fit = _fit_settings(r, r.opt_table(top, "fit", ""))
     patches = _patches(r, top, specimen, reference, markers) if "patches" in top else ()
     photos = _photos(r, top, specimen, tuple(x.name for x in patches))
     calibration = _calibration(r, top["calibration"]) if "calibration" in top else None
     truth = _truth(r, top["truth"], specimen) if "truth" in top else None
     scene = Scene(
         path, relative, specimen, light, camera, photos, markers, reference, extraction, patches,
-        calibration, truth,
+        calibration, truth, fit,
     )  # fmt: skip
     _check_input_paths(r, scene)
     if specimen is not None:
@@ -807,6 +826,11 @@ def _reference(r: _Reader, d: Any, w: str) -> Reference:
     if ref.roi_px is None and ref.face_mm is None:
         r.fail(w, "give roi_px (pixels) or face_mm (base-plane mm, needs [markers])")
     return ref
+
+
+def _fit_settings(r: _Reader, d: dict[str, Any]) -> FitSettings:
+    r.table(d, "fit", ["geometry"])
+    return FitSettings(r.choice(d, "geometry", "fit", GEOMETRIES))
 
 
 def _extraction(r: _Reader, d: dict[str, Any]) -> Extraction:

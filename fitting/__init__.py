@@ -4,8 +4,8 @@ Public API (everything else is internal). Conventions: docs/conventions.md; desi
 transforms and the selection rule: docs/fitting.md.
 
 The posterior (`sample_posterior`, its options and result, the chain file) is loaded on first
-use (PEP 562 `__getattr__`): it imports emcee, which imports SciPy, about 1 s that a fit
-without a posterior and every `import stairfit.fitting` need not pay (issue 14).
+use (PEP 562 `__getattr__`): it imports emcee, which imports SciPy, a cost that a fit without
+a posterior and every `import stairfit.fitting` need not pay (issue 14).
 """
 
 from typing import TYPE_CHECKING, Any
@@ -28,6 +28,7 @@ from ._errors import UnidentifiedParameterWarning as UnidentifiedParameterWarnin
 from ._forward import Resolution as Resolution
 from ._identify import IDENTIFIABILITY_THRESHOLD as IDENTIFIABILITY_THRESHOLD
 from ._jacobian import model_jacobian as model_jacobian
+from ._lab import LabGeometry as LabGeometry
 from ._least_squares import DEFAULT_SIGMA_STARTS_RAD as DEFAULT_SIGMA_STARTS_RAD
 from ._least_squares import LeastSquaresOptions as LeastSquaresOptions
 from ._least_squares import fit_least_squares as fit_least_squares

@@ -23,6 +23,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from stairfit import model
 
+from ._lab import LabData, lab_grid
 from ._params import Layout, Params, clamp_index, to_physical
 from ._whiten import group_cholesky, log_diag, scatter, whiten
 
@@ -54,6 +55,7 @@ class Static(NamedTuple):
     resolution: int | None = None
     filleted: bool = False
     fillet_rays: int | None = None
+    lab: str | None = None
 
 
 class Resolution(NamedTuple):
@@ -89,7 +91,8 @@ class Data(NamedTuple):
     node). Per slot of `z` (P): `free`, `x_fixed` (physical values of fixed slots). Per wedge
     (W): `sigma_source` (slot holding that wedge's
     width). `r_max_um`: upper bound of the edge radius. Per group of correlated rows (Gr, padded
-    to 3 slots; `_whiten.GroupArrays`): `grp_rows`, `grp_mask`, `grp_corr`.
+    to 3 slots; `_whiten.GroupArrays`): `grp_rows`, `grp_mask`, `grp_corr`. `lab`: the lab
+    model's 3-D nodes per row (`_lab.LabData`; a dummy unless the scene has lab geometry).
     """
 
     theta_i: Float[Array, " N"]
@@ -120,6 +123,7 @@ class Data(NamedTuple):
     grp_rows: Int[Array, "Gr 3"]
     grp_mask: Float[Array, "Gr 3"]
     grp_corr: Float[Array, "Gr 3 3"]
+    lab: LabData
 
 
 def physical(z: Array, static: Static, data: Data) -> Array:
@@ -360,9 +364,9 @@ def _fillet_impl(
 FILLET_CHUNK_BYTES = 64 * 2**20
 """The fillet correction's contraction over the rays holds, per ray, the ray power at every
 (key, light node, index sample, lane) and the kernel at every (key, light node, view, lane);
-above this many bytes for all rays at once it is summed over chunks of rays (`lax.scan`). The
-accurate knobs (5 nm sampling, 4096 rays) on a 2 MP x 9-view folder asked for 99 GB in one
-pass; the balanced ones stay in one pass."""
+above this many bytes for all rays at once it is summed over chunks of rays (`lax.scan`), so
+that the accurate knobs (5 nm sampling, 4096 rays) on a photo folder, which would need tens of
+GB in one pass, fit in memory; the balanced ones stay in one pass."""
 
 
 def _fillet_bytes_per_ray(g: EvaluationGrid, views: int, samples: int, itemsize: int) -> int:
@@ -471,6 +475,14 @@ def model_values(z: Array, static: Static, data: Data) -> tuple[Array, Params]:
     """(model relative radiance per row, physical parameters) [conventions §9]; the widths in
     the returned `Params` are one per wedge."""
     p = static.layout.unpack(physical(z, static, data), data.sigma_source)
+    if static.lab is not None:
+        if static.filleted:
+            raise NotImplementedError("the lab model has no fillets (docs/model.md §7.6)")
+        radius = p.edge_radius_um if static.rounded else None
+        spec, body = lab_grid(p.sigma_rad[data.lab.wedge], p.delta_n, data.lab, static.lab,
+                              radius, static.resolution)  # fmt: skip
+        rows = (data.lab.key, data.r_c)
+        return p.scale * spec[rows] + p.floor * body[rows], p
     if static.filleted:
         dens = filleted_density(p, data, static)
     elif static.rounded:

@@ -545,13 +545,17 @@ class Variant(NamedTuple):
     """One model of the ladder: which parameters are free (the rest are fixed).
 
     `free` is a set of names from `PARAM_NAMES`; `per_wedge_sigma` gives every wedge its own
-    broadening width instead of one shared `sigma_rad`. Free versus fixed is metadata here; the
-    values of fixed parameters come from a `Params` given to the fit (default `DEFAULTS`).
+    broadening width instead of one shared `sigma_rad`. `kernel`: how the facets spread their
+    light in the lab model (`stairfit.model.LAB_KERNELS`: "gaussian", the paper's broadening,
+    with `sigma_rad` its width; "ggx" or "beckmann", microfacet facets, with `sigma_rad` holding
+    their roughness alpha). Free versus fixed is metadata here; the values of fixed parameters
+    come from a `Params` given to the fit (default `DEFAULTS`).
     """
 
     name: str
     free: frozenset[str]
     per_wedge_sigma: bool = False
+    kernel: str = "gaussian"
 
     @property
     def features(self) -> tuple[str, ...]:

@@ -15,6 +15,7 @@ from stairfit import model
 
 from ._errors import FitInputError
 from ._forward import Data, Resolution, Static, light_nodes, resolution_parts
+from ._lab import LabData, LabGeometry, lab_data
 from ._observations import Observations, Spectral, check_compatible
 from ._params import DEFAULTS, PARAM_NAMES, Layout, Parameter, Params, Priors, Variant
 from ._whiten import GroupArrays, group_arrays
@@ -30,13 +31,16 @@ def max_edge_radius_um(obs: Observations) -> float:
 
 class FreeSpec(NamedTuple):
     """Which slots are free: parameter names, the wedges that have their own (free) width,
-    fixed values that override `Problem.fixed` (a parameter fixed on its bound), and per-wedge
-    widths fixed at a value (a wedge whose own width the data do not constrain)."""
+    fixed values that override `Problem.fixed` (a parameter fixed on its bound), per-wedge
+    widths fixed at a value (a wedge whose own width the data do not constrain), and the facet
+    kernel of the lab model (`stairfit.model.LAB_KERNELS`; only "gaussian" without lab
+    geometry)."""
 
     free: frozenset[str]
     own_sigma: frozenset[int] = frozenset()
     overrides: tuple[tuple[str, float], ...] = ()
     fixed_sigma: tuple[tuple[int, float], ...] = ()
+    kernel: str = "gaussian"
 
     def fixing(self, param: str, value: float) -> FreeSpec:
         """A copy with `param` fixed at `value` (on a bound, or unidentified)."""
@@ -50,7 +54,8 @@ class Problem(NamedTuple):
 
     `data` holds the traced arrays (its `free`, `x_fixed` and `sigma_source` are filled per
     variant by `arrays_for`); `fixed` gives the values of fixed parameters; `priors` are
-    resolved against the data; `wedge_deg` is for labels only.
+    resolved against the data; `wedge_deg` is for labels only; `lab` the rows' 3-D geometry
+    when the scene is fitted with the lab model (`_lab.LabGeometry`), else None.
     """
 
     observations: Observations
@@ -63,6 +68,7 @@ class Problem(NamedTuple):
     aperture: model.Aperture
     resolution: int | Resolution | None
     wedge_deg: np.ndarray
+    lab: LabGeometry | None = None
 
     def static_for(self, spec: FreeSpec) -> Static:
         """The hashable configuration for a variant (which forward, model-error term)."""
@@ -80,6 +86,7 @@ class Problem(NamedTuple):
             resolution=resolution,
             filleted=filleted,
             fillet_rays=fillet_rays,
+            lab=None if self.lab is None else spec.kernel,
         )
 
     @property
@@ -169,8 +176,10 @@ def prepare(
     priors: Priors | None = None,
     aperture: model.Aperture | None = None,
     resolution: int | Resolution | None = None,
+    lab: LabGeometry | None = None,
 ) -> Problem:
-    """Validate the combination and build the traced arrays (see `Problem`)."""
+    """Validate the combination and build the traced arrays (see `Problem`). `lab`: the rows'
+    3-D geometry, to fit the lab model (docs/fitting.md §Lab model)."""
     check_float64()
     if not isinstance(obs, Observations):
         raise FitInputError(
@@ -183,17 +192,20 @@ def prepare(
     _check_fixed(fixed, lay.n_wedges, r_max)
     value_max = float(np.max(np.abs(obs.value[obs.use])))
     aperture = aperture or model.Aperture()
+    if lab is not None:
+        lab = lab.check(obs.n_rows)
     return Problem(
         observations=obs,
         spectral=spectral,
         layout=lay,
-        data=_data(obs, spectral, aperture, lay, r_max),
+        data=_data(obs, spectral, aperture, lay, r_max, lab),
         fixed=fixed,
         priors=(priors or Priors()).resolved(r_max, value_max if value_max > 0 else 1.0),
         r_max_um=r_max,
         aperture=aperture,
         resolution=resolution,
         wedge_deg=np.rad2deg(obs.wedge_beta2_rad),
+        lab=lab,
     )
 
 
@@ -216,7 +228,12 @@ def as_problem(
 
 
 def _data(
-    obs: Observations, spectral: Spectral, aperture: model.Aperture, lay: Layout, r_max: float
+    obs: Observations,
+    spectral: Spectral,
+    aperture: model.Aperture,
+    lay: Layout,
+    r_max: float,
+    lab: LabGeometry | None = None,
 ) -> Data:
     """The traced arrays of a scene (per variant, `free`, `x_fixed`, `sigma_source` are
     replaced by `Problem.arrays_for`), moved to the device in one batched transfer."""
@@ -241,8 +258,16 @@ def _data(
         grp_rows=groups.rows,
         grp_mask=groups.mask,
         grp_corr=groups.corr,
+        lab=_lab_arrays(lab, obs, spectral),
     )
     return jax.device_put(data)
+
+
+def _lab_arrays(lab: LabGeometry | None, obs: Observations, spectral: Spectral) -> LabData:
+    """The lab model's traced arrays (`_lab.lab_data`), keys padded to a shape bucket."""
+    samples = np.asarray(spectral.n_base), np.asarray(spectral.weights, float)
+    size = 0 if lab is None else bucket(lab.weight.shape[0])
+    return lab_data(lab, obs.wedge_beta2_rad, obs.wedge_layer_um, obs.n_rows, samples, size)
 
 
 def bucket(n: int) -> int:
@@ -423,4 +448,9 @@ def spec_for(variant: Variant, problem: Problem) -> FreeSpec:
     if variant.per_wedge_sigma and "sigma_rad" in variant.free:
         obs = problem.observations
         own = frozenset(int(w) for w in np.unique(obs.wedge_index[obs.use]))
-    return FreeSpec(free=frozenset(variant.free), own_sigma=own)
+    if variant.kernel != "gaussian" and problem.lab is None:
+        raise FitInputError(
+            f"variant {variant.name!r} has {variant.kernel} facets, which only the lab model "
+            "has; give the scene's 3-D geometry (prepare(..., lab=...))"
+        )
+    return FreeSpec(free=frozenset(variant.free), own_sigma=own, kernel=variant.kernel)

@@ -82,6 +82,17 @@ def not_fitted_row(
                          detail, nan, dof)  # fmt: skip
 
 
+class Facets(NamedTuple):
+    """How the facets' kernel of the lab model was chosen (`select_model(kernels=...)`):
+    `kernel` the chosen one, `probe` the variant every kernel was fitted with, `rows` one
+    `ComparisonRow` per kernel (its name the probe's with the kernel), `reason` in words."""
+
+    kernel: str
+    probe: str
+    rows: tuple[ComparisonRow, ...]
+    reason: str
+
+
 class Rounding(NamedTuple):
     """Whether the rounded-edge rungs were fitted (`select_model(rounded_rungs=...)`):
     `policy` (`always`, `when_needed`), `fitted`, `reason` (in words), `n_variants` rounded
@@ -110,7 +121,8 @@ class Selection:
     `criterion`, `threshold`: the rule used; `forced`: True when the caller forced the variant;
     `fits`: every successful `FitResult` by variant name; `rounding`: whether the rounded rungs
     were fitted, why and how long they took (None when the ladder has none); `assessment`:
-    whether the chosen fit describes the data (`describe_fit`).
+    whether the chosen fit describes the data (`describe_fit`); `facets`: how the lab model's
+    facet kernel was chosen (None when only one was offered).
     """
 
     chosen: str
@@ -123,6 +135,7 @@ class Selection:
     fits: dict[str, FitResult] = field(repr=False)
     rounding: Rounding | None = None
     assessment: Assessment | None = field(default=None, repr=False)
+    facets: Facets | None = None
 
     def report(self) -> str:
         """The comparison table and the reason, as plain text."""
@@ -165,7 +178,7 @@ def _criterion(fit: FitResult, criterion: str) -> float | None:
 ROUNDED_RUNGS: tuple[str, ...] = ("always", "when_needed")
 """`always` fits every rounded-edge variant of the ladder; `when_needed` first selects among
 the sharp variants and adds the rounded ones only when the chosen sharp variant does not
-describe the data (`rounding_needed`): a rounded fit costs minutes of compilation."""
+describe the data (`rounding_needed`): a rounded fit compiles several times longer."""
 
 
 def select_model(
@@ -184,9 +197,14 @@ def select_model(
     resolution: int | None = None,
     options: LeastSquaresOptions | None = None,
     on_variant: Callable[[str], None] | None = None,
+    kernels: tuple[str, ...] = ("gaussian",),
     **option_overrides: Any,
 ) -> Selection:
     """Fit every variant of `ladder` and choose the simplest the data support (module doc).
+
+    `kernels` (the lab model's facets, `stairfit.model.LAB_KERNELS`): with more than one, each
+    is first fitted with one probe variant (`choose_kernel`), and the ladder then uses the
+    kernel the same rule prefers (the first listed wins a tie: list the simplest first).
 
     Variants are fitted from simple to rich, each also started from the optimum of every
     fitted parent (the variants with one optional feature fewer), so that none ends worse than
@@ -211,12 +229,75 @@ def select_model(
                          resolution=resolution)  # fmt: skip
     opts = (options or LeastSquaresOptions()).updated(**option_overrides)
     opts = opts._replace(on_failure="flag", emit_warnings=False)
-    if force is not None:
-        return _forced(problem, _find(force, ladder), model_error, criterion, threshold, opts)
     if len(ladder) == 0:
         raise FitInputError("the ladder is empty; give at least one variant")
+    facets = None
+    if len(kernels) > 1:
+        settings = _Settings(opts, model_error, on_variant or (lambda name: None))
+        facets = choose_kernel(problem, ladder, kernels, criterion, threshold, settings)
+    kernel = facets.kernel if facets is not None else kernels[0]
+    ladder = tuple(v._replace(kernel=kernel) for v in ladder)
+    if force is not None:
+        forced = _find(force, ladder)
+        sel = _forced(problem, forced._replace(kernel=kernel), model_error, criterion, threshold,
+                      opts)  # fmt: skip
+        return _with_facets(sel, facets)
     opts = _Settings(opts, model_error, on_variant or (lambda name: None))
-    return _select_ladder(problem, ladder, rounded_rungs, criterion, threshold, opts)
+    sel = _select_ladder(problem, ladder, rounded_rungs, criterion, threshold, opts)
+    return _with_facets(sel, facets)
+
+
+KERNEL_PROBE = "sharp+floor"
+"""The variant every facet kernel is fitted with before the ladder (`choose_kernel`): the
+simplest variant with a body reflection, which the lab model's scenes (dark plastics under a
+lamp) need, and in which the kernels differ only in their lobes' shape."""
+
+
+def choose_kernel(
+    problem: Problem,
+    ladder: tuple[Variant, ...],
+    kernels: tuple[str, ...],
+    criterion: str,
+    threshold: float,
+    settings: _Settings,
+) -> Facets:
+    """Fit the probe variant (`KERNEL_PROBE`, else the ladder's first) with every kernel and
+    choose by the ladder's rule: the lowest criterion, and among those within `threshold` of it
+    the first of `kernels` (they have the same number of parameters)."""
+    probe = next((v for v in ladder if v.name == KERNEL_PROBE), ladder[0])
+    rows, scored = [], {}
+    for kernel in kernels:
+        v = probe._replace(kernel=kernel, name=f"{probe.name} ({kernel} facets)")
+        t0 = time.perf_counter()
+        try:
+            fit = _fit_variant(problem, v, settings, ())
+        except FitError as err:
+            rows.append(not_fitted_row(v, Status.NOT_FITTED, str(err)))
+            continue
+        rows.append(_row(fit, v, math.nan, time.perf_counter() - t0))
+        c = _criterion(fit, criterion) if fit.success else None
+        if c is not None and math.isfinite(c):
+            scored[kernel] = c
+    if not scored:
+        raise FitError("no facet kernel converged: " + "; ".join(r.status_text for r in rows))
+    best = min(scored.values())
+    chosen = next(k for k in kernels if k in scored and scored[k] <= best + threshold)
+    crit = "BIC" if criterion == "bic" else "-2 ln Z"
+    others = ", ".join(f"{k} {scored[k] - scored[chosen]:+.3g}" for k in scored if k != chosen)
+    reason = (
+        f"{chosen} facets: {crit} of '{probe.name}' relative to it: {others}"
+        + ("" if scored[chosen] == best else f" (within {threshold:g} of the best; the simpler)")
+    )
+    rows = [dataclasses.replace(r, delta=scored.get(k, math.nan) - scored[chosen])
+            for r, k in zip(rows, kernels, strict=True)]  # fmt: skip
+    return Facets(chosen, probe.name, tuple(rows), reason)
+
+
+def _with_facets(sel: Selection, facets: Facets | None) -> Selection:
+    """The selection with its facets record, and the reason saying which and why."""
+    if facets is None:
+        return sel
+    return dataclasses.replace(sel, facets=facets, reason=f"{sel.reason}; {facets.reason}")
 
 
 class _Settings(NamedTuple):
@@ -358,7 +439,7 @@ def rounding_needed(selection: Selection) -> tuple[bool, str]:
     misfit rule of `describe_fit` (a model-error term above the smaller of 1% and twice the
     median relative standard error, or a chi^2 tail probability below `P_VALUE_LIMIT`), the
     rule that also puts MISFIT at the top of the summary. A smaller model-error term is
-    reported but does not trigger minutes of rounded compilation: with precise data the term
+    reported but does not trigger the rounded fits' compilation: with precise data the term
     is significant at a level no resolvable edge radius changes (measured: 1-2.3e-4 on the
     sharp demo and the independent renderer's sharp photos). Returns (needed, the reason in
     words). docs/fitting.md §4."""

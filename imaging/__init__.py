@@ -65,6 +65,8 @@ from ._placement import face_polygon as face_polygon
 from ._placement import face_view_deg as face_view_deg
 from ._placement import fit_camera_pose as fit_camera_pose
 from ._placement import pixel_view_deg as pixel_view_deg
+from ._placement import pixels_on_face as pixels_on_face
+from ._placement import roi_face_points as roi_face_points
 from ._placement import roi_view_half_width_deg as roi_view_half_width_deg
 from ._placement import view_parallax_deg as view_parallax_deg
 from ._preview import render_preview as render_preview

@@ -50,6 +50,7 @@ from ._placement import (
     face_polygon,
     fit_camera_pose,
     hidden_fraction,
+    roi_face_points,
     roi_view_half_width_deg,
     view_parallax_deg,
 )
@@ -67,7 +68,7 @@ from ._roi import (
 )
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 12
+TABLE_VERSION = 13
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
@@ -81,7 +82,8 @@ TABLE_VERSION = 12
 9: each channel's value moved by its plane to the ROI's centroid (docs/imaging.md §Channel sites).
 10: face_view_deg is the mean view angle over the eroded ROI's pixels (was: at the face's centre).
 11: the view_half_width_deg column (a pinhole-placed ROI's own spread of viewing angles).
-12: resolved layer stripes fitted and removed, the photo's noise model, the erosion adapted to
+12: the face_points_mm and camera_mm columns (the lab model's 3-D geometry of each ROI).
+13: resolved layer stripes fitted and removed, the photo's noise model, the erosion adapted to
     a face's thickness, thin ROIs flagged; the stripe_* and erode_px columns (issue 45).
 """
 
@@ -589,7 +591,13 @@ def _marker_columns(
     outline = dict(spec.faces_mm)[name]
     parallax = view_parallax_deg(pose, spec.markers, outline, angle, pixels)
     own = None if parallax is None or spec.view_deg is None else spec.view_deg + parallax
+    points, weights = roi_face_points(pose, outline, angle, pixels)
+    centre = pose.camera_centre_mm()
     return {
+        "face_points_mm": ";".join(
+            " ".join(f"{v:.6g}" for v in (*p, w)) for p, w in zip(points, weights, strict=True)
+        ),
+        "camera_mm": "" if centre is None else " ".join(f"{v:.8g}" for v in centre),
         "marker_ids": " ".join(str(i) for i in pose.ids),
         "marker_cell_px": min(cells[i] for i in pose.ids),
         "placement": pose.model,

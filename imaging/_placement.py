@@ -474,23 +474,64 @@ def face_view_deg(pose: CameraPose, outline_mm: Polygon, beta2_deg: float = 0.0)
     return _view_of(centre, face_outline_3d(outline_mm, beta2_deg).mean(axis=0))
 
 
-def pixel_view_deg(
+def pixels_on_face(
     pose: CameraPose, outline_mm: Polygon, beta2_deg: float, pixels_px: np.ndarray
-) -> np.ndarray | None:
-    """The view angle (deg, about y, base frame) from the face point each pixel sees to a
-    pinhole's centre: (n, 2) pixel centres (x, y) back-projected onto the face's plane (the
-    plane-to-image homography of the face's 3-D outline through `pose`). None for the other
-    camera models. docs/imaging.md §3-D placement."""
-    centre = pose.camera_centre_mm()
-    if centre is None:
-        return None
+) -> np.ndarray:
+    """The base-frame points (n, 3; mm) of a face that (n, 2) pixel centres (x, y) see: each
+    pixel back-projected onto the face's plane by the plane-to-image homography of its 3-D
+    outline through `pose` (exact for a pinhole and for an affine camera). docs/imaging.md
+    §3-D placement."""
     face = face_outline_3d(outline_mm, beta2_deg)
     pts = np.concatenate([face, 0.5 * (face + np.roll(face, -1, axis=0))])  # >= 4, not collinear
     h, _ = cv2.findHomography(pose.project(pts), pts[:, :2], 0)
     px = np.asarray(pixels_px, dtype=np.float64).reshape(-1, 2)
     xy = cv2.perspectiveTransform(px.reshape(-1, 1, 2), h).reshape(-1, 2)
     z = (xy[:, 0] - face[:, 0].min()) * math.tan(math.radians(beta2_deg))
-    return np.degrees(np.arctan2(centre[0] - xy[:, 0], centre[2] - z))
+    return np.column_stack([xy, z])
+
+
+def pixel_view_deg(
+    pose: CameraPose, outline_mm: Polygon, beta2_deg: float, pixels_px: np.ndarray
+) -> np.ndarray | None:
+    """The view angle (deg, about y, base frame) from the face point each pixel sees to a
+    pinhole's centre (`pixels_on_face`). None for the other camera models.
+    docs/imaging.md §3-D placement."""
+    centre = pose.camera_centre_mm()
+    if centre is None:
+        return None
+    xyz = pixels_on_face(pose, outline_mm, beta2_deg, pixels_px)
+    return np.degrees(np.arctan2(centre[0] - xyz[:, 0], centre[2] - xyz[:, 2]))
+
+
+FACE_POINT_GRID = 4
+"""`roi_face_points` bins an ROI's pixels into this many cells along each of the face's two
+axes (up the slope, along the layer lines)."""
+
+
+def roi_face_points(
+    pose: CameraPose, outline_mm: Polygon, beta2_deg: float, pixels_px: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """A quadrature of an ROI's pixels over its face: (points (m, 3) in base-frame mm, weights
+    (m,) summing to 1). The pixels' face points (`pixels_on_face`) are binned into a
+    `FACE_POINT_GRID` x `FACE_POINT_GRID` grid along the face's axes; each non-empty cell gives
+    its points' mean, weighted by its share of the pixels. The ROI's mean value is the mean
+    over its pixels, so a function of the face point averaged with these weights is that mean
+    up to the variation within a cell. docs/imaging.md §3-D placement."""
+    xyz = pixels_on_face(pose, outline_mm, beta2_deg, pixels_px)
+    if xyz.shape[0] == 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    b = math.radians(beta2_deg)
+    up = xyz[:, 0] * math.cos(b) + xyz[:, 2] * math.sin(b)  # along the slope
+    cells = []
+    for coord in (up, xyz[:, 1]):
+        lo, hi = float(coord.min()), float(coord.max())
+        k = np.floor((coord - lo) / max(hi - lo, 1e-12) * FACE_POINT_GRID).astype(int)
+        cells.append(np.clip(k, 0, FACE_POINT_GRID - 1))
+    cell = cells[0] * FACE_POINT_GRID + cells[1]
+    counts = np.bincount(cell, minlength=FACE_POINT_GRID**2)
+    sums = np.stack([np.bincount(cell, xyz[:, j], FACE_POINT_GRID**2) for j in range(3)], 1)
+    keep = counts > 0
+    return sums[keep] / counts[keep, None], counts[keep] / counts.sum()
 
 
 def roi_view_half_width_deg(

@@ -81,6 +81,12 @@ class MeasurementRow:
             ROI's pixels' own view angles (`imaging.roi_view_half_width_deg`): the ROI's own
             spread, which follows the face's length along its slope and its distance; `stairfit
             fit` uses it in place of `angular_extent_deg x view_spread`. None otherwise.
+        face_points_mm: for a face placed from the markers, the face points its eroded ROI's
+            pixels see, as a quadrature (`imaging.roi_face_points`): "x y z w" per point
+            (base-frame mm, weight), points separated by ";"; the lab model's 3-D directions
+            come from them (docs/imaging.md §3-D placement). "" otherwise.
+        camera_mm: for a face placed through a pinhole, the camera's centre in the base frame
+            (mm, "x y z"); "" otherwise (an affine camera is at infinity along view_deg).
         stripe_period_px: when the ROI shows its layer lines as stripes and they were fitted
             and removed (docs/imaging.md §Layer stripes): their period in the image (px);
             None otherwise.
@@ -131,6 +137,8 @@ class MeasurementRow:
     face_view_deg: float | None = None
     view_spread: float = 1.0
     view_half_width_deg: float | None = None
+    face_points_mm: str = ""
+    camera_mm: str = ""
     stripe_period_px: float | None = None
     stripe_angle_deg: float | None = None
     stripe_amplitude: float | None = None

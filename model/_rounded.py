@@ -38,6 +38,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._broadening import hemisphere_gaussian, hemisphere_mass
 from ._fresnel import SP, fresnel_sp
+from ._lab import lobe_fresnel_3d
 from ._lobes import Lobes, lobe_directions, lobe_fresnel
 from ._shapes import same_rank, with_rank
 
@@ -610,18 +611,26 @@ def _geometry(
     return RoundedGeometry(delta_weight, lo, hi, lo_th, hi_th, nodes)
 
 
-def _fresnel_product(nodes: _Nodes, n: Array) -> Array:
+def _fresnel_product(nodes: _Nodes, n: Array, c: Array | None = None) -> Array:
     """Unpolarised Fresnel factor of each node's path [conventions §6].
 
     Both reflections of a two-bounce path lie in one plane of incidence, so the product is
     taken per polarisation and then averaged. Evaluated only where needed: the first bounce of
     tread/riser -> tip is one flat facet (one value), tip -> escape has no second bounce.
+    `c` (broadcasting with `n`): a ray out of the plane, whose projection onto it has the
+    length `c`, meets every surface at the local cosine `c` times the in-plane one
+    [conventions §11]; the turn of the s and p axes between two reflections is left out here
+    (docs/model.md §7.5).
     """
     n_b = n[..., None, None, None]
-    arc1: SP = fresnel_sp(nodes.cos1[..., :_N_ARC_FIRST, :, :], n_b)
-    flat: SP = fresnel_sp(nodes.cos1[..., _N_ARC_FIRST:, :1, :1], n_b)
+    cos1, cos2 = nodes.cos1, nodes.cos2
+    if c is not None:
+        c_b = jnp.asarray(c)[..., None, None, None]
+        cos1, cos2 = cos1 * c_b, cos2 * c_b
+    arc1: SP = fresnel_sp(cos1[..., :_N_ARC_FIRST, :, :], n_b)
+    flat: SP = fresnel_sp(cos1[..., _N_ARC_FIRST:, :1, :1], n_b)
     second = [j for j in range(7) if j != _ESC_SLOT]
-    bounce2: SP = fresnel_sp(nodes.cos2[..., second, :, :], n_b)
+    bounce2: SP = fresnel_sp(cos2[..., second, :, :], n_b)
 
     def first(a: Array, b: Array) -> Array:
         shape = jnp.broadcast_shapes(a.shape[:-3], b.shape[:-3]) + a.shape[-2:]
@@ -876,28 +885,35 @@ def brdf_rounded_from_geometry(
     beta2: ArrayLike,
     n: ArrayLike,
     sigma: ArrayLike,
+    t_i: ArrayLike | None = None,
 ) -> Float[Array, "..."]:
     """`brdf_rounded` from a precomputed `rounded_geometry` (1/rad) [conventions §4, §5, §6].
 
     `geo`'s leading axes must broadcast with `theta_i` and `beta2` (the angles it was computed
-    at, radians) and those with `theta_o`, `n` and `sigma`, as in `brdf_rounded`.
+    at, radians) and those with `theta_o`, `n` and `sigma`, as in `brdf_rounded`. `t_i`: the
+    light's component along the layer lines (the lab model; `theta_i` is then the projected
+    angle, conventions §11): every Fresnel factor at the 3-D local angle, the delta lobes'
+    retroreflection with the turn of its s and p axes (`lobe_fresnel_3d`).
     """
     dtype = geo.panel_lo.dtype
     lead = geo.delta_weight.ndim - 1  # the leading (broadcast) axes of the geometry
-    ti, b, theta_o, sigma, n = same_rank(
+    t_in = jnp.zeros((), dtype) if t_i is None else jnp.asarray(t_i, dtype)
+    ti, b, theta_o, sigma, n, t_in = same_rank(
         jnp.asarray(theta_i, dtype), jnp.asarray(beta2, dtype), jnp.asarray(theta_o, dtype),
-        jnp.asarray(sigma, dtype), n, jnp.zeros((1,) * lead, dtype),
-    )[:5]  # fmt: skip
+        jnp.asarray(sigma, dtype), n, t_in, jnp.zeros((1,) * lead, dtype),
+    )[:6]  # fmt: skip
     geo = _with_lead_rank(geo, ti.ndim)
     # delta lobes, exactly as the sharp model broadens them
     kernel = hemisphere_gaussian(theta_o[..., None], lobe_directions(ti, b), sigma[..., None])
-    ratio = geo.delta_weight * lobe_fresnel(ti, b, n)
+    fresnel = lobe_fresnel(ti, b, n) if t_i is None else lobe_fresnel_3d(ti, t_in, b, n)
+    ratio = geo.delta_weight * fresnel
     delta = jnp.sum(ratio * kernel, axis=-1)
     # continuous lobes
     m, h, coef, _ = _lagrange(geo.panel_lo, geo.panel_hi, geo.nodes.theta_o)
     moments = _kernel_moments(theta_o, sigma, geo.panel_lo, geo.panel_hi, m, h)
     w = jnp.sum(coef * moments[..., None, :], axis=-1)  # weight of each node value
-    g = geo.nodes.density * _fresnel_product(geo.nodes, n)
+    c = None if t_i is None else jnp.sqrt(jnp.clip(1.0 - t_in * t_in, 0.0, 1.0))
+    g = geo.nodes.density * _fresnel_product(geo.nodes, n, c)
     # The quadratic interpolants can undershoot a little where the Fresnel factor varies on a
     # sub-panel scale (n -> 1 near grazing, where it jumps from ~0 to 1 within a degree).
     # (`where`, not `maximum`: at exactly 0, e.g. r = 0 in a far tail, keep the derivative)

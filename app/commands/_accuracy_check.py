@@ -34,11 +34,11 @@ CHI2_ROSE_NOTE = (
 
 FILLET_NOT_REFITTED = (
     "a filleted variant is not refitted automatically: with the accurate knobs (5 nm sampling, "
-    "4096 rays) one value + Jacobian takes about 25 s and a refit of a 2 MP x 9-view folder "
-    "had not ended after 23 min; rerun with --preset accurate to refine it"
+    "4096 rays) a refit of a photo folder takes many minutes; rerun with --preset accurate to "
+    "refine it"
 )
-"""The filleted variants' exception to the refit (docs/fitting.md §3): a wait of tens of
-minutes is not started without the user asking for it."""
+"""The filleted variants' exception to the refit (docs/fitting.md §3): a wait of many minutes
+is not started without the user asking for it."""
 
 
 class AccuracyCheck(NamedTuple):
@@ -69,6 +69,14 @@ class AccuracyCheck(NamedTuple):
         }
 
 
+LAB_NOT_CHECKED = (
+    "not checked: the lab model evaluates every face's nodes exactly and its spectral samples "
+    "without approximation, so the presets' knobs (aperture nodes, spectral sampling) do not "
+    "apply to it"
+)
+"""The accuracy check's sentence for a fit of the lab model."""
+
+
 def check_accuracy(
     scene: Any, observations: Any, selection: Any, preset: Preset
 ) -> tuple[Any, AccuracyCheck]:
@@ -80,6 +88,8 @@ def check_accuracy(
     if preset.name == REFERENCE:
         return selection, AccuracyCheck(preset.name, None, "none", 0.0,
                                         "the accurate preset is its own reference")  # fmt: skip
+    if selection.fit.problem is not None and selection.fit.problem.lab is not None:
+        return selection, AccuracyCheck(preset.name, None, "none", 0.0, LAB_NOT_CHECKED)
     ref = PRESETS[REFERENCE]
     spectral, aperture = fit_setup(scene, ref)
     resolution = fitting.Resolution(ref.rounded_resolution, ref.fillet_rays)

@@ -220,13 +220,19 @@ def _fit_measured(
     notes.extend(excluded_notes)
     spectral, aperture = fit_setup(scene, options.preset)
     notes.extend(index_notes(scene, spectral))
+    lab, reason, warning = lab_setup(scene, table)
+    if reason is not None:
+        notes.append(f"fitted with the lab model (3-D directions per face) because {reason}")
+    if warning is not None:
+        notes.append(warning)
+        warnings.warn(warning, StairfitWarning, stacklevel=2)
     with watching_compilation(options.progress) as compiled:
-        selection = select(observations, spectral, aperture, options)
+        selection = select(observations, spectral, aperture, options, lab)
         selection, accuracy = refine(scene, observations, selection, options)
         timings["fit_s"] = time.perf_counter() - t0
 
         outcome = FitOutcome(scene, options, table, observations, row_info, spectral,
-                             selection, None, timings, notes, accuracy)  # fmt: skip
+                             selection, None, timings, notes, accuracy, reason)  # fmt: skip
         drawn = None
         if options.posterior:
             t0 = time.perf_counter()
@@ -442,42 +448,68 @@ def index_notes(scene: Scene, spectral: Any) -> list[str]:
     return [message] if message else []
 
 
-def ladder_for(preset: Preset) -> tuple[Any, ...]:
-    """The model ladder of a preset (shared sigma only, or also per-wedge sigma)."""
+def lab_setup(scene: Scene, table: Any) -> tuple[Any, str | None, str | None]:
+    """(the lab geometry of the observation table's rows, why the fit uses the lab model, a
+    warning), the first two None when it does not (`stairfit.lab.lab_choice`)."""
+    from ..lab import lab_choice, lab_geometry
+
+    reference = scene.reference.name if scene.reference is not None else None
+    rows = [r for r in table if r.wedge != reference]  # to_observations' rows, in its order
+    choice = lab_choice(scene, rows)
+    if not choice.use:
+        return None, None, choice.warning
+    return lab_geometry(scene, rows), choice.reason, choice.warning
+
+
+def ladder_for(preset: Preset, lab: bool = False) -> tuple[Any, ...]:
+    """The model ladder of a preset (shared sigma only, or also per-wedge sigma); the lab
+    model has no fillet rungs (docs/model.md §7.6)."""
     from stairfit import fitting
 
+    ladder = fitting.DEFAULT_LADDER
+    if lab:
+        ladder = tuple(v for v in ladder if fitting.FILLET not in v.free)
     if preset.ladder == "full":
-        return fitting.DEFAULT_LADDER
-    return tuple(v for v in fitting.DEFAULT_LADDER if not v.per_wedge_sigma)
+        return ladder
+    return tuple(v for v in ladder if not v.per_wedge_sigma)
 
 
-def select(observations: Any, spectral: Any, aperture: Any, options: FitOptions) -> Any:
+def select(
+    observations: Any, spectral: Any, aperture: Any, options: FitOptions, lab: Any = None
+) -> Any:
     """Fit the ladder and choose (or fit the forced variant): `fitting.select_model` with the
-    preset's settings; the science (nested starts, the rounding gate, status words) is there."""
-    from stairfit import fitting
+    preset's settings; the science (nested starts, the rounding gate, status words) is there.
+    With `lab` geometry, the lab model with every facet kernel offered."""
+    from stairfit import fitting, model
 
-    ladder = ladder_for(options.preset)
+    ladder = ladder_for(options.preset, lab is not None)
+    resolution = fitting.Resolution(options.preset.rounded_resolution, options.preset.fillet_rays)
+    try:
+        problem = fitting.prepare(
+            observations, spectral, aperture=aperture, resolution=resolution, lab=lab
+        )
+    except fitting.FitInputError as err:
+        raise UserError(f"the fit failed: {err}") from None
+    kernels = model.LAB_KERNELS if lab is not None else ("gaussian",)
     if options.model is not None:
         check_model_name(options.model)
         ladder = fitting.DEFAULT_LADDER
     forced = options.model is not None  # select_model reports each ladder fit, not a forced one
-    bar = _Progress(options.progress, "fitting models", total=1 if forced else len(ladder))
+    total = (1 if forced else len(ladder)) + (len(kernels) if len(kernels) > 1 else 0)
+    bar = _Progress(options.progress, "fitting models", total=total)
     with bar as tick, warnings.catch_warnings():
         warnings.simplefilter("ignore", fitting.FitWarningCategory)
         try:
             selection = fitting.select_model(
-                observations,
-                spectral,
+                problem,
+                None,
                 ladder,
                 force=options.model,
                 model_error=options.model_error,
                 rounded_rungs=options.preset.rounded_rungs,
                 sigma_starts_rad=tuple(s * DEG for s in options.preset.sigma_starts_deg),
-                aperture=aperture,
-                resolution=fitting.Resolution(
-                    options.preset.rounded_resolution, options.preset.fillet_rays
-                ),
                 on_variant=lambda name: tick(),
+                kernels=kernels,
             )
         except (fitting.FitError, fitting.FitInputError) as err:
             raise UserError(f"the fit failed: {err}") from None
