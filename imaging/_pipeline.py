@@ -357,24 +357,7 @@ def measure_frame(
     polygons: dict[str, tuple[Polygon, str]] = {n: (p, "polygon") for n, p in spec.rois}
     detection, placement, placed_polygons = place_faces(frame, spec, radiometry)
     polygons |= {n: (p, "markers") for n, p in placed_polygons.items()}
-    shape = (frame.height, frame.width)
-    erosion = {
-        n: adaptive_erode_px(p, shape, settings.erode_px, photo=photo, wedge=n, source=source)
-        for n, (p, source) in polygons.items()
-    }
-    rois = {
-        n: roi_mask(
-            polygons[n][0],
-            shape,
-            erosion[n],
-            photo=photo,
-            wedge=n,
-            source=polygons[n][1],
-            empty_ok=True,
-        )
-        for n in spec.roi_names()
-    }
-    thin = {n for n, roi in rois.items() if too_thin(roi)}
+    rois, erosion, thin = _eroded_rois(spec, polygons, (frame.height, frame.width), settings)
     if placement is not None:  # before the overlap check: a hidden face overlaps its hider
         _check_hidden(spec, placement, {n: r for n, r in rois.items() if n not in thin})
     _check_overlaps(rois, photo)
@@ -450,6 +433,24 @@ def measure_frame(
                 )
             )
     return FrameMeasurement(tuple(rows), rois, exposure, detection, placement)
+
+
+def _eroded_rois(
+    spec: PhotoSpec,
+    polygons: Mapping[str, tuple[Polygon, str]],
+    shape: tuple[int, int],
+    settings: ExtractionSettings,
+) -> tuple[dict[str, RoiMask], dict[str, int], set[str]]:
+    """Each ROI rasterised and eroded by its adapted erosion (docs/imaging.md §Pixels): the
+    masks (in the order of `spec.roi_names()`), the erosion applied, and the names of those too
+    thin to measure."""
+    erosion, rois = {}, {}
+    for n in spec.roi_names():
+        poly, source = polygons[n]
+        where = {"photo": spec.name, "wedge": n, "source": source}
+        erosion[n] = adaptive_erode_px(poly, shape, settings.erode_px, **where)
+        rois[n] = roi_mask(poly, shape, erosion[n], **where, empty_ok=True)
+    return rois, erosion, {n for n, roi in rois.items() if too_thin(roi)}
 
 
 def _empty_stats(roi: RoiMask) -> tuple[ChannelStats, ChannelStats, ChannelStats]:

@@ -129,6 +129,30 @@ class RoiMask:
         return slice(self.y0, self.y0 + h), slice(self.x0, self.x0 + w)
 
 
+def _check_inside(pts: np.ndarray, shape: tuple[int, int], what: str, source: str) -> None:
+    """ImagingError naming `what` when a vertex lies outside the image (docs/imaging.md §Pixels)."""
+    h_img, w_img = shape
+    outside = (
+        (pts[:, 0] < -0.5)
+        | (pts[:, 0] > w_img - 0.5)
+        | (pts[:, 1] < -0.5)
+        | (pts[:, 1] > h_img - 0.5)
+    )
+    if not outside.any():
+        return
+    fix = (
+        "check the face's face_mm and the marker layout"
+        if source == "markers"
+        else "fix its roi_px polygon: pixel coordinates of the visible raw image, origin at the "
+        "centre of the top-left pixel (see docs/imaging.md)"
+    )
+    x, y = pts[int(np.argmax(outside))]
+    raise ImagingError(
+        f"{what} has a vertex at ({x:.1f}, {y:.1f}), outside the image ({w_img} x {h_img} px: "
+        f"x in [-0.5, {w_img - 0.5}], y in [-0.5, {h_img - 0.5}]); {fix}"
+    )
+
+
 def roi_mask(
     polygon: Polygon,
     image_shape: tuple[int, int],
@@ -158,25 +182,7 @@ def roi_mask(
     h_img, w_img = int(image_shape[0]), int(image_shape[1])
     pts = np.asarray(polygon, dtype=np.float64)
     how = "placed from the markers" if source == "markers" else "given in pixels"
-    fix = (
-        "check the face's face_mm and the marker layout"
-        if source == "markers"
-        else "fix its roi_px polygon: pixel coordinates of the visible raw image, origin at the "
-        "centre of the top-left pixel (see docs/imaging.md)"
-    )
-    outside = (
-        (pts[:, 0] < -0.5)
-        | (pts[:, 0] > w_img - 0.5)
-        | (pts[:, 1] < -0.5)
-        | (pts[:, 1] > h_img - 0.5)
-    )
-    if outside.any():
-        x, y = pts[int(np.argmax(outside))]
-        raise ImagingError(
-            f"photo {photo!r}, wedge {wedge!r}: the ROI ({how}) has a vertex at "
-            f"({x:.1f}, {y:.1f}), outside the image ({w_img} x {h_img} px: x in [-0.5, "
-            f"{w_img - 0.5}], y in [-0.5, {h_img - 0.5}]); {fix}"
-        )
+    _check_inside(pts, (h_img, w_img), f"photo {photo!r}, wedge {wedge!r}: the ROI ({how})", source)
     x0 = max(0, math.floor(pts[:, 0].min()) - 1)
     y0 = max(0, math.floor(pts[:, 1].min()) - 1)
     x1 = min(w_img, math.ceil(pts[:, 0].max()) + 2)
@@ -187,16 +193,9 @@ def roi_mask(
     n_before = int(box.sum())
     box, narrow = _erode(box, erode_px, (y0 > 0, y1 < h_img), (x0 > 0, x1 < w_img))
     mask = box.astype(bool)
-    if not mask.any() and empty_ok:
-        return RoiMask(
-            name=wedge,
-            polygon=tuple(map(tuple, pts.tolist())),  # type: ignore[arg-type]
-            source=source,
-            y0=y0,
-            x0=x0,
-            mask=np.zeros((1, 1), dtype=bool),
-            n_before_erosion=n_before,
-        )
+    if not mask.any() and empty_ok:  # a 1 x 1 mask without pixels (the pipeline's `thin`)
+        mask = np.zeros((1, 1), dtype=bool)
+        return RoiMask(wedge, tuple(map(tuple, pts.tolist())), source, y0, x0, mask, n_before)  # type: ignore[arg-type]
     if not mask.any():
         raise ImagingError(
             f"photo {photo!r}, wedge {wedge!r}: the ROI ({how}) is empty after eroding it by "
