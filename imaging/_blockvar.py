@@ -159,8 +159,11 @@ def _inner(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("pyx,qyx->pq", a, b)
 
 
-def _plane_fit(n: np.ndarray, s: np.ndarray, y: np.ndarray, x: np.ndarray) -> _Fit | None:
-    """Weighted least-squares plane through the block means; None if no block is left over."""
+def _plane_fit(
+    n: np.ndarray, s: np.ndarray, y: np.ndarray, x: np.ndarray, degree: int = 1
+) -> _Fit | None:
+    """Weighted least-squares plane (degree 1) or quadratic surface (degree 2) through the
+    block means; None if no block is left over."""
     ok = n > 0
     k = int(ok.sum())
     if k == 0:
@@ -169,13 +172,12 @@ def _plane_fit(n: np.ndarray, s: np.ndarray, y: np.ndarray, x: np.ndarray) -> _F
     safe = np.where(ok, n, 1.0)
     yc, xc = y / safe, x / safe
     scale = max(float(np.ptp(xc[ok])), float(np.ptp(yc[ok])), 1.0)
-    design = np.stack(
-        [
-            ok.astype(float),
-            np.where(ok, (xc - x.sum() / n_tot) / scale, 0.0),
-            np.where(ok, (yc - y.sum() / n_tot) / scale, 0.0),
-        ]
-    )
+    u = np.where(ok, (xc - x.sum() / n_tot) / scale, 0.0)
+    v = np.where(ok, (yc - y.sum() / n_tot) / scale, 0.0)
+    terms = [ok.astype(float), u, v]
+    if degree >= 2:
+        terms += [u * u, u * v, v * v]
+    design = np.stack(terms)
     xtdx = _inner(design * n, design)
     lam, vec = np.linalg.eigh(xtdx)
     keep = lam > 1e-12 * lam[-1]  # a row or column of blocks leaves one slope undefined
@@ -285,14 +287,17 @@ class _ChannelLevel(NamedTuple):
         return self.gamma[1:3] / g0 if g0 > 0 else np.zeros(2)  # no scatter: nothing to resolve
 
 
-def _active(s: np.ndarray) -> list[int]:
-    """The lag classes that have block pairs (the others are left out of the system)."""
-    return [k for k in range(len(s)) if s[k] > 0]
+def _active(s: np.ndarray, max_lag: int = 1) -> list[int]:
+    """The lag classes that have block pairs (the others are left out of the system); only the
+    block itself (class 0) when `max_lag` is 0 (blocks taken as independent)."""
+    return [k for k in range(len(s) if max_lag else 1) if s[k] > 0]
 
 
-def _solve_gamma(g: np.ndarray, q: np.ndarray, s: np.ndarray) -> np.ndarray | None:
+def _solve_gamma(
+    g: np.ndarray, q: np.ndarray, s: np.ndarray, max_lag: int = 1
+) -> np.ndarray | None:
     """gamma = G^-1 q over the active lag classes (the others are 0); None if singular."""
-    act = _active(s)
+    act = _active(s, max_lag)
     try:
         sol = np.linalg.solve(g[np.ix_(act, act)], q[act])
     except np.linalg.LinAlgError:
@@ -304,14 +309,19 @@ def _solve_gamma(g: np.ndarray, q: np.ndarray, s: np.ndarray) -> np.ndarray | No
     return gamma
 
 
-def _channel_level(f: _Fit) -> _ChannelLevel | None:
-    """The 1-dependent fit of one channel's block residuals (None with too few blocks)."""
-    if f.k < MIN_FIT_BLOCKS:
+def _channel_level(
+    f: _Fit, min_fit: int = MIN_FIT_BLOCKS, max_lag: int = 1
+) -> _ChannelLevel | None:
+    """The 1-dependent (`max_lag` 0: independent) fit of one channel's block residuals (None
+    with too few blocks)."""
+    if f.k < min_fit:
         return None
     g, s = _moment_matrix(f, f)
-    gamma = _solve_gamma(g, _quadratic(f, f), s)
+    gamma = _solve_gamma(g, _quadratic(f, f), s, max_lag)
     if gamma is None:
         return None
+    if not max_lag:
+        s = np.where(np.arange(len(s)) == 0, s, 0.0)  # V counts the block itself only
     return _ChannelLevel(g, s, gamma, float(s @ gamma))
 
 
@@ -343,44 +353,65 @@ def _start_factor(base: Blocks) -> int:
     return LEVELS[-1]
 
 
-def _fits(blocks: Blocks) -> list[_Fit | None]:
-    return [_plane_fit(blocks.n[c], blocks.s[c], blocks.y[c], blocks.x[c]) for c in range(3)]
+def _fits(blocks: Blocks, degree: int = 1) -> list[_Fit | None]:
+    return [
+        _plane_fit(blocks.n[c], blocks.s[c], blocks.y[c], blocks.x[c], degree) for c in range(3)
+    ]
 
 
-def adaptive_covariance(base: Blocks) -> BlockEstimate:
+def adaptive_covariance(
+    base: Blocks,
+    degree: int = 1,
+    min_fit: int = MIN_FIT_BLOCKS,
+    max_rho: float = MAX_EDGE_RHO,
+    max_lag: int = 1,
+) -> BlockEstimate:
     """The covariance of the three channel means at the block size the data call for.
 
     Levels (LEVELS x the base block) are tried from the first with at most MAX_BLOCKS blocks;
     the first at which edge neighbours are correlated by at most MAX_EDGE_RHO is used. When
     even the coarsest level with MIN_FIT_BLOCKS blocks fails that, the estimate is returned
     with dof 0 (the texture is correlated over more than the ROI allows to measure).
+    `degree` 2 detrends the block means by a quadratic surface instead of a plane (a near
+    lamp's fall-off, a radiance that changes steeply across a face); the moments stay exact.
+    `min_fit` is the fewest blocks a level needs (MIN_FIT_BLOCKS for a 2-D grid; a row of
+    strips has 2 covariances to fit instead of 5 and needs fewer), `max_rho` the largest edge
+    correlation accepted (strips of whole layers may share a layer with their neighbours and
+    no further one: their covariance is 1-dependent at any neighbour correlation up to 0.5).
+    `max_lag` 0 takes the blocks as independent (strips aligned with the layers, whose
+    neighbours were found uncorrelated): one covariance to fit, about 3 times the degrees of
+    freedom.
     """
     f0 = _start_factor(base)
     chosen = None
     for f in (f for f in LEVELS if f >= f0 and f % f0 == 0):
         blocks = aggregate(base, f)
-        fits = _fits(blocks)
-        levels = [_channel_level(x) if x is not None else None for x in fits]
+        fits = _fits(blocks, degree)
+        levels = [_channel_level(x, min_fit, max_lag) if x is not None else None for x in fits]
         if chosen is not None and all(lv is None for lv in levels):
             break  # too few blocks to go coarser: keep the last level
         chosen = (blocks, fits, levels)
-        if _resolved(levels):
+        if _resolved(levels, max_rho):
             break
     blocks, fits, levels = chosen  # type: ignore[misc]
-    return _estimate(blocks, fits, levels, _resolved(levels))
+    return _estimate(blocks, fits, levels, _resolved(levels, max_rho), max_lag)
 
 
-def _resolved(levels: list[_ChannelLevel | None]) -> bool:
+def _resolved(levels: list[_ChannelLevel | None], max_rho: float = MAX_EDGE_RHO) -> bool:
     """Whether the correlation at this level stays within the 8 neighbours (module docstring)."""
     ok = [lv for lv in levels if lv is not None]
     if not ok:
         return True
     rho = np.mean([lv.edge_rho for lv in ok], axis=0)
-    return float(np.max(rho)) <= MAX_EDGE_RHO
+    return float(np.max(rho)) <= max_rho
 
 
 def _estimate(
-    blocks: Blocks, fits: list[_Fit | None], levels: list[_ChannelLevel | None], resolved: bool
+    blocks: Blocks,
+    fits: list[_Fit | None],
+    levels: list[_ChannelLevel | None],
+    resolved: bool,
+    max_lag: int = 1,
 ) -> BlockEstimate:
     """The 3 x 3 covariance of the means at one level (variances from `levels`)."""
     n_tot = blocks.n.sum(axis=(1, 2))
@@ -396,9 +427,19 @@ def _estimate(
             if fa is None or fb is None or levels[a] is None or levels[b] is None:
                 continue
             g, s = _moment_matrix(fa, fb)
-            gamma = _solve_gamma(g, _quadratic(fa, fb), s)
+            gamma = _solve_gamma(g, _quadratic(fa, fb), s, max_lag)
             if gamma is not None:
                 cov[a, b] = cov[b, a] = float(s @ gamma) / (n_tot[a] * n_tot[b])
     n_blocks = np.array([int((blocks.n[c] > 0).sum()) for c in range(3)])
     slopes = np.array([f.slope if f is not None else (math.nan, math.nan) for f in fits])
     return BlockEstimate(cov, dof, n_blocks, blocks.size_px, slopes)
+
+
+def edge_correlation(base: Blocks, degree: int = 1, min_fit: int = MIN_FIT_BLOCKS) -> float:
+    """The mean correlation of edge neighbours (either axis, the larger) at the base level,
+    over the channels that can be fitted; NaN when none can."""
+    levels = [_channel_level(f, min_fit) if f is not None else None for f in _fits(base, degree)]
+    ok = [lv for lv in levels if lv is not None and lv.gamma[0] > 0]
+    if not ok:
+        return math.nan
+    return float(np.max(np.mean([lv.edge_rho for lv in ok], axis=0)))

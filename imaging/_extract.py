@@ -15,9 +15,18 @@ The same moments of two channels give the R, G, B covariance of the ROI.
 
 The white-noise part of the error (shot, read and quantisation noise, which differ between
 photos) comes from the differences of neighbouring same-colour pixels
-(`_Accumulator.noise_variance`).
+(`_Accumulator.noise_variance`), or from the photo's noise model (`_noise`) when the caller
+has one.
 
-See docs/imaging.md §Standard errors for the checks and for what it does not cover.
+An ROI that shows its layer lines as stripes (`_stripes`) is measured on its pixels with the
+fitted stripes subtracted; its blocks are then detrended by a quadratic surface, strips along
+the layer lines may replace them (`_with_strips`), and the noise the fitted stripes carry into
+the mean is added (`finish_stats`). `roi_data` does the work that needs the pixels, and
+`finish_stats` what needs the photo's noise model, so that the pipeline can fit that model to
+all of a photo's ROIs in between.
+
+See docs/imaging.md §Standard errors and §Layer stripes for the checks and for what they do not
+cover.
 """
 
 from __future__ import annotations
@@ -28,10 +37,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._blockvar import LEVELS, MAX_BLOCKS, Blocks, adaptive_covariance
+from ._blockvar import (
+    LEVELS,
+    MAX_BLOCKS,
+    BlockEstimate,
+    Blocks,
+    adaptive_covariance,
+    edge_correlation,
+)
 from ._decode import RawFrame
 from ._errors import ImagingError
+from ._noise import NoiseModel
 from ._roi import MAX_ERODE_PX, RoiMask
+from ._stripes import MIN_FIT_STRIPS, Pixels, StripeFit, fit_stripes, strip_blocks
 
 
 @dataclass(frozen=True)
@@ -52,6 +70,8 @@ class ExtractionSettings:
         min_blocks: an ROI channel whose standard error has fewer degrees of freedom
             (`ChannelStats.dof`: effectively independent blocks) is flagged "few_blocks": the
             ROI is too small for its texture to estimate its error.
+        stripes: find and fit layer stripes that the camera resolves (docs/imaging.md §Layer
+            stripes); False measures every ROI as plain texture.
     """
 
     erode_px: int = 8
@@ -59,6 +79,7 @@ class ExtractionSettings:
     saturation_level: float = 0.98
     max_saturated_fraction: float = 0.5
     min_blocks: int = 10
+    stripes: bool = True
 
     def __post_init__(self) -> None:
         checks = [
@@ -73,6 +94,7 @@ class ExtractionSettings:
             (0.5 <= self.saturation_level <= 1.0, "saturation_level must be in [0.5, 1]"),
             (0.0 <= self.max_saturated_fraction <= 1.0, "max_saturated_fraction must be in [0, 1]"),
             (isinstance(self.min_blocks, int) and self.min_blocks >= 2, "min_blocks must be >= 2"),
+            (isinstance(self.stripes, bool), "stripes must be true or false"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -102,6 +124,12 @@ class ChannelStats:
             cannot be estimated from this ROI).
         block_px: the block side chosen for the standard error (raw pixels).
         channel_corrs: correlations of the errors of the (R, G), (R, B) and (G, B) means.
+        stripe_period_px: the layer stripes' period in the image (px) when the ROI shows
+            resolved layer lines and they were fitted (docs/imaging.md §Layer stripes), else NaN.
+        stripe_angle_deg: the image direction across the stripes (deg from +x towards +y).
+        stripe_amplitude: the stripes' relative amplitude (the fundamental's).
+        stripe_offset: how far the ROI's own mean (its incomplete periods) lies above the
+            period average that `mean_dn` is, relative (NaN without stripes).
     """
 
     mean_dn: float
@@ -115,6 +143,10 @@ class ChannelStats:
     dof: float = 0.0
     block_px: int = 0
     channel_corrs: tuple[float, float, float] = (math.nan, math.nan, math.nan)
+    stripe_period_px: float = math.nan
+    stripe_angle_deg: float = math.nan
+    stripe_amplitude: float = math.nan
+    stripe_offset: float = math.nan
 
 
 def block_size(frame: RawFrame, block_px: int) -> int:
@@ -156,15 +188,85 @@ def _aligned_mask(roi: RoiMask, b: int, box: tuple[int, int, int, int]) -> np.nd
     return mask
 
 
+@dataclass(frozen=True, eq=False)
+class RoiData:
+    """What one ROI's pixels give before the photo's noise model is known (`roi_data`).
+
+    Attributes:
+        blocks: the channels' block sums (of the de-striped pixels when stripes were fitted).
+        estimate: the block covariance estimate at the chosen block size.
+        base: per channel, mean and counts (`_Accumulator.stats`).
+        noise_local: (3,) each channel's white-noise variance per pixel from its neighbour
+            differences (DN^2; -1 where undefined).
+        level: (3,) the channels' mean level (DN above black).
+        weights: (3, 2) per channel sum_p w_p^2 and sum_p w_p^2 x_p for the pixel weights w_p
+            by which pixel noise enters the channel's mean: 1 / N on its own pixels, plus the
+            fitted stripes' coupling (`StripeFit.coupling`).
+        plain: (3,) 1 / N, the same sum for the plain mean (weights 1 / N).
+        stripes: the fitted stripes, or None.
+    """
+
+    blocks: Blocks
+    estimate: BlockEstimate
+    base: tuple[ChannelStats, ChannelStats, ChannelStats]
+    noise_local: np.ndarray
+    level: np.ndarray
+    weights: np.ndarray
+    plain: np.ndarray
+    stripes: StripeFit | None
+
+
 def roi_channel_stats(
-    frame: RawFrame, roi: RoiMask, settings: ExtractionSettings
+    frame: RawFrame,
+    roi: RoiMask,
+    settings: ExtractionSettings,
+    *,
+    across: np.ndarray | None = None,
+    noise: NoiseModel | None = None,
 ) -> tuple[ChannelStats, ChannelStats, ChannelStats]:
     """R, G, B statistics of the frame's pixels inside `roi` (both greens together).
 
     Blocks are aligned to the image origin and hold whole CFA tiles; their side is chosen from
     the data, at least `block_size(frame, settings.block_px)` (docs/imaging.md §Standard
-    errors).
+    errors). When the ROI shows resolved layer lines (`settings.stripes`), they are fitted and
+    removed first (docs/imaging.md §Layer stripes); `across` is the image direction (x, y)
+    across the layer lines when known (a face placed from markers), else it is estimated from
+    the pixels. `noise` is the photo's noise model (`fit_noise_model` over its ROIs); without
+    it each channel's white noise is its own neighbour-difference estimate.
     """
+    return finish_stats(roi_data(frame, roi, settings, across=across), noise)
+
+
+def _roi_pixels(
+    data: np.ndarray, mask: np.ndarray, frame: RawFrame, box: tuple[int, int, int, int],
+    settings: ExtractionSettings,
+) -> tuple[Pixels, tuple[np.ndarray, np.ndarray]]:  # fmt: skip
+    """The mosaic's pixels inside the ROI as `Pixels`, and their (row, column) in the box."""
+    assert frame.cfa is not None
+    y0, x0 = box[0], box[1]
+    ys, xs = np.nonzero(mask)
+    ph, pw = frame.cfa.shape
+    colour = frame.cfa[(ys + y0) % ph, (xs + x0) % pw].astype(np.int64)
+    black = frame.black[(ys + y0) % ph, (xs + x0) % pw].astype(np.float64)
+    raw = data[ys, xs].astype(np.float64)
+    white = frame.white_level
+    limit = black + settings.saturation_level * (white - black)
+    good = np.isfinite(raw) & (raw < limit)
+    value = np.where(good, raw - black, 0.0)
+    px = Pixels((xs + x0).astype(np.float64), (ys + y0).astype(np.float64), colour, value, good)
+    return px, (ys, xs)
+
+
+def _bayer(frame: RawFrame) -> bool:
+    """Whether the frame is a mosaic with one R, two G and one B per 2 x 2 tile."""
+    cfa = frame.cfa
+    return cfa is not None and cfa.shape == (2, 2) and sorted(cfa.ravel().tolist()) == [0, 1, 1, 2]
+
+
+def roi_data(
+    frame: RawFrame, roi: RoiMask, settings: ExtractionSettings, *, across: np.ndarray | None = None
+) -> RoiData:
+    """The block sums, block covariance, stripes and noise ingredients of one ROI."""
     b = _start_block(roi, block_size(frame, settings.block_px))
     box, grid = _aligned_box(roi, b)
     y0, x0, hb, wb = box
@@ -173,6 +275,15 @@ def roi_channel_stats(
     if data.shape[:2] != (hb, wb):  # past the bottom or right edge: pad (outside the mask)
         pad = [(0, hb - data.shape[0]), (0, wb - data.shape[1])] + [(0, 0)] * (data.ndim - 2)
         data = np.pad(data, pad)
+    periodic = None
+    fit = None
+    px = None
+    if settings.stripes and _bayer(frame) and mask.any():
+        px, (ys, xs) = _roi_pixels(data, mask, frame, box, settings)
+        fit = fit_stripes(px, across)
+        if fit is not None:
+            periodic = np.zeros((hb, wb), dtype=np.float64)
+            periodic[ys, xs] = fit.periodic
     acc = [_Accumulator(grid) for _ in range(3)]
     level, white = settings.saturation_level, frame.white_level
     if frame.cfa is None:
@@ -186,16 +297,10 @@ def roi_channel_stats(
                 c = int(frame.cfa[dy, dx])
                 sub = (slice(dy, None, ph), slice(dx, None, pw))
                 acc[c].add(
-                    data[sub], mask[sub], float(frame.black[dy, dx]), level, white, b, ph, dy, dx
-                )
+                    data[sub], mask[sub], float(frame.black[dy, dx]), level, white, b, ph, dy,
+                    dx, None if periodic is None else periodic[sub],
+                )  # fmt: skip
     step = 1 if frame.cfa is None else frame.cfa.shape[0]
-    return _channel_stats(acc, step)
-
-
-def _channel_stats(
-    acc: list[_Accumulator], step: int
-) -> tuple[ChannelStats, ChannelStats, ChannelStats]:
-    """The three channels' statistics from their accumulated blocks."""
     blocks = Blocks(
         np.stack([a.counts for a in acc]),
         np.stack([a.sums for a in acc]),
@@ -203,14 +308,94 @@ def _channel_stats(
         np.stack([a.sum_x for a in acc]),
         acc[0].block,
     )
-    est = adaptive_covariance(blocks)
+    # with stripes fitted, the level's curvature (a near lamp) is detrended as the stripes' fit
+    # did; the plain path keeps the plane (docs/imaging.md §Standard errors)
+    est = adaptive_covariance(blocks, degree=2 if fit is not None else 1)
+    if fit is not None and px is not None:
+        est = _with_strips(est, px, fit)
+    base = tuple(a.stats() for a in acc)
+    noise_local = np.array([a.noise_variance(est.slopes[c], step) for c, a in enumerate(acc)])
+    weights, plain, lev = _noise_weights(acc, fit, px)
+    return RoiData(blocks, est, base, noise_local, lev, weights, plain, fit)  # type: ignore[arg-type]
+
+
+STRIP_OFFSETS = (0.0, 0.25, 0.5, 0.75)
+"""Where the strips' edges are tried, in layers from the fitted phase's zero."""
+
+RHO_INDEPENDENT = 0.2
+"""Strips whose neighbours correlate by less than this (at the best of STRIP_OFFSETS) are taken
+as independent (each holds its own layers)."""
+
+
+def _with_strips(est: BlockEstimate, px: Pixels, fit: StripeFit) -> BlockEstimate:
+    """The block estimate, or that of strips along the layer lines when it is larger than the
+    blocks' by more than twice its own relative precision, or when the blocks could not
+    resolve the correlation (docs/imaging.md §Layer stripes). Irregular layers are correlated
+    along their whole line, beyond the 8 neighbours of square blocks."""
+    values = px.value - fit.periodic
+    options = [Blocks(*strip_blocks(px, fit, values, offset), 1) for offset in STRIP_OFFSETS]
+    rho = [edge_correlation(b, degree=2, min_fit=MIN_FIT_STRIPS) for b in options]
+    if all(math.isnan(r) for r in rho):
+        return est
+    k = int(np.nanargmin(rho))
+    # strips aligned with the layers' edges are independent when each layer is its own: then
+    # one covariance, about three times the degrees of freedom of a 1-dependent estimate
+    strips = adaptive_covariance(
+        options[k], degree=2, min_fit=MIN_FIT_STRIPS, max_rho=0.5,
+        max_lag=0 if rho[k] < RHO_INDEPENDENT else 1,
+    )  # fmt: skip
+    g = 1  # green: the most pixels; the structure is the same in every channel
+    v2, v1 = float(est.cov[g, g]), float(strips.cov[g, g])
+    d2, d1 = float(est.dof[g]), float(strips.dof[g])
+    if not (math.isfinite(v1) and d1 > 0):
+        return est
+    if not (math.isfinite(v2) and d2 > 0) or v1 > v2 * (1 + 2 * math.sqrt(2 / d1)):
+        return BlockEstimate(strips.cov, strips.dof, strips.n_blocks, est.size_px, est.slopes)
+    return est
+
+
+def _noise_weights(
+    acc: list[_Accumulator], fit: StripeFit | None, px: Pixels | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per channel (sum w^2, sum w^2 x) of the pixel weights w of its mean, 1 / N, and its
+    mean level (DN). Without stripes w = 1 / N on the channel's own pixels."""
+    weights = np.zeros((3, 2))
+    plain = np.zeros(3)
+    lev = np.full(3, math.nan)
+    for c, a in enumerate(acc):
+        n = float(a.counts.sum())
+        if n == 0:
+            continue
+        lev[c] = float(a.sums.sum()) / n  # of the de-striped pixels: the period average
+        plain[c] = 1.0 / n
+        weights[c] = (1.0 / n, lev[c] / n)
+    if fit is None or px is None:
+        return weights, plain, lev
+    x = np.maximum(px.value, 0.0)
+    for c in range(3):
+        on = px.good & (px.colour == c)
+        n = int(on.sum())
+        if n == 0:
+            continue
+        w = np.where(px.good, fit.coupling[c], 0.0)
+        w[on] += 1.0 / n
+        weights[c] = (float(np.sum(w * w)), float(np.sum(w * w * x)))
+    return weights, plain, lev
+
+
+def finish_stats(
+    rd: RoiData, noise: NoiseModel | None = None
+) -> tuple[ChannelStats, ChannelStats, ChannelStats]:
+    """The three channels' statistics of one ROI, its pixel noise from `noise` (the photo's
+    noise model) or, without one, from each channel's own neighbour differences."""
+    blocks, est = rd.blocks, rd.estimate
     corrs = _correlations(est.cov)
     defined = [c for c in corrs if math.isfinite(c)]
     mean_corr = float(np.clip(np.mean(defined), 0.0, 1.0)) if defined else math.nan
     shifts = _centroid_shifts(blocks, est.slopes)
+    fit = rd.stripes
     out = []
-    for c, a in enumerate(acc):
-        base = a.stats()
+    for c, base in enumerate(rd.base):
         if base.n_pixels == 0:
             out.append(base)
             continue
@@ -218,21 +403,51 @@ def _channel_stats(
         var, nu = float(est.cov[c, c]), float(est.dof[c])
         # the variance of a pull (x - mu) / s with s^2 ~ V chi2_nu / nu is nu / (nu - 2)
         infl = nu / (nu - 2) if nu > 2 else 1.0
-        stderr = math.sqrt(max(var, 0.0) * infl) if math.isfinite(var) else math.nan
-        noise = a.noise_variance(est.slopes[c], step)
+        total = max(var, 0.0) * infl if math.isfinite(var) else math.nan
+        if noise is not None:
+            w_var = noise.variance_of_mean(c, rd.weights[c, 0], rd.weights[c, 1])
+            p_var = noise.variance_of_mean(c, rd.plain[c], rd.plain[c] * rd.level[c])
+        elif rd.noise_local[c] >= 0:
+            w_var = rd.noise_local[c] * rd.weights[c, 0]
+            p_var = rd.noise_local[c] * rd.plain[c]
+        else:
+            w_var = p_var = math.nan
+        if fit is not None and math.isfinite(total) and math.isfinite(w_var):
+            # the fitted stripes move the mean by their own noise: what the pixel weights add
+            # to the plain mean's noise (docs/imaging.md §Layer stripes)
+            total = max(total + w_var - p_var, w_var)
+        stripe = {}
+        if fit is not None:
+            stripe = {
+                "stripe_period_px": fit.period_px,
+                "stripe_angle_deg": fit.angle_deg,
+                "stripe_amplitude": fit.amplitude,
+                "stripe_offset": float(fit.offset[c]),
+            }
         out.append(
             dataclasses.replace(
                 base,
-                stderr_dn=stderr,
+                stderr_dn=math.sqrt(total) if math.isfinite(total) else math.nan,
                 n_blocks=int(est.n_blocks[c]),
                 channel_corr=mean_corr,
-                stderr_noise_dn=math.sqrt(noise / base.n_pixels) if noise >= 0 else math.nan,
+                stderr_noise_dn=math.sqrt(w_var) if w_var >= 0 else math.nan,
                 dof=nu,
                 block_px=est.size_px,
                 channel_corrs=corrs,
+                **stripe,
             )
         )
     return tuple(out)  # type: ignore[return-value]
+
+
+def noise_points(rd: RoiData) -> list[tuple[int, float, float, float]]:
+    """The ROI's (channel, mean level, white-noise variance, pixels) for a photo's noise model."""
+    out = []
+    for c in range(3):
+        n = rd.base[c].n_pixels
+        if n > 0 and rd.noise_local[c] >= 0 and math.isfinite(rd.level[c]):
+            out.append((c, float(rd.level[c]), float(rd.noise_local[c]), float(n)))
+    return out
 
 
 def _centroid_shifts(blocks: Blocks, slopes: np.ndarray) -> np.ndarray:
@@ -303,14 +518,21 @@ class _Accumulator:
         step: int,
         dy: int,
         dx: int,
+        periodic: np.ndarray | None = None,
     ) -> None:
-        """Add a sub-plane sampled every `step` pixels from offset (dy, dx) of the aligned box."""
+        """Add a sub-plane sampled every `step` pixels from offset (dy, dx) of the aligned box;
+        `periodic` (DN, the fitted stripes) is subtracted from the signal, not from the test
+        for saturation."""
         nby, nbx = self.grid
         self.block = block
         k = block // step  # sub-plane pixels per block side
         good = mask & (plane < black + level * (white - black))
         self.n_in += int(np.count_nonzero(mask))
-        signal = np.where(good, plane.astype(np.float32) - np.float32(black), np.float32(0))
+        if periodic is None:
+            signal = np.where(good, plane.astype(np.float32) - np.float32(black), np.float32(0))
+        else:
+            destriped = plane.astype(np.float64) - black - periodic
+            signal = np.where(good, destriped, 0.0).astype(np.float32)
         g4 = good.reshape(nby, k, nbx, k)
         counts = g4.sum(axis=(1, 3))
         self.counts += counts

@@ -388,7 +388,10 @@ def marker_crop(frame: RawFrame, corners: np.ndarray, margin: float) -> tuple[np
     Black levels are subtracted per CFA position, and each position is scaled so that the
     crop's bright pixels (the marker's white cells and quiet zone: paper, neutral) have the
     same mean at every position; no CFA pattern is left on the paper whatever the light's colour
-    or the camera's channel gains. A linear file gives the sum of its planes.
+    or the camera's channel gains. Each position's bright pixels are those above the midpoint
+    of its own 5th and 95th percentiles: a threshold common to all positions would count the
+    plate as bright in the channels of high gain and not in the others, and leave a pattern
+    that moves the edges by half a pixel. A linear file gives the sum of its planes.
     """
     x0 = max(0, math.floor(corners[:, 0].min() - margin))
     y0 = max(0, math.floor(corners[:, 1].min() - margin))
@@ -399,14 +402,14 @@ def marker_crop(frame: RawFrame, corners: np.ndarray, margin: float) -> tuple[np
         return crop - np.float32(np.sum(frame.black)), x0, y0
     crop = frame.data[y0:y1, x0:x1].astype(np.float32)
     ph, pw = frame.cfa.shape
-    bright = crop > np.median(crop)
     means = {}
     for dy in range(ph):
         for dx in range(pw):
             py, px = (y0 + dy) % ph, (x0 + dx) % pw
             plane = crop[dy::ph, dx::pw]
             plane -= np.float32(frame.black[py, px])
-            sel = plane[bright[dy::ph, dx::pw]]
+            lo, hi = np.percentile(plane, (5, 95)) if plane.size else (0.0, 0.0)
+            sel = plane[plane > 0.5 * (lo + hi)]
             means[dy, dx] = float(sel.mean()) if sel.size else 0.0
     target = float(np.mean(list(means.values())))
     for (dy, dx), m in means.items():
@@ -459,7 +462,121 @@ def _fit_line(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return centre, direction
 
 
-def refine_corners(frame: RawFrame, corners: np.ndarray, cells: int) -> np.ndarray:
+def marker_bits(aruco_dict: cv2.aruco.Dictionary, marker_id: int) -> np.ndarray:
+    """The marker's cells (1 white, 0 black) with its black border: (cells, cells)."""
+    cells = int(aruco_dict.markerSize) + 2
+    img = cv2.aruco.generateImageMarker(aruco_dict, marker_id, 10 * cells, borderBits=1)
+    return (img[5::10, 5::10] > 127).astype(np.uint8)
+
+
+def _cell_homography(corners: np.ndarray, cells: int) -> np.ndarray:
+    """The homography from marker cell coordinates (u, v in [0, cells], u along the top side)
+    to image pixels, through the 4 corners."""
+    square = np.array([[0, 0], [cells, 0], [cells, cells], [0, cells]], dtype=np.float64)
+    return cv2.getPerspectiveTransform(square.astype(np.float32), corners.astype(np.float32))
+
+
+def _to_image(hom: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    q = np.c_[uv, np.ones(len(uv))] @ hom.T
+    return q[:, :2] / q[:, 2:]
+
+
+def _inner_edges(bits: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, bool]]:
+    """The boundaries between adjacent cells of different colour inside the outer border: (its
+    start and end (u, v) in cells, half a cell across it, whether it goes from ink to paper)."""
+    cells = bits.shape[0]
+    out = []
+    for i in range(cells):
+        for j in range(1, cells):
+            pairs = ((bits[i, j - 1], bits[i, j]), (bits[j - 1, i], bits[j, i]))
+            for axis, (a, b) in enumerate(pairs):
+                if a == b:
+                    continue
+                if axis == 0:  # between columns j - 1 and j of row i: the line u = j
+                    ends = (np.array([j, i], float), np.array([j, i + 1], float))
+                    across = np.array([0.5, 0.0])
+                else:  # between rows j - 1 and j of column i: the line v = j
+                    ends = (np.array([i, j], float), np.array([i + 1, j], float))
+                    across = np.array([0.0, 0.5])
+                out.append((ends[0], ends[1], across, bool(b > a)))
+    return out
+
+
+def _edge_offset(image: np.ndarray, hom: np.ndarray, edge: tuple) -> float | None:
+    """Where the image shows one inner boundary, relative to where `hom` puts it (px, along
+    the normal): profiles across it at 5 points of its middle 60%, averaged, crossing halfway
+    between their two ends' levels. None when the boundary spans less than 2 px; half the
+    profile's length when no edge of the expected polarity is in it."""
+    start, end, across, rising = edge
+    ts = np.linspace(0.2, 0.8, 5)
+    mid_uv = start[None, :] + ts[:, None] * (end - start)[None, :]
+    centre = _to_image(hom, mid_uv)
+    inside = _to_image(hom, mid_uv - across)
+    outside = _to_image(hom, mid_uv + across)
+    normal = (outside - inside).mean(axis=0)
+    half = float(np.linalg.norm(normal)) / 2
+    if not 1.0 <= half <= 200.0:  # under 2 px across, or corners that make no square
+        return None
+    n = normal / (2 * half)
+    o = np.arange(-half, half + 1e-9, 0.1)
+    pts = (centre[:, None, :] + o[None, :, None] * n[None, None, :]).astype(np.float32)
+    prof = cv2.remap(image, pts[..., 0], pts[..., 1], cv2.INTER_LINEAR).mean(axis=0)
+    k = max(1, len(o) // 5)
+    lo, hi = float(prof[:k].mean()), float(prof[-k:].mean())
+    if rising != (hi > lo) or hi == lo:
+        return half
+    mid = 0.5 * (lo + hi)
+    above = (prof - mid) * (1.0 if hi > lo else -1.0) > 0
+    idx = int(np.argmax(above))
+    if idx == 0:
+        return half
+    p0, p1 = float(prof[idx - 1]), float(prof[idx])
+    frac = float(np.clip((mid - p0) / (p1 - p0), 0.0, 1.0)) if p1 != p0 else 0.5
+    return float(o[idx - 1] + frac * (o[1] - o[0]))
+
+
+def grid_error(image: np.ndarray, corners: np.ndarray, bits: np.ndarray) -> float:
+    """How far (px) the marker's inner cell boundaries as the image shows them lie from where
+    the homography through `corners` (in `image`'s pixels) puts them: the RMS over the
+    boundaries, each located like the outer sides (profiles across it, half a cell each way,
+    crossing halfway between ink and paper), its worst tenth left out; inf without any.
+    Corners consistent with the marker's square place all of them; corners off by a fraction
+    of a cell or more do not.
+    """
+    if not _convex(corners):
+        return math.inf
+    hom = _cell_homography(corners, bits.shape[0])
+    offsets = [_edge_offset(image, hom, edge) for edge in _inner_edges(bits)]
+    sq = np.sort(np.square([o for o in offsets if o is not None]))
+    if sq.size == 0:
+        return math.inf
+    kept = sq[: max(1, math.ceil(0.9 * sq.size))]
+    return math.sqrt(float(kept.mean()))
+
+
+def _convex(corners: np.ndarray) -> bool:
+    """Whether 4 corners make a convex quadrilateral, turning the same way at every corner."""
+    d = np.roll(corners, -1, axis=0) - corners
+    cross = d[:, 0] * np.roll(d, -1, axis=0)[:, 1] - d[:, 1] * np.roll(d, -1, axis=0)[:, 0]
+    return bool(np.all(cross > 0) or np.all(cross < 0))
+
+
+GRID_OK = 0.1
+"""Corners whose inner grid is placed within this fraction of a cell need no wider search."""
+
+GRID_FAR = 0.15
+"""Corners more than half a cell from the detector's are kept only when they place the inner
+grid within this fraction of a cell: a faint, noisy marker's best grid is no evidence."""
+
+REFINE_PASSES = 3
+"""With the marker's bits, the edges are located again from the refined corners up to this many
+times, while the inner grid's error keeps falling (the first pass may start several pixels
+off, with part of a side's profiles beside its edge)."""
+
+
+def refine_corners(
+    frame: RawFrame, corners: np.ndarray, cells: int, bits: np.ndarray | None = None
+) -> np.ndarray:
     """Sub-pixel corners of one marker (full-resolution pixel coordinates) from its edges.
 
     Each of the 4 outer sides of the black border is located along its length in the linear
@@ -469,18 +586,83 @@ def refine_corners(frame: RawFrame, corners: np.ndarray, cells: int) -> np.ndarr
     the intersections of adjacent lines. Measured on synthetic markers (benchmarks/
     bench_markers.py): 0.03-0.2 px, where `cv2.cornerSubPix` in a window small enough to see
     only the corner's own edges gave 0.1-1.3 px. Profiles with less than half the median
-    contrast (the side's edge is not inside them) are dropped; a side with fewer than 3 left,
-    or corners that would move by more than half a cell, keep the detector's corners.
+    contrast (the side's edge is not inside them) are dropped; a side with fewer than 3 left
+    keeps the corners it started from.
+
+    Which corners are kept: with the marker's `bits` (`marker_bits`), those that place the
+    marker's inner cell edges best (`grid_error`), also when they moved by more than half a
+    cell from the detector's (whose corners can be several pixels off on small, foreshortened
+    markers), provided they place that grid within GRID_FAR of a cell. When the detector's
+    corners misplace the grid by more than GRID_OK of a cell, the sides are also looked for
+    from the square moved by a cell either way, and the edges are located again from each
+    better set (REFINE_PASSES). Otherwise (and without the bits) the refined corners are kept
+    when they moved by at most half a cell.
     """
     c = np.asarray(corners, dtype=np.float64).reshape(4, 2)
-    axes = (
+    axes = _cell_axes(c, cells)
+    margin = 4.0 + 3.0 * max(float(np.linalg.norm(v)) for v in axes)
+    crop, x0, y0 = marker_crop(frame, c, margin)
+    origin = np.array([x0, y0], dtype=np.float64)
+    loc = c - origin
+    smallest = min(float(np.linalg.norm(v)) for v in axes)
+    near = _refine_once(crop, loc, cells)
+    if near is not None and np.abs(near - loc).max() > 0.5 * smallest:
+        near = None
+    if bits is None:
+        return c if near is None else near + origin
+    best = _grid_search(crop, loc, cells, bits, axes)
+    if best is not None and np.abs(best - loc).max() <= 0.5 * smallest:
+        return best + origin
+    if best is not None and grid_error(crop, best, bits) < GRID_FAR * smallest:
+        return best + origin  # far from the detector's, but the marker's grid agrees with it
+    return c if near is None else near + origin
+
+
+def _grid_search(
+    crop: np.ndarray, loc: np.ndarray, cells: int, bits: np.ndarray, axes: tuple
+) -> np.ndarray | None:
+    """The corners that place the marker's inner grid best, searched from `loc` (refine_corners);
+    None when none places it better than `loc` does."""
+    best, best_err = loc, grid_error(crop, loc, bits)
+    start_err = best_err
+    if not best_err < GRID_OK * min(float(np.linalg.norm(v)) for v in axes):
+        # the detector's corners may be a cell or more off: start also from the square moved
+        # by one cell along either side (the inner grid tells which start was right)
+        starts = [loc + i * axes[0] + j * axes[1] for i in (-1, 0, 1) for j in (-1, 0, 1)]
+        tries = [_refine_once(crop, s, cells, 0.6) for s in starts]
+        scored = [(grid_error(crop, out, bits), out) for out in tries if out is not None]
+        if scored:
+            err, out = min(scored, key=lambda item: item[0])
+            if err < best_err:
+                best, best_err = out, err
+    for _ in range(REFINE_PASSES):
+        # profiles half a cell each way; a cell and a half when that finds no better corners
+        # (a side more than half a cell off has part of its profiles beside its edge)
+        tries = (_refine_once(crop, best, cells, reach) for reach in (0.6, 1.5))
+        scored = [(grid_error(crop, out, bits), out) for out in tries if out is not None]
+        better = [item for item in scored if item[0] < best_err]
+        if not better:
+            break
+        best_err, best = min(better, key=lambda item: item[0])
+    return best if best_err < start_err else None
+
+
+def _cell_axes(c: np.ndarray, cells: int) -> tuple[np.ndarray, np.ndarray]:
+    """The marker's mean cell vectors along its top side and down its left side (px)."""
+    return (
         0.5 * ((c[1] - c[0]) + (c[2] - c[3])) / cells,
         0.5 * ((c[3] - c[0]) + (c[2] - c[1])) / cells,
     )
-    margin = 4.0 + 1.5 * max(float(np.linalg.norm(v)) for v in axes)
-    crop, x0, y0 = marker_crop(frame, c, margin)
-    origin = np.array([x0, y0], dtype=np.float64)
-    loc, centre = c - origin, (c - origin).mean(axis=0)
+
+
+def _refine_once(
+    crop: np.ndarray, loc: np.ndarray, cells: int, reach: float = 0.6
+) -> np.ndarray | None:
+    """The corners from the 4 outer sides located around `loc` (crop pixels), by profiles
+    `reach` cells each way across each side; None when a side keeps fewer than 3 profiles with
+    the edge in them, or the lines do not meet."""
+    axes = _cell_axes(loc, cells)
+    centre = loc.mean(axis=0)
     sides = []
     for k in range(4):
         a, b = loc[k], loc[(k + 1) % 4]
@@ -489,20 +671,17 @@ def refine_corners(frame: RawFrame, corners: np.ndarray, cells: int) -> np.ndarr
         n = n if n @ (0.5 * (a + b) - centre) > 0 else -n
         across = abs(float(axes[(k + 1) % 2] @ n))  # the cell size across this side
         along = float(np.linalg.norm(axes[k % 2]))
-        sides.append(_edge_crossings(crop, a, b, n, max(0.8, 0.6 * across), 0.6 * along))
+        sides.append(_edge_crossings(crop, a, b, n, max(0.8, reach * across), 0.6 * along))
     contrasts = np.concatenate([con for _, con in sides])
     ref = float(np.median(contrasts[contrasts > 0])) if (contrasts > 0).any() else 0.0
     lines = []
     for pts, con in sides:
         good = pts[con >= 0.5 * ref] if ref > 0 else pts[:0]
         if len(good) < 3:
-            return c
+            return None
         lines.append(_fit_line(good))
     out = np.array([_intersect(lines[k - 1], lines[k]) for k in range(4)])
-    smallest = min(float(np.linalg.norm(v)) for v in axes)
-    if not np.all(np.isfinite(out)) or np.abs(out - loc).max() > 0.5 * smallest:
-        return c
-    return out + origin
+    return out if np.all(np.isfinite(out)) else None
 
 
 def _intersect(l1: tuple[np.ndarray, np.ndarray], l2: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
@@ -558,7 +737,7 @@ def detect_markers(
     for mid in sorted(merged):
         mean, keep = merged[mid]
         if settings.refine:  # at full resolution: 2-4 times closer than on the binned image
-            mean = refine_corners(frame, mean, cells)
+            mean = refine_corners(frame, mean, cells, marker_bits(aruco_dict, mid))
         ids.append(mid)
         corners.append(mean)
         found_by.append("+".join(sorted({c.source for c in keep})))

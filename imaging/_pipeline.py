@@ -13,7 +13,7 @@ import json
 import math
 import multiprocessing
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass
@@ -29,15 +29,24 @@ from ._checks import low_signal_warnings, same_bytes_warnings
 from ._decode import CHANNELS, RawFrame, decode_raw, file_sha256
 from ._errors import ImagingError, PhotosFailedError
 from ._exposure import Exposure, resolve_exposure
-from ._extract import ChannelStats, ExtractionSettings, roi_channel_stats
+from ._extract import (
+    ChannelStats,
+    ExtractionSettings,
+    RoiData,
+    finish_stats,
+    noise_points,
+    roi_data,
+)
 from ._hdr import BracketMember, Radiometry, prepare_radiometry
 from ._io import atomic_write_bytes
 from ._markers import MarkerDetection, MarkerLayout, detect_markers
+from ._noise import NoiseModel, fit_noise_model
 from ._placement import (
     CameraPose,
     PinholeCamera,
     check_in_image,
     face_axis_px,
+    face_outline_3d,
     face_polygon,
     fit_camera_pose,
     hidden_fraction,
@@ -46,10 +55,20 @@ from ._placement import (
     view_parallax_deg,
 )
 from ._preview import PREVIEW_MAX_SIZE, PREVIEW_VERSION, preview_png
-from ._roi import INCIDENCE_AXES, Polygon, RoiMask, as_polygon, roi_mask, view_spread
+from ._roi import (
+    INCIDENCE_AXES,
+    Polygon,
+    RoiMask,
+    adaptive_erode_px,
+    as_polygon,
+    roi_mask,
+    thickness_px,
+    too_thin,
+    view_spread,
+)
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 12
+TABLE_VERSION = 13
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
@@ -64,6 +83,8 @@ TABLE_VERSION = 12
 10: face_view_deg is the mean view angle over the eroded ROI's pixels (was: at the face's centre).
 11: the view_half_width_deg column (a pinhole-placed ROI's own spread of viewing angles).
 12: the face_points_mm and camera_mm columns (the lab model's 3-D geometry of each ROI).
+13: resolved layer stripes fitted and removed, the photo's noise model, the erosion adapted to
+    a face's thickness, thin ROIs flagged; the stripe_* and erode_px columns (issue 45).
 """
 
 
@@ -267,7 +288,9 @@ def _check_overlaps(rois: dict[str, RoiMask], photo: str) -> None:
                 )
 
 
-def _flags(s: ChannelStats, settings: ExtractionSettings) -> list[str]:
+def _flags(s: ChannelStats, settings: ExtractionSettings, thin: bool = False) -> list[str]:
+    if thin:  # too thin to measure in this photo (docs/imaging.md §Pixels): nothing else applies
+        return ["thin"]
     flags = []
     if s.n_in_roi == 0:
         flags.append("no_pixels")
@@ -334,32 +357,30 @@ def measure_frame(
     polygons: dict[str, tuple[Polygon, str]] = {n: (p, "polygon") for n, p in spec.rois}
     detection, placement, placed_polygons = place_faces(frame, spec, radiometry)
     polygons |= {n: (p, "markers") for n, p in placed_polygons.items()}
-    rois = {
-        n: roi_mask(
-            polygons[n][0],
-            (frame.height, frame.width),
-            settings.erode_px,
-            photo=photo,
-            wedge=n,
-            source=polygons[n][1],
-        )
-        for n in spec.roi_names()
-    }
+    rois, erosion, thin = _eroded_rois(spec, polygons, (frame.height, frame.width), settings)
     if placement is not None:  # before the overlap check: a hidden face overlaps its hider
-        _check_hidden(spec, placement, rois)
+        _check_hidden(spec, placement, {n: r for n, r in rois.items() if n not in thin})
     _check_overlaps(rois, photo)
     key = cache_key(spec, settings)
     stats_frame, black = _stats_source(frame, radiometry)
-    stats = {n: roi_channel_stats(stats_frame, roi, settings) for n, roi in rois.items()}
+    data = {
+        n: roi_data(stats_frame, roi, settings, across=_layer_normal(spec, placement, n))
+        for n, roi in rois.items()
+        if n not in thin
+    }
+    noise = _photo_noise(data.values(), radiometry)
+    stats = {n: finish_stats(rd, noise) for n, rd in data.items()}
+    stats |= {n: _empty_stats(rois[n]) for n in thin}
     spreads = {n: view_spread(roi, _in_plane_axis(spec, placement, n)) for n, roi in rois.items()}
     common = {n: _common_stderr(radiometry, roi, stats[n]) for n, roi in rois.items()}
     ref = stats[spec.reference] if spec.reference else None
-    ref_flags = [_flags(s, settings) for s in ref] if ref else None
+    ref_thin = spec.reference in thin
+    ref_flags = [_flags(s, settings, ref_thin) for s in ref] if ref else None
     rows = []
     for n, roi in rois.items():
         by_marker = roi.source == "markers" and placement is not None
         for c, s in enumerate(stats[n]):
-            flags = _flags(s, settings)
+            flags = _flags(s, settings, n in thin)
             normalised_by, r, r_common = "", None, 0.0
             if ref is not None and ref_flags is not None and n != spec.reference:
                 r = ref[c]
@@ -368,9 +389,10 @@ def measure_frame(
                 flags += [f"reference-{f}" for f in ref_flags[c]]
                 if "below_black" not in flags and not r.mean_dn > 0:
                     flags.append("reference-nonpositive")
-            value, stderr, noise, dof = _scaled(
-                s, r, exposure.scale, "below_black" in flags, (common[n][c], r_common)
-            )
+            value, stderr, noise_se, dof = _scaled(
+                s, r, exposure.scale, "below_black" in flags or n in thin,
+                (common[n][c], r_common),
+            )  # fmt: skip
             rows.append(
                 MeasurementRow(
                     photo=photo,
@@ -384,7 +406,7 @@ def measure_frame(
                     n_blocks=s.n_blocks,
                     saturated_fraction=float(s.saturated_fraction),
                     channel_corr=float(s.channel_corr),
-                    stderr_noise=float(noise),
+                    stderr_noise=float(noise_se),
                     stderr_dof=float(dof),
                     block_px=int(s.block_px),
                     corr_rg=float(s.channel_corrs[0]),
@@ -405,9 +427,78 @@ def measure_frame(
                     **_marker_columns(placement if by_marker else None, detection, spec, roi),
                     radiometry=radiometry.description if radiometry is not None else "",
                     view_spread=spreads[n],
+                    **_stripe_columns(s),
+                    erode_px=erosion[n],
+                    thickness_px=round(thickness_px(roi.mask), 1),
                 )
             )
     return FrameMeasurement(tuple(rows), rois, exposure, detection, placement)
+
+
+def _eroded_rois(
+    spec: PhotoSpec,
+    polygons: Mapping[str, tuple[Polygon, str]],
+    shape: tuple[int, int],
+    settings: ExtractionSettings,
+) -> tuple[dict[str, RoiMask], dict[str, int], set[str]]:
+    """Each ROI rasterised and eroded by its adapted erosion (docs/imaging.md §Pixels): the
+    masks (in the order of `spec.roi_names()`), the erosion applied, and the names of those too
+    thin to measure."""
+    erosion, rois = {}, {}
+    for n in spec.roi_names():
+        poly, source = polygons[n]
+        where = {"photo": spec.name, "wedge": n, "source": source}
+        erosion[n] = adaptive_erode_px(poly, shape, settings.erode_px, **where)
+        rois[n] = roi_mask(poly, shape, erosion[n], **where, empty_ok=True)
+    return rois, erosion, {n for n, roi in rois.items() if too_thin(roi)}
+
+
+def _empty_stats(roi: RoiMask) -> tuple[ChannelStats, ChannelStats, ChannelStats]:
+    """The statistics of an ROI too thin to measure: no pixels used (flagged `thin`)."""
+    n = roi.n_pixels
+    return tuple(ChannelStats(math.nan, math.nan, 0, 0, n, math.nan) for _ in range(3))  # type: ignore[return-value]
+
+
+def _stripe_columns(s: ChannelStats) -> dict[str, float | None]:
+    """The stripe_* columns of a row: None where no stripes were fitted."""
+
+    def value(v: float) -> float | None:
+        return float(v) if math.isfinite(v) else None
+
+    return {
+        "stripe_period_px": value(s.stripe_period_px),
+        "stripe_angle_deg": value(s.stripe_angle_deg),
+        "stripe_amplitude": value(s.stripe_amplitude),
+        "stripe_offset": value(s.stripe_offset),
+    }
+
+
+def _photo_noise(data: Iterable[RoiData], radiometry: Radiometry | None) -> NoiseModel | None:
+    """The photo's noise model from all its ROIs (docs/imaging.md §Pixel noise), or None for
+    an image whose noise is not `read + x / gain`: one divided by a flat field or merged from
+    a bracket (each ROI then keeps its own neighbour-difference estimate)."""
+    if radiometry is not None and (
+        radiometry.flat_rel_stderr is not None or len(radiometry.members) > 1
+    ):
+        return None
+    return fit_noise_model([p for rd in data for p in noise_points(rd)])
+
+
+def _layer_normal(spec: PhotoSpec, pose: CameraPose | None, name: str) -> np.ndarray | None:
+    """The image direction across the layer lines of a face placed from the markers (its
+    layer lines run along the base's y axis: the normal to their image at the face's centre),
+    None for a pixel polygon (the stripes' orientation is then estimated from the image)."""
+    if pose is None or name not in spec.placed_names():
+        return None
+    angle = dict(spec.face_angles_deg).get(name, 0.0)
+    face = face_outline_3d(dict(spec.faces_mm)[name], angle)
+    centre = face.mean(axis=0)
+    step = 0.05 * float(np.ptp(face[:, 1]) or 1.0)
+    along = np.array([0.0, step, 0.0])
+    ends = pose.project(np.stack([centre - along, centre + along]))
+    d = ends[1] - ends[0]
+    norm = float(np.hypot(*d))
+    return np.array([-d[1], d[0]]) / norm if norm > 0 else None
 
 
 def _in_plane_axis(spec: PhotoSpec, pose: CameraPose | None, name: str) -> np.ndarray:
@@ -493,6 +584,10 @@ def _marker_columns(
     angle = dict(spec.face_angles_deg).get(name, 0.0)
     assert spec.markers is not None  # a pose comes from markers
     ys, xs = np.nonzero(roi.mask)
+    if ys.size == 0:  # a thin ROI: no pixels to take the view from
+        ids = " ".join(str(i) for i in pose.ids)
+        cell = min(cells[i] for i in pose.ids)
+        return {"marker_ids": ids, "marker_cell_px": cell, "placement": pose.model}
     pixels = np.column_stack([xs + roi.x0, ys + roi.y0])  # pixel centres (docs §Pixels)
     outline = dict(spec.faces_mm)[name]
     parallax = view_parallax_deg(pose, spec.markers, outline, angle, pixels)

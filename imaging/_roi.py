@@ -25,6 +25,21 @@ MAX_ERODE_PX = 64
 """The largest erosion radius: the disk erosion's time grows about as radius^2 x area, so larger
 radii on large ROIs take seconds (benchmarks/bench_limits.py; docs/imaging.md §Pixels)."""
 
+MIN_ERODE_PX = 3
+"""The erosion never adapts below this (or below `erode_px`, when that is smaller): pixel
+centres 2 px inside the outline keep a face's blurred edge (a lens at f/8, half a pixel) and a
+placement error of a few tenths of a pixel out of the ROI."""
+
+ERODE_FRACTION = 0.25
+"""The erosion is at most this fraction of the ROI's thickness (`thickness_px`), so that a face
+seen near grazing keeps about half its thickness instead of vanishing."""
+
+MIN_ROI_PIXELS = 64
+"""An eroded ROI with fewer pixels, or thinner than MIN_THICKNESS_PX, is too thin to measure."""
+
+MIN_THICKNESS_PX = 3.0
+"""The thinnest eroded ROI measured (px across, `thickness_px`)."""
+
 
 def as_polygon(points: Iterable[Sequence[float]], what: str) -> Polygon:
     """`points` as a Polygon of floats; an ImagingError naming `what` if it is not one."""
@@ -114,6 +129,30 @@ class RoiMask:
         return slice(self.y0, self.y0 + h), slice(self.x0, self.x0 + w)
 
 
+def _check_inside(pts: np.ndarray, shape: tuple[int, int], what: str, source: str) -> None:
+    """ImagingError naming `what` when a vertex lies outside the image (docs/imaging.md §Pixels)."""
+    h_img, w_img = shape
+    outside = (
+        (pts[:, 0] < -0.5)
+        | (pts[:, 0] > w_img - 0.5)
+        | (pts[:, 1] < -0.5)
+        | (pts[:, 1] > h_img - 0.5)
+    )
+    if not outside.any():
+        return
+    fix = (
+        "check the face's face_mm and the marker layout"
+        if source == "markers"
+        else "fix its roi_px polygon: pixel coordinates of the visible raw image, origin at the "
+        "centre of the top-left pixel (see docs/imaging.md)"
+    )
+    x, y = pts[int(np.argmax(outside))]
+    raise ImagingError(
+        f"{what} has a vertex at ({x:.1f}, {y:.1f}), outside the image ({w_img} x {h_img} px: "
+        f"x in [-0.5, {w_img - 0.5}], y in [-0.5, {h_img - 0.5}]); {fix}"
+    )
+
+
 def roi_mask(
     polygon: Polygon,
     image_shape: tuple[int, int],
@@ -122,6 +161,7 @@ def roi_mask(
     photo: str,
     wedge: str,
     source: str = "polygon",
+    empty_ok: bool = False,
 ) -> RoiMask:
     """Rasterise a polygon (cv2.fillPoly) and erode it by `erode_px` pixels (cv2.erode, disk).
 
@@ -132,32 +172,17 @@ def roi_mask(
             this distance is inside the polygon, so edges and background never leak in.
         photo, wedge: names used in error messages.
         source: "polygon" or "markers", recorded and used in messages.
+        empty_ok: return an ROI without pixels (a 1 x 1 mask that is False) when nothing is
+            left after erosion, instead of raising (the pipeline flags it `thin`).
 
     Raises:
-        ImagingError: a vertex lies outside the image, or nothing is left after erosion.
+        ImagingError: a vertex lies outside the image, or nothing is left after erosion (and
+            not `empty_ok`).
     """
     h_img, w_img = int(image_shape[0]), int(image_shape[1])
     pts = np.asarray(polygon, dtype=np.float64)
     how = "placed from the markers" if source == "markers" else "given in pixels"
-    fix = (
-        "check the face's face_mm and the marker layout"
-        if source == "markers"
-        else "fix its roi_px polygon: pixel coordinates of the visible raw image, origin at the "
-        "centre of the top-left pixel (see docs/imaging.md)"
-    )
-    outside = (
-        (pts[:, 0] < -0.5)
-        | (pts[:, 0] > w_img - 0.5)
-        | (pts[:, 1] < -0.5)
-        | (pts[:, 1] > h_img - 0.5)
-    )
-    if outside.any():
-        x, y = pts[int(np.argmax(outside))]
-        raise ImagingError(
-            f"photo {photo!r}, wedge {wedge!r}: the ROI ({how}) has a vertex at "
-            f"({x:.1f}, {y:.1f}), outside the image ({w_img} x {h_img} px: x in [-0.5, "
-            f"{w_img - 0.5}], y in [-0.5, {h_img - 0.5}]); {fix}"
-        )
+    _check_inside(pts, (h_img, w_img), f"photo {photo!r}, wedge {wedge!r}: the ROI ({how})", source)
     x0 = max(0, math.floor(pts[:, 0].min()) - 1)
     y0 = max(0, math.floor(pts[:, 1].min()) - 1)
     x1 = min(w_img, math.ceil(pts[:, 0].max()) + 2)
@@ -168,6 +193,9 @@ def roi_mask(
     n_before = int(box.sum())
     box, narrow = _erode(box, erode_px, (y0 > 0, y1 < h_img), (x0 > 0, x1 < w_img))
     mask = box.astype(bool)
+    if not mask.any() and empty_ok:  # a 1 x 1 mask without pixels (the pipeline's `thin`)
+        mask = np.zeros((1, 1), dtype=bool)
+        return RoiMask(wedge, tuple(map(tuple, pts.tolist())), source, y0, x0, mask, n_before)  # type: ignore[arg-type]
     if not mask.any():
         raise ImagingError(
             f"photo {photo!r}, wedge {wedge!r}: the ROI ({how}) is empty after eroding it by "
@@ -187,6 +215,43 @@ def roi_mask(
         mask=np.ascontiguousarray(mask),
         n_before_erosion=n_before,
     )
+
+
+def thickness_px(mask: np.ndarray) -> float:
+    """The thickness of a filled region (px): twice its largest inscribed distance, the
+    diameter of the largest disk that fits (cv2.distanceTransform, Euclidean, to the nearest
+    pixel outside it)."""
+    if not mask.any():
+        return 0.0
+    padded = np.pad(mask.astype(np.uint8), 1)
+    dist = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return 2.0 * float(dist.max()) - 1.0
+
+
+def adaptive_erode_px(
+    polygon: Polygon,
+    image_shape: tuple[int, int],
+    erode_px: int,
+    *,
+    photo: str = "",
+    wedge: str = "",
+    source: str = "polygon",
+) -> int:
+    """The erosion for one ROI: `erode_px`, but at most ERODE_FRACTION of the polygon's
+    thickness (never below MIN_ERODE_PX unless `erode_px` is): a face seen near grazing is
+    thin in the photo, and the full erosion would leave one or two rows of it, or none
+    (docs/imaging.md §Pixels). `photo`, `wedge` and `source` name the ROI in the error for a
+    vertex outside the image (`roi_mask`)."""
+    if erode_px <= MIN_ERODE_PX:
+        return erode_px
+    filled = roi_mask(polygon, image_shape, 0, photo=photo, wedge=wedge, source=source)
+    limit = max(MIN_ERODE_PX, math.floor(ERODE_FRACTION * thickness_px(filled.mask)))
+    return min(erode_px, limit)
+
+
+def too_thin(roi: RoiMask) -> bool:
+    """Whether an eroded ROI is too thin to measure (MIN_ROI_PIXELS, MIN_THICKNESS_PX)."""
+    return roi.n_pixels < MIN_ROI_PIXELS or thickness_px(roi.mask) < MIN_THICKNESS_PX
 
 
 INCIDENCE_AXES: dict[str, tuple[float, float]] = {"vertical": (0.0, 1.0), "horizontal": (1.0, 0.0)}

@@ -48,7 +48,9 @@ class MeasurementRow:
         corr_rg, corr_rb, corr_gb: correlations of the errors of this ROI's (R, G), (R, B) and
             (G, B) means; the same on the ROI's three rows; NaN when undefined.
         flag: "" when usable, else ";"-separated reasons ("saturated", "few_blocks",
-            "below_black", "no_pixels", "reference-..."). Flagged rows must not be fitted.
+            "below_black", "no_pixels", "thin", "reference-..."). Flagged rows must not be
+            fitted. "thin": the face is too thin in this photo to measure (seen near grazing;
+            `thickness_px` after the erosion `erode_px`); its value is NaN.
         normalised_by: the reference patch `value` is divided by ("" if none).
         exposure_time_s, f_number, iso: the exposure used (EXIF or override).
         exposure_source: where it came from: "exif" (EXIF IFD), "ifd0" (IFD0), "scene"
@@ -85,6 +87,18 @@ class MeasurementRow:
             come from them (docs/imaging.md §3-D placement). "" otherwise.
         camera_mm: for a face placed through a pinhole, the camera's centre in the base frame
             (mm, "x y z"); "" otherwise (an affine camera is at infinity along view_deg).
+        stripe_period_px: when the ROI shows its layer lines as stripes and they were fitted
+            and removed (docs/imaging.md §Layer stripes): their period in the image (px);
+            None otherwise.
+        stripe_angle_deg: the image direction across the stripes (deg from +x towards +y).
+        stripe_amplitude: the stripes' relative amplitude (their fundamental's).
+        stripe_offset: the ROI's own mean (incomplete periods at its edges) relative to
+            `value`, the period average: `value x (1 + stripe_offset)` is the ROI's mean
+            radiance as its pixels show it (before the normalisation by a reference).
+        erode_px: the erosion applied (px): `extraction.erode_px`, or less for a thin face
+            (docs/imaging.md §Pixels).
+        thickness_px: the eroded ROI's thickness (px: the diameter of its largest inscribed
+            disk); 0 when nothing is left.
     """
 
     photo: str
@@ -125,6 +139,12 @@ class MeasurementRow:
     view_half_width_deg: float | None = None
     face_points_mm: str = ""
     camera_mm: str = ""
+    stripe_period_px: float | None = None
+    stripe_angle_deg: float | None = None
+    stripe_amplitude: float | None = None
+    stripe_offset: float | None = None
+    erode_px: int = 0
+    thickness_px: float = 0.0
 
 
 COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(MeasurementRow))

@@ -20,7 +20,14 @@ ADVICE: dict[str, str] = {
         "the raw values lie below the file's black level, so the file's black level is not in "
         "its data's units (e.g. a lossy 8-bit linear DNG): use the camera's original RAW files"
     ),
-    "few_blocks": "enlarge the ROIs or lower extraction.block_px",
+    "few_blocks": (
+        "the faces' texture is correlated over too much of each ROI for its own pixels to "
+        "give its error: photograph the faces larger (more pixels across each face)"
+    ),
+    "thin": (
+        "the faces are too thin in these photos to measure (seen near grazing; the "
+        "thickness_px column): photograph them from views nearer their normal"
+    ),
     "no_pixels": "move the ROIs onto the faces",
     "reference": "check the reference patch's ROI and exposure",
     "not finite": "check the photos' exposure values",
@@ -53,15 +60,42 @@ def describe(counts: Counter[str]) -> str:
     return ", ".join(f"{n} {reason}" for reason, n in counts.most_common())
 
 
-def advice(counts: Counter[str]) -> str:
-    """The fixes for the reasons present, each once, most frequent reason first."""
-    fixes = dict.fromkeys(ADVICE.get(reason, "see docs/imaging.md") for reason in counts)
-    return "; ".join(fixes)
+def advice(counts: Counter[str], rows: Iterable[Any] = (), block_px: int | None = None) -> str:
+    """The fixes for the reasons present, each once, most frequent reason first.
+
+    With the rows and the scene's `extraction.block_px`, the fix for `few_blocks` names only
+    what applies: enlarging the ROIs only when some are pixel polygons (a face placed from the
+    markers is measured whole), lowering block_px only when it was raised above the default.
+    """
+    fixes = dict.fromkeys(
+        _few_blocks_fix(rows, block_px) if reason == "few_blocks" else ADVICE.get(reason)
+        for reason, _ in counts.most_common()
+    )
+    return "; ".join(f or "see docs/imaging.md" for f in fixes)
 
 
-def nothing_usable(n_rows: int, counts: Counter[str]) -> str:
-    """The error when no row can be fitted."""
+DEFAULT_BLOCK_PX = 2
+"""`extraction.block_px` by default (one Bayer tile), the smallest it can be."""
+
+
+def _few_blocks_fix(rows: Iterable[Any], block_px: int | None) -> str:
+    """The cause and the fixes of `few_blocks` that apply to these rows."""
+    flagged = [r for r in rows if "few_blocks" in r.flag.split(";")]
+    text = ADVICE["few_blocks"]
+    if any(r.roi_source == "polygon" for r in flagged):
+        text += ", or enlarge the roi_px polygons that are smaller than their faces"
+    if block_px is not None and block_px > DEFAULT_BLOCK_PX:
+        text += f", or lower extraction.block_px (now {block_px})"
+    return text
+
+
+def nothing_usable(
+    n_rows: int, counts: Counter[str], rows: Iterable[Any] = (), block_px: int | None = None
+) -> str:
+    """The error when no row can be fitted: each reason with its count, its cause and the fix
+    that applies (`advice`)."""
+    rows = list(rows)
     return (
         f"no usable measurement: of {n_rows} measurements, {describe(counts)} (the flag "
-        f"column of measurements.csv, docs/imaging.md); {advice(counts)}"
+        f"column of measurements.csv, docs/imaging.md); {advice(counts, rows, block_px)}"
     )

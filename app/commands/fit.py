@@ -385,7 +385,8 @@ def to_observations(scene: Scene, table: Any) -> tuple[Any, list[dict[str, Any]]
     fitted_rows = [r for r in table if r.wedge != reference]
     if not rows or not any(r["use"] for r in rows):
         counts = _exclusions.count_reasons(fitted_rows)
-        raise UserError(f"{scene.path}: {_exclusions.nothing_usable(len(rows), counts)}")
+        why = _exclusions.nothing_usable(len(rows), counts, fitted_rows, scene.extraction.block_px)
+        raise UserError(f"{scene.path}: {why}")
     try:
         obs = fitting.Observations.from_rows(rows)
     except fitting.FitInputError as err:
