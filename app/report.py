@@ -40,6 +40,7 @@ from .figures import (
     refractive_index,
     save,
 )
+from .fileio import write_file, writing
 from .outcome import FitOutcome, sha256_of
 
 DEG = np.pi / 180
@@ -211,8 +212,8 @@ def write_outputs(
     write_observations(outcome, out / "observations.csv")
     figures = write_figures(outcome, out / "figures", drawn, draw)
     results = results_dict(outcome, figures)
-    (out / "results.json").write_text(json.dumps(results, indent=2, allow_nan=False))
-    (out / "report.html").write_text(report_html(outcome, results, figures, out))
+    write_file(out / "results.json", json.dumps(results, indent=2, allow_nan=False))
+    write_file(out / "report.html", report_html(outcome, results, figures, out))
     if outcome.posterior is not None:  # the chain for ArviZ (docs/fitting.md §5)
         outcome.posterior.to_netcdf(out / "chain.nc", degrees=True)
 
@@ -222,7 +223,7 @@ def write_observations(outcome: FitOutcome, path: Path) -> None:
     what the fit's error model and aperture used per row: the ROI group and its channel
     correlations (docs/fitting.md §Correlated channels) and the row's viewing spread."""
     fit = outcome.selection.fit
-    with open(path, "w", newline="") as fh:
+    with writing(path) as fh:
         w = csv.writer(fh)
         w.writerow(
             [

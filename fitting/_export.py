@@ -24,11 +24,11 @@ that cannot be read falls back to `fn`; the result is the same either way (teste
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import os
 import re
-import secrets
 from collections.abc import Callable, Sequence
 from importlib import metadata
 from pathlib import Path
@@ -36,6 +36,8 @@ from typing import Any
 
 import jax
 import numpy as np
+
+from stairfit.fileio import atomic_bytes
 
 EXPORT_SUBDIR = "stairfit-exported"
 """Subfolder of JAX's persistent compilation cache that holds the exported programs."""
@@ -168,14 +170,10 @@ def _export(flat: Callable[..., Any], specs: list[jax.ShapeDtypeStruct]) -> jax.
 
 
 def _save(exported: jax.export.Exported, path: Path) -> None:
-    """Write atomically (a temporary file in the same folder, then `os.replace`)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
-    try:
-        tmp.write_bytes(exported.serialize())
-        os.replace(tmp, path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
+    """Write atomically (`stairfit.fileio.atomic_bytes`); a file that cannot be written is only
+    a missed saving."""
+    with contextlib.suppress(OSError):
+        atomic_bytes(path, exported.serialize())
 
 
 def call(

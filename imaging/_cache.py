@@ -18,8 +18,9 @@ import json
 import warnings
 from pathlib import Path
 
+from stairfit.fileio import atomic_bytes
+
 from ._errors import ImagingError, ImagingWarning
-from ._io import atomic_write_bytes
 from ._table import MeasurementTable
 
 
@@ -95,8 +96,8 @@ def write_cache(cache: Path, table: MeasurementTable, table_version: int) -> boo
     check = {"table_version": table_version, "sha256": table_digest(blob, table_version)}
     try:
         checksum_path(cache).unlink(missing_ok=True)
-        atomic_write_bytes(cache, blob)
-        atomic_write_bytes(checksum_path(cache), json.dumps(check, indent=1).encode())
+        atomic_bytes(cache, blob)
+        atomic_bytes(checksum_path(cache), json.dumps(check, indent=1).encode())
     except OSError as e:
         _warn(
             f"measurement cache {cache}: cannot write it ({e.strerror or e}); the results are "

@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from stairfit.fileio import atomic_bytes
+
 from ._cache import prune_previews, read_cache, write_cache
 from ._calibration import Calibration, CalibrationSpec, build_calibration, combined_sha256
 from ._checks import low_signal_warnings, same_bytes_warnings
@@ -31,7 +33,6 @@ from ._errors import ImagingError, PhotosFailedError
 from ._exposure import Exposure, resolve_exposure
 from ._extract import ChannelStats, ExtractionSettings, roi_channel_stats
 from ._hdr import BracketMember, Radiometry, prepare_radiometry
-from ._io import atomic_write_bytes
 from ._markers import MarkerDetection, MarkerLayout, detect_markers
 from ._placement import (
     CameraPose,
@@ -690,7 +691,7 @@ def _write_previews(
     )
     for k, path in enumerate(paths):
         try:
-            atomic_write_bytes(path, png)
+            atomic_bytes(path, png)
         except OSError:
             if k == 0:
                 raise
@@ -887,7 +888,7 @@ def measure_photos(
             if png is None:
                 rows = None  # decode again to make the preview
             else:
-                atomic_write_bytes(preview_path(pdir, spec), png)
+                atomic_bytes(preview_path(pdir, spec), png)
         if rows is None:
             todo.append(spec)
         else:

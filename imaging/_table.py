@@ -13,8 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from stairfit.fileio import atomic_bytes
+
 from ._errors import ImagingError
-from ._io import atomic_write_bytes
 
 
 @dataclass(frozen=True)
@@ -195,7 +196,7 @@ class MeasurementTable:
 
     def write_csv(self, path: str | Path) -> Path:
         """Write the table as CSV, atomically (temporary file + os.replace)."""
-        return atomic_write_bytes(path, self.to_csv().encode())
+        return atomic_bytes(path, self.to_csv().encode())
 
     @classmethod
     def read_csv(cls, path: str | Path) -> MeasurementTable:

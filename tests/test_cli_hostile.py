@@ -18,6 +18,8 @@ import textwrap
 import time
 import tomllib
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +27,7 @@ import pytest
 import test_cli_errors as cli_errors
 from test_cli_errors import _folder_snapshot, assert_one_line_user_error, run
 
-from stairfit import outputs
+from stairfit import fileio, outputs
 from stairfit.errors import UserError
 
 simulated = cli_errors.simulated  # the session's small simulated photo folder (a fixture)
@@ -108,11 +110,13 @@ def test_check_output_refuses_home_and_root(tmp_path: Path) -> None:
 
 def test_stale_leftovers_of_killed_runs_are_removed(tmp_path: Path) -> None:
     out = tmp_path / "results"
+    with outputs.staged_folder(out, force=False, command="fit") as tmp:  # an earlier result
+        (tmp / "a.txt").write_text("old")
     young_other = tmp_path / ".other.0123abcd.partial"
     old_other = tmp_path / ".older.89abcdef.partial"
     own = [
-        tmp_path / ".results.deadbeef.partial",
-        tmp_path / ".results.old-4242",
+        tmp_path / ".results.deadbeef.partial",  # incomplete: no marker
+        tmp_path / ".results.old-4242",  # an older result that `results` replaced
         tmp_path / ".results.AbC_12x9.tmp",
     ]
     for p in [young_other, old_other, *own[:2]]:
@@ -124,74 +128,160 @@ def test_stale_leftovers_of_killed_runs_are_removed(tmp_path: Path) -> None:
     keep = [tmp_path / "results.partial", tmp_path / ".results.txt", tmp_path / "mine"]
     for p in keep:
         p.write_text("not stairfit's")
-    with outputs.staged_folder(out, force=False) as tmp:
+    with outputs.staged_folder(out, force=True, command="fit") as tmp:
         (tmp / "a.txt").write_text("new")
     assert _entries(tmp_path) == sorted(p.name for p in [out, young_other, *keep])
+    assert (out / "a.txt").read_text() == "new"
 
 
-def test_existing_file_replaced_with_force_leaves_no_old_copy(tmp_path: Path) -> None:
-    for existing in ("file", "link", "folder"):
-        out = tmp_path / f"out-{existing}"
-        if existing == "file":
-            out.write_text("old")
-        elif existing == "link":
-            (tmp_path / "target").mkdir(exist_ok=True)
-            (tmp_path / "target" / "kept.txt").write_text("the link's target is not deleted")
-            out.symlink_to(tmp_path / "target")
-        else:
-            out.mkdir()
-            (out / "old.txt").write_text("old")
-        with outputs.staged_folder(out, force=True) as tmp:
-            (tmp / "new.txt").write_text("new")
-        resolved = out.resolve()
-        assert (resolved / "new.txt").read_text() == "new"
-        assert _entries(resolved) == ["new.txt"]
+def _result(folder: Path, command: str | None, text: str = "old") -> Path:
+    """A folder holding a.txt, marked as made by `stairfit COMMAND` (None: not marked)."""
+    folder.mkdir()
+    (folder / "a.txt").write_text(text)
+    if command is not None:
+        fileio.mark_complete(folder, command, "0")
+    return folder
+
+
+def test_force_replaces_only_a_folder_the_same_command_made(tmp_path: Path) -> None:
+    (tmp_path / "target").mkdir()
+    (tmp_path / "target" / "kept.txt").write_text("the link's target is not deleted")
+    refused = {
+        "file": lambda p: p.write_text("the user's"),
+        "link": lambda p: p.symlink_to(tmp_path / "target"),
+        "unmarked-folder": lambda p: _result(p, None),
+        "another-command's": lambda p: _result(p, "simulate"),
+    }
+    for name, make in refused.items():
+        out = tmp_path / name
+        make(out)
+        before = _folder_snapshot(tmp_path)
+        with pytest.raises(UserError, match="--force replaces only a result 'stairfit fit' made"):
+            with outputs.staged_folder(out, force=True, command="fit") as tmp:
+                (tmp / "new.txt").write_text("new")
+        assert _folder_snapshot(tmp_path) == before, name
+    out = _result(tmp_path / "ours", "fit")
+    with outputs.staged_folder(out, force=True, command="fit") as tmp:
+        (tmp / "new.txt").write_text("new")
+    assert _entries(out) == [fileio.MARKER, "new.txt"]
+    assert fileio.made_by(out) == "fit"
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], _entries(tmp_path)
 
 
-def test_simulate_over_an_existing_file_with_force_leaves_nothing_else(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+@pytest.mark.parametrize("command", ["demo", "fit"])
+def test_force_never_deletes_a_photo_folder(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
 ) -> None:
-    out = tmp_path / "existing.txt"
-    out.write_text("old")
-    argv = ["simulate", str(out), "--force", "--quiet", "--megapixels", "0.3", "--views", "3"]
-    status, err = run(capsys, *argv)
-    assert status == 0, err
-    assert _entries(tmp_path) == ["existing.txt"]
-    assert (out / "scene.toml").is_file()
+    # issue 42 case 1: `demo DIR --force` and `fit PHOTOS -o OTHER_PHOTOS --force` deleted the
+    # other folder's RAWs, scene.toml and notes; even a folder `stairfit simulate` made is kept
+    other = tmp_path / "other"
+    assert cli_errors.main(["simulate", str(other), "--megapixels", "0.3", "--views", "3",
+                            "--quiet"]) == 0  # fmt: skip
+    (other / "notes.txt").write_text("the user's notes")
+    capsys.readouterr()
+    before = _folder_snapshot(other)
+    argv = ["demo", str(other)] if command == "demo" else ["fit", str(photos), "-o", str(other)]
+    status, err = run(capsys, *argv, "--force", "--quiet")
+    assert_one_line_user_error(status, err, command, str(other), "'stairfit simulate'",
+                               "--force replaces only")  # fmt: skip
+    assert _folder_snapshot(other) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other", "photos"]
+
+
+def test_a_kill_between_the_two_renames_loses_nothing(tmp_path: Path) -> None:
+    # issue 42 case 2: a replacement killed between `out -> .out.old-PID` and `partial -> out`
+    # (SIGKILL cannot be held back) leaves the old result aside and the new one complete in its
+    # staging folder; the next run puts the newer one back before anything else
+    out = tmp_path / "results"
+    backup = _result(tmp_path / ".results.old-4242", "fit", "old")
+    partial = _result(tmp_path / ".results.0123abcd.partial", "fit", "new")
+    incomplete = _result(tmp_path / ".results.89abcdef.partial", None, "half")
+    with pytest.raises(UserError, match="already exists"):  # without --force: nothing replaced
+        with outputs.staged_folder(out, force=False, command="fit"):
+            pass
+    assert (out / "a.txt").read_text() == "new"  # the newer complete result, in place
+    assert not backup.exists() and not partial.exists() and not incomplete.exists()
+    # killed again before the new run has its own result: the result in place survives
+    with pytest.raises(KeyboardInterrupt):
+        with outputs.staged_folder(out, force=True, command="fit") as tmp:
+            (tmp / "a.txt").write_text("newest")
+            raise KeyboardInterrupt
+    assert (out / "a.txt").read_text() == "new"
+    assert _entries(tmp_path) == ["results"]
+
+
+def test_only_an_old_copy_left_is_put_back(tmp_path: Path) -> None:
+    out = tmp_path / "results"
+    _result(tmp_path / ".results.old-77", "fit", "old")
+    _result(tmp_path / ".results.00000000.partial", None, "half")  # incomplete: not a result
+    assert outputs.remove_stale_leftovers(out) == [tmp_path / ".results.00000000.partial"]
+    assert (out / "a.txt").read_text() == "old"
+    assert _entries(tmp_path) == ["results"]
 
 
 def test_failed_staging_removes_its_folder_and_names_the_real_target(tmp_path: Path) -> None:
     out = tmp_path / "results"
-    with pytest.raises(OSError) as err, outputs.staged_folder(out, force=False) as tmp:
+    with pytest.raises(OSError) as err, outputs.staged_folder(out, False, command="fit") as tmp:
         raise OSError(28, "No space left on device", str(tmp / "figures" / "corner.png"))
     assert err.value.filename == str(out / "figures" / "corner.png")
-    with pytest.raises(OSError) as err, outputs.staged_folder(out, force=False):
+    with pytest.raises(OSError) as err, outputs.staged_folder(out, False, command="fit"):
         raise OSError(28, "No space left on device")  # a write through a file object: no name
     assert err.value.filename == str(out)
     assert _entries(tmp_path) == []
 
 
+@contextmanager
+def _file_size_limit(n_bytes: int) -> Iterator[None]:
+    """Writes past `n_bytes` fail with EFBIG, as writes to a full disk fail (RLIMIT_FSIZE)."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (n_bytes, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, previous)
+
+
+@POSIX
 def test_full_disk_names_the_output_file(tmp_path: Path) -> None:
-    if not Path("/dev/full").exists():
-        pytest.skip("no /dev/full")
     # the temporary file's writes fail as on a full disk; the error names the real target
     target = tmp_path / "out.csv"
-    real_open = os.fdopen
-
-    def full_disk(fd: int, *args, **kwargs):
-        full = os.open("/dev/full", os.O_WRONLY)
-        os.dup2(full, fd)
-        os.close(full)
-        return real_open(fd, *args, **kwargs)
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(os, "fdopen", full_disk)
-        with pytest.raises(OSError) as err, outputs.atomic_text(target) as fh:
+    with pytest.raises(OSError) as err, _file_size_limit(1000):
+        with outputs.atomic_text(target) as fh:
             fh.write("x" * 100_000)
-    assert err.value.errno == 28
     assert err.value.filename == str(target)
     assert _entries(tmp_path) == []
+
+
+_FULL_DISK = """
+import resource, signal, sys
+from stairfit.cli import main
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]), resource.RLIM_INFINITY))
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@POSIX
+@pytest.mark.parametrize("command", ["predict", "measure"])
+def test_a_full_disk_is_one_line_naming_the_file(photos: Path, tmp_path: Path, command: str):
+    # issue 42: "disk full names a folder or says Input/output error, not the file"
+    out = tmp_path / ("p.csv" if command == "predict" else "m")
+    argv = (["predict", "--theta-o-deg", "-90:90:0.01", "-o", str(out)] if command == "predict"
+            else ["measure", str(photos), "-o", str(out), "--quiet", "--no-cache"])  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", _FULL_DISK, "20000", *argv], text=True,
+                          capture_output=True, env={**os.environ, "STAIRFIT_JAX_CACHE": "off"},
+                          timeout=600)  # fmt: skip
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1 and len(lines) == 1, done.stderr
+    assert lines[0].startswith(f"stairfit {command}: error: {out}"), lines[0]
+    named = lines[0].split(": error: ")[1].split(": ")[0]
+    assert named != str(out) or command == "predict", lines[0]  # the file, not the folder
+    assert "File too large" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]
 
 
 _SLOW_SIMULATE = """
@@ -237,7 +327,7 @@ def test_signal_during_a_run_cleans_up_with_one_line(tmp_path: Path, sig: int) -
 _HOLD_LOCK = """
 import sys, time
 from pathlib import Path
-from stairfit import outputs
+from stairfit import fileio, outputs
 with outputs.output_lock(Path(sys.argv[1]).resolve()):
     print("locked", flush=True)
     time.sleep(600)
@@ -278,10 +368,8 @@ def test_written_files_honour_the_umask(tmp_path: Path, capsys: pytest.CaptureFi
         status, err = run(capsys, "predict", "--theta-o-deg", "0", "-o", str(tmp_path / "a.csv"))
         assert status == 0, err
         outputs.atomic_bytes(tmp_path / "b.bin", b"x")
-        from stairfit.imaging._io import atomic_write_bytes, temporary_sibling
-
-        atomic_write_bytes(tmp_path / "c.bin", b"x")
-        sibling = temporary_sibling(tmp_path / "d.dng")
+        fileio.atomic_bytes(tmp_path / "c.bin", b"x")
+        sibling = fileio.temporary_sibling(tmp_path / "d.dng")
     finally:
         os.umask(old)
     for p in ("a.csv", "b.bin", "c.bin", sibling.name):
@@ -893,7 +981,7 @@ def test_a_filesystem_without_locks_warns_and_still_runs(
 
     monkeypatch.setattr(outputs.fcntl, "flock", no_locks)
     warns = pytest.warns(UserWarning, match="does not support file locks")
-    with warns, outputs.staged_folder(tmp_path / "out", force=False) as tmp:
+    with warns, outputs.staged_folder(tmp_path / "out", force=False, command="fit") as tmp:
         (tmp / "a.txt").write_text("done")
     assert _entries(tmp_path) == ["out"]
 
@@ -902,7 +990,7 @@ def test_no_failed_previews_are_promised_inside_a_staging_folder(tmp_path: Path)
     # the demo fits photos inside its own staging folder, which a failed run removes
     from stairfit.commands._failed_previews import keep_previews
 
-    with outputs.staged_folder(tmp_path / "demo", force=False) as tmp:
+    with outputs.staged_folder(tmp_path / "demo", force=False, command="demo") as tmp:
         assert outputs.in_staging(tmp / "photos" / ".stairfit-cache" / "failed-previews")
         (tmp / "pv").mkdir()
         (tmp / "pv" / "a.dng.png").write_bytes(b"png")
@@ -945,6 +1033,6 @@ def test_a_device_or_pipe_is_never_replaced(
     for argv in (["predict", "--theta-o-deg", "0", "-o", str(fifo), "--force"],
                  ["simulate", str(fifo), "--force", "--quiet"]):  # fmt: skip
         status, err = run(capsys, *argv)
-        assert_one_line_user_error(status, err, argv[0], "is a device, pipe or socket")
+        assert_one_line_user_error(status, err, argv[0], "is a named pipe (FIFO)", "not a file")
     assert stat.S_ISFIFO(fifo.lstat().st_mode)
     assert _entries(tmp_path) == ["pipe"]

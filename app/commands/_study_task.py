@@ -131,7 +131,7 @@ def fit_or_skip(task: FolderTask) -> FolderReport:
     options = dataclasses.replace(
         task.options, progress=False, figure_process=False, freeze_imports=False
     )
-    with staged_folder(dest, force=True) as tmp:
+    with staged_folder(dest, force=True, command="fit") as tmp:
         fit_scene(scene, tmp, options)
     write_ledger(ledger, task, fingerprint)
     return {"status": FITTED, "scene": summary, "results": read_results(dest), "note": note}

@@ -133,7 +133,8 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.folder)
     out = args.output or default_output(args.folder)
     inputs = (scene.folder, *scene.input_files())
-    with staged_folder(out, args.force, inputs=inputs, reserved=(scene.folder / CACHE_DIR,)) as tmp:
+    reserved = (scene.folder / CACHE_DIR,)
+    with staged_folder(out, args.force, command="fit", inputs=inputs, reserved=reserved) as tmp:
         check_photos(scene)
         outcome = fit_scene(scene, tmp, options)
     from ..report import print_summary

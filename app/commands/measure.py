@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UserError
+from ..fileio import write_file
 from ..imaging_specs import (
     CACHE_DIR,
     MEASUREMENT_CACHE,
@@ -79,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
     check_photos(scene)
     specs = measure_specs(scene)
     inputs = (scene.folder, *scene.input_files())
-    with staged_folder(out, args.force, inputs=inputs, reserved=(scene.folder / CACHE_DIR,)) as tmp:
+    reserved = (scene.folder / CACHE_DIR,)
+    with staged_folder(out, args.force, command="measure", inputs=inputs, reserved=reserved) as tmp:
         table = measure_table(scene, specs, tmp, args)
         reports = photo_reports(scene, specs, table)
         write_outputs(scene, table, reports, tmp)
@@ -158,7 +160,7 @@ def write_outputs(scene: Scene, table: Any, reports: Sequence[PhotoReport], out:
     table.write_csv(out / "measurements.csv")
     write_table(out / "photos.csv", reports, PHOTO_COLUMNS)
     write_table(out / "markers.csv", reports, MARKER_COLUMNS)
-    (out / "report.html").write_text(report_html(scene, reports, out), encoding="utf-8")
+    write_file(out / "report.html", report_html(scene, reports, out))
 
 
 def report_html(scene: Scene, reports: Sequence[PhotoReport], out: Path) -> str:

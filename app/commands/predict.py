@@ -21,6 +21,9 @@ from ..errors import UserError
 from ..outputs import staged_file
 from ._predict_checks import Given, check_combination, check_scalars, check_size, parse_index
 
+CSV_START = b"wedge_deg,wavelength_nm,n,"
+"""How every CSV `predict` writes begins (its header); `--force` replaces only such a file."""
+
 
 class _RowWriter(Protocol):
     """What `csv.writer` returns, as far as this module uses it."""
@@ -511,5 +514,5 @@ def _open_output(path: Path | None, force: bool) -> Iterator[TextIO]:
     if path is None:
         yield sys.stdout
         return
-    with staged_file(path, force) as fh:
+    with staged_file(path, force, signature=CSV_START, command="predict") as fh:
         yield fh
