@@ -94,6 +94,12 @@ def describe(path: str | Path) -> str | None:
     return f"is {kind(mode)}"
 
 
+def resolved(path: str | Path) -> Path:
+    """The absolute path with every link resolved; a loop of links is left unresolved, not an
+    exception (`Path.resolve` raises RuntimeError on one before Python 3.13)."""
+    return Path(os.path.realpath(os.path.abspath(os.fspath(path))))
+
+
 def open_regular(path: Path) -> int:
     """A read descriptor of `path` if it is a regular file, else `FileTypeError`.
 
@@ -114,6 +120,18 @@ def open_regular(path: Path) -> int:
     return fd
 
 
+def check_size(fd: int, path: Path, max_bytes: int | None) -> int:
+    """The size of the open file `fd`; `FileTooLargeError` when it exceeds `max_bytes`."""
+    size = os.fstat(fd).st_size
+    if max_bytes is not None and size > max_bytes:
+        raise FileTooLargeError(
+            errno.EFBIG,
+            f"is {size / 2**30:.3g} GiB, more than the {max_bytes / 2**30:.3g} GiB allowed",
+            str(path),
+        )
+    return size
+
+
 def read_bytes(path: str | Path, max_bytes: int | None = None) -> bytes:
     """The bytes of a regular file; `FileTypeError` for anything else, `FileTooLargeError` for
     a file of more than `max_bytes` (checked before reading: a sparse file of terabytes is
@@ -121,13 +139,7 @@ def read_bytes(path: str | Path, max_bytes: int | None = None) -> bytes:
     path = Path(path)
     fd = open_regular(path)
     with os.fdopen(fd, "rb") as fh:
-        size = os.fstat(fd).st_size
-        if max_bytes is not None and size > max_bytes:
-            raise FileTooLargeError(
-                errno.EFBIG,
-                f"is {size / 2**30:.3g} GiB, more than the {max_bytes / 2**30:.3g} GiB allowed",
-                str(path),
-            )
+        size = check_size(fd, path, max_bytes)
         limit = size + 1 if max_bytes is None else min(size, max_bytes) + 1
         data = fh.read(limit)  # a file that grows while read is cut, then refused below
     if max_bytes is not None and len(data) > max_bytes:

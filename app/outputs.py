@@ -63,12 +63,6 @@ def _contains(folder: Path, path: Path) -> bool:
     return path == folder or folder in path.parents
 
 
-def _real(path: str | Path) -> Path:
-    """The absolute path with every link resolved (a loop of links is left as it is, not an
-    exception: `describe` names it where it is read)."""
-    return Path(os.path.realpath(os.path.abspath(path)))
-
-
 def check_output(
     out: Path,
     inputs: Iterable[Path] = (),
@@ -84,9 +78,9 @@ def check_output(
     option in the message.
     """
     _refuse_special(Path(out))
-    resolved = _real(out)
+    resolved = fileio.resolved(out)
     for path in inputs:
-        p = _real(path)
+        p = fileio.resolved(path)
         if _contains(resolved, p):
             what = "is" if p == resolved else "contains"
             raise UserError(
@@ -94,12 +88,12 @@ def check_output(
                 f"the input, so choose an output outside it (with or without --force)"
             )
     for path in reserved:
-        p = _real(path)
+        p = fileio.resolved(path)
         if _contains(resolved, p) or _contains(p, resolved):
             raise UserError(f"{out}: {option} overlaps {p}, which stairfit keeps; choose another")
     for name, p in (("the current folder", Path.cwd()), ("your home folder", Path.home())):
-        if _contains(resolved, _real(p)):
-            what = "is" if _real(p) == resolved else "contains"
+        if _contains(resolved, fileio.resolved(p)):
+            what = "is" if fileio.resolved(p) == resolved else "contains"
             example = f"{option} results" if option.startswith("-") else "results"
             raise UserError(
                 f"{out}: {option} {what} {name} ({p}); an output is replaced as a whole, so give "

@@ -28,7 +28,7 @@ from stairfit.fileio import atomic_bytes
 from ._cache import prune_previews, read_cache, write_cache
 from ._calibration import Calibration, CalibrationSpec, build_calibration, combined_sha256
 from ._checks import low_signal_warnings, same_bytes_warnings
-from ._decode import CHANNELS, RawFrame, decode_raw, file_sha256
+from ._decode import CHANNELS, MAX_RAW_BYTES, RawFrame, decode_raw, file_sha256
 from ._errors import ImagingError, PhotosFailedError
 from ._exposure import Exposure, resolve_exposure
 from ._extract import ChannelStats, ExtractionSettings, roi_channel_stats
@@ -592,7 +592,8 @@ def view_radiometry(
 
 def photo_digest(spec: PhotoSpec) -> str:
     """SHA-256 of a photo's file, or the combined digest of a bracket's files (as in the rows)."""
-    return combined_sha256([file_sha256(p) for p in (spec.path, *(m.path for m in spec.bracket))])
+    paths = (spec.path, *(m.path for m in spec.bracket))
+    return combined_sha256([file_sha256(p, MAX_RAW_BYTES) for p in paths])
 
 
 def measure_photo(
@@ -820,7 +821,10 @@ def _cached_rows(
     key = cache_key(spec, settings)
     if any(r.settings_key != key for r in rows):
         return None
-    sha = photo_digest(spec)
+    try:
+        sha = photo_digest(spec)
+    except OSError:  # not a regular file, or too large: decoding says why
+        return None
     if any(r.photo_sha256 != sha for r in rows):
         return None
     return rows

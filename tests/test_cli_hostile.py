@@ -156,9 +156,9 @@ def test_force_replaces_only_a_folder_the_same_command_made(tmp_path: Path) -> N
         out = tmp_path / name
         make(out)
         before = _folder_snapshot(tmp_path)
-        with pytest.raises(UserError, match="--force replaces only a result 'stairfit fit' made"):
-            with outputs.staged_folder(out, force=True, command="fit") as tmp:
-                (tmp / "new.txt").write_text("new")
+        refused = pytest.raises(UserError, match="--force replaces only a result 'stairfit fit'")
+        with refused, outputs.staged_folder(out, force=True, command="fit") as tmp:
+            (tmp / "new.txt").write_text("new")
         assert _folder_snapshot(tmp_path) == before, name
     out = _result(tmp_path / "ours", "fit")
     with outputs.staged_folder(out, force=True, command="fit") as tmp:
@@ -196,16 +196,15 @@ def test_a_kill_between_the_two_renames_loses_nothing(tmp_path: Path) -> None:
     backup = _result(tmp_path / ".results.old-4242", "fit", "old")
     partial = _result(tmp_path / ".results.0123abcd.partial", "fit", "new")
     incomplete = _result(tmp_path / ".results.89abcdef.partial", None, "half")
-    with pytest.raises(UserError, match="already exists"):  # without --force: nothing replaced
-        with outputs.staged_folder(out, force=False, command="fit"):
-            pass
+    exists = pytest.raises(UserError, match="already exists")  # without --force: not replaced
+    with exists, outputs.staged_folder(out, force=False, command="fit"):
+        pass
     assert (out / "a.txt").read_text() == "new"  # the newer complete result, in place
     assert not backup.exists() and not partial.exists() and not incomplete.exists()
     # killed again before the new run has its own result: the result in place survives
-    with pytest.raises(KeyboardInterrupt):
-        with outputs.staged_folder(out, force=True, command="fit") as tmp:
-            (tmp / "a.txt").write_text("newest")
-            raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt), outputs.staged_folder(out, True, command="fit") as tmp:
+        (tmp / "a.txt").write_text("newest")
+        raise KeyboardInterrupt
     assert (out / "a.txt").read_text() == "new"
     assert _entries(tmp_path) == ["results"]
 
@@ -249,9 +248,8 @@ def _file_size_limit(n_bytes: int) -> Iterator[None]:
 def test_full_disk_names_the_output_file(tmp_path: Path) -> None:
     # the temporary file's writes fail as on a full disk; the error names the real target
     target = tmp_path / "out.csv"
-    with pytest.raises(OSError) as err, _file_size_limit(1000):
-        with outputs.atomic_text(target) as fh:
-            fh.write("x" * 100_000)
+    with pytest.raises(OSError) as err, _file_size_limit(1000), outputs.atomic_text(target) as fh:
+        fh.write("x" * 100_000)
     assert err.value.filename == str(target)
     assert _entries(tmp_path) == []
 
@@ -635,7 +633,21 @@ PHOTO_FILE_CASES = [
             _link(d, "zero.dng", "/dev/zero"),
             cli_errors.edit_scene(d, _set_file(0, "zero.dng")),
         ),
-        ("photos[0].file", "'zero.dng' is a character device (a link to /dev/zero)", "RAW file"),
+        ("photos[0].file", "'zero.dng' is a link to /dev/zero, a character device", "RAW file"),
+    ),
+    (
+        "link-loop",  # issue 42 case 10: a traceback (RuntimeError: Symlink loop)
+        lambda d: (
+            _link(d, "loop.dng", "loop2.dng"),
+            _link(d, "loop2.dng", "loop.dng"),
+            cli_errors.edit_scene(d, _set_file(0, "loop.dng")),
+        ),
+        ("photos[0].file", "'loop.dng' is a loop of symbolic links", "fix the link"),
+    ),
+    (
+        "named-pipe",  # issue 42 case 7: reading it would block forever
+        lambda d: (os.mkfifo(d / "pipe.dng"), cli_errors.edit_scene(d, _set_file(0, "pipe.dng"))),
+        ("photos[0].file", "'pipe.dng' is a named pipe (FIFO), not a RAW file"),
     ),
     (
         "folder-named-like-a-photo",
@@ -1036,3 +1048,111 @@ def test_a_device_or_pipe_is_never_replaced(
         assert_one_line_user_error(status, err, argv[0], "is a named pipe (FIFO)", "not a file")
     assert stat.S_ISFIFO(fifo.lstat().st_mode)
     assert _entries(tmp_path) == ["pipe"]
+
+
+# --- issue 42: hostile scene files, outputs and polygons ------------------------------------
+
+
+def _replace_scene(d: Path, make: object) -> None:
+    (d / "scene.toml").unlink()
+    make(d / "scene.toml")  # type: ignore[operator]
+
+
+SCENE_FILE_CASES = [
+    ("named-pipe", lambda p: os.mkfifo(p), "is a named pipe (FIFO), not a scene file"),
+    ("folder", lambda p: p.mkdir(), "is a folder, not a scene file"),
+    ("link-to-dev-zero", lambda p: p.symlink_to("/dev/zero"),
+     "is a link to /dev/zero, a character device, not a scene file"),
+    ("link-loop", lambda p: p.symlink_to(p.name), "is a loop of symbolic links"),
+    ("deep-nesting", lambda p: p.write_text("a = " + "[" * 100_000 + "]" * 100_000),
+     "nested too deeply"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("make", "fragment"), [c[1:] for c in SCENE_FILE_CASES], ids=[c[0] for c in SCENE_FILE_CASES]
+)
+def test_a_scene_file_that_is_not_a_text_file_is_one_line(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], make, fragment: str
+) -> None:
+    _replace_scene(photos, make)
+    status, err = run(capsys, "fit", str(photos), "-o", str(tmp_path / "out"), "--quiet")
+    assert_one_line_user_error(status, err, "fit", "scene.toml", fragment)
+    assert _entries(tmp_path) == ["photos"]
+
+
+def _markers(change) -> object:
+    return lambda d: cli_errors.edit_scene(d, lambda s: change(s["markers"]))
+
+
+def _first_wedge_name(name: str) -> object:
+    return lambda d: cli_errors.edit_scene(
+        d, lambda s: s["specimen"]["wedges"][0].update(name=name)
+    )
+
+
+SCENE_VALUE_CASES = [
+    ("duplicate-marker-id", _markers(lambda m: m["marker"][1].update(id=m["marker"][0]["id"])),
+     ("markers.marker[1].id", "is also markers.marker[0].id")),
+    ("marker-id-outside-dictionary", _markers(lambda m: m["marker"][0].update(id=50)),
+     ("markers.marker[0].id", "50 is outside [0, 49]")),
+    ("unknown-dictionary", _markers(lambda m: m.update(dictionary="DICT_4X4_5O")),
+     ("markers.dictionary", "not an OpenCV ArUco dictionary", "DICT_4X4_50")),
+    ("min-markers-above-count", _markers(lambda m: m.update(min_markers=100)),
+     ("markers.min_markers", "100 is more than the 4 markers listed")),
+    ("absurd-corner", _markers(lambda m: m["marker"][0]["corners_mm"][0].__setitem__(0, 1e300)),
+     ("markers.marker[0].corners_mm", "beyond +-1e+06")),
+    ("absurd-roi-vertex", lambda d: cli_errors.edit_scene(
+        d, lambda s: s["photos"][0].update(roi_px={"w10": [[0, 0], [1e300, 0], [0, 10]]})),
+     ("photos[0].roi_px.w10", "beyond +-1e+06")),
+    ("empty-wedge-name", _first_wedge_name(""), ("specimen.wedges[0].name", "'' is empty")),
+    ("blank-wedge-name", _first_wedge_name("  "), ("specimen.wedges[0].name", "is empty")),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("breaks", "fragments"), [c[1:] for c in SCENE_VALUE_CASES],
+    ids=[c[0] for c in SCENE_VALUE_CASES],
+)  # fmt: skip
+def test_impossible_scene_values_are_one_line(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], breaks, fragments
+) -> None:
+    breaks(photos)
+    status, err = run(capsys, "fit", str(photos), "-o", str(tmp_path / "out"), "--quiet")
+    assert_one_line_user_error(status, err, "fit", "scene.toml", *fragments)
+
+
+def test_an_empty_patch_name_is_refused(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    patch = {"name": "", "roi_px": [[0, 0], [40, 0], [40, 40], [0, 40]]}
+    cli_errors.edit_scene(photos, lambda s: s.update(patches=[patch]))
+    status, err = run(capsys, "measure", str(photos), "-o", str(tmp_path / "out"), "--quiet")
+    assert_one_line_user_error(status, err, "measure", "patches[0].name", "is empty")
+
+
+def test_a_huge_value_is_not_echoed_whole(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # issue 42: a 5 MB illuminant name came back as a 5 MB error line
+    cli_errors.edit_scene(photos, lambda s: s["light"].update(illuminant="D" * 5_000_000))
+    status, err = run(capsys, "fit", str(photos), "-o", str(tmp_path / "out"), "--quiet")
+    assert_one_line_user_error(status, err, "fit", "scene.toml", "light.illuminant",
+                               "(5000003 characters)")  # fmt: skip
+    assert len(err) < 3000
+
+
+@pytest.mark.parametrize("command", ["fit", "predict", "demo"])
+def test_an_output_that_is_a_loop_of_links_is_one_line(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop.name)
+    argv = {
+        "fit": ["fit", str(photos), "-o", str(loop), "--quiet"],
+        "predict": ["predict", "--theta-o-deg", "0", "-o", str(loop)],
+        "demo": ["demo", str(loop), "--quiet"],
+    }[command]
+    status, err = run(capsys, *argv, "--force")
+    assert_one_line_user_error(status, err, command, str(loop), "is a loop of symbolic links")
+    assert _entries(tmp_path) == ["loop", "photos"]

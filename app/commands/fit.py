@@ -121,7 +121,9 @@ def check_model_name(name: str) -> None:
 
 def default_output(folder: Path) -> Path:
     """`DIR-fit` next to the photo folder."""
-    folder = Path(folder).resolve()
+    from ..fileio import resolved
+
+    folder = resolved(folder)
     return folder.with_name(f"{folder.name}-fit")
 
 
@@ -156,29 +158,25 @@ def check_photos(scene: Scene) -> None:
 def photo_file_problem(
     path: Path, folder: Path, remove: str = "the [[photos]] entry"
 ) -> str | None:
-    """Why `path` cannot be read as a photo (missing, a folder, a device, a broken link), or None.
+    """Why `path` cannot be read as a photo (missing, a folder, a pipe, a device, a broken link,
+    a loop of links), or None.
 
     Checked before decoding: reading a link to /dev/zero would never end. `remove` names what
     to remove in the advice for a missing file.
     """
-    import os
-    import stat
+    from ..fileio import describe
 
-    if not path.exists():
-        if path.is_symlink():
-            return f"is a link to {os.readlink(path)}, which does not exist; fix the link"
+    problem = describe(path)
+    if problem is None:
+        return None
+    if problem == "does not exist":
         spaces = " (mind the spaces around the name)" if path.name != path.name.strip() else ""
         return f"is not in {folder}{spaces}; fix the name or remove {remove}"
-    link = f" (a link to {path.resolve()})" if path.is_symlink() else ""
-    mode = path.stat().st_mode
-    if stat.S_ISDIR(mode):
-        return f"is a folder{link}, not a RAW file; name the photo file itself"
-    if not stat.S_ISREG(mode):
-        kinds = {stat.S_ISCHR: "a character device", stat.S_ISBLK: "a block device",
-                 stat.S_ISFIFO: "a pipe", stat.S_ISSOCK: "a socket"}  # fmt: skip
-        kind = next((v for f, v in kinds.items() if f(mode)), "not a regular file")
-        return f"is {kind}{link}, not a RAW file; give the photo's RAW file"
-    return None
+    if problem.endswith("which does not exist") or "loop" in problem:
+        return f"{problem}; fix the link"
+    if problem.endswith("a folder"):
+        return f"{problem}, not a RAW file; name the photo file itself"
+    return f"{problem}, not a RAW file; give the photo's RAW file"
 
 
 def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:

@@ -64,7 +64,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def default_output(folder: Path) -> Path:
     """`DIR-measure` next to the photo folder."""
-    folder = Path(folder).resolve()
+    from ..fileio import resolved
+
+    folder = resolved(folder)
     return folder.with_name(f"{folder.name}-measure")
 
 

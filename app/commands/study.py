@@ -25,6 +25,7 @@ from typing import Any
 
 from .. import __version__
 from ..errors import UserError
+from ..fileio import resolved
 from ..scene import SCENE_FILE
 from ._study_task import FAILED, FITTED, INTERRUPTED, LEDGER_DIR, SKIPPED, FolderReport, FolderTask
 
@@ -145,7 +146,7 @@ def plan_study(args: argparse.Namespace) -> StudyPlan:
             f"--scheduler-file: {args.scheduler_file} does not exist; start "
             f"'dask scheduler --scheduler-file {args.scheduler_file}' first or fix the path"
         )
-    out = args.output.expanduser().resolve()
+    out = resolved(args.output.expanduser())
     check_output(out)
     folders = find_folders(args.paths, exclude=out)
     check_output(out, folders)  # OUT must not be, or hold, a photo folder
@@ -190,7 +191,7 @@ def find_folders(paths: Sequence[Path], exclude: Path | None = None) -> tuple[Pa
         path = Path(path).expanduser()
         if not path.exists():
             raise UserError(f"{path}: no such folder; give photo folders or a folder of them")
-        path = path.resolve()
+        path = resolved(path)
         if path.is_file():
             if path.name != SCENE_FILE:
                 raise UserError(f"{path}: not a folder; give photo folders (with {SCENE_FILE})")
