@@ -408,12 +408,18 @@ def package_versions() -> dict[str, str | None]:
 
 
 def inputs_record(outcome: FitOutcome) -> dict[str, Any]:
-    """results.json's `inputs`: SHA-256 of the scene file, every photo and calibration frame."""
+    """results.json's `inputs`: SHA-256 of the scene file, every photo and calibration frame;
+    for each photo whether its values were measured now or read from the measurement cache."""
     scene = outcome.scene
+    cached = set(getattr(outcome.table, "from_cache", ()))
     return {
         "scene": {"file": scene.path.name, "sha256": sha256_of(scene.path)},
         "photos": [
-            {"file": name, "sha256": outcome.table.for_photo(name)[0].photo_sha256}
+            {
+                "file": name,
+                "sha256": outcome.table.for_photo(name)[0].photo_sha256,
+                "measured_from": "cache" if name in cached else "photo",
+            }
             for name in outcome.table.photos()
         ],  # a bracket's: SHA-256 of its files' digests joined by "," (docs/imaging.md)
         "calibration": [

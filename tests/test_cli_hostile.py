@@ -463,7 +463,7 @@ def test_cache_in_the_way_or_read_only_does_not_stop_the_measurement(
     def read_only(path: Path, data: bytes) -> Path:
         raise PermissionError(13, "Permission denied", str(path))
 
-    monkeypatch.setattr(_cache, "atomic_write_bytes", read_only)
+    monkeypatch.setattr(_cache, "atomic_bytes", read_only)
     monkeypatch.setattr(Path, "unlink", lambda self, missing_ok=False: read_only(self, b""))
     with pytest.warns(imaging.ImagingWarning, match="cannot write it"):
         table = imaging.measure_photos(specs, cache=cache, preview_dir=tmp_path / "pv2")
@@ -703,20 +703,28 @@ def test_same_bytes_under_two_names_warns(
     assert lines[1].startswith("stairfit fit: error: ")
 
 
-def test_preview_names_never_leave_the_preview_folder(tmp_path: Path) -> None:
+def test_preview_names_never_leave_the_preview_folder_and_never_collide(tmp_path: Path) -> None:
+    import re
+
     from stairfit import imaging
 
-    for name, expected in [
-        ("IMG_0001.dng", "IMG_0001.dng.png"),
-        ("raw/IMG_0001.dng", "raw__IMG_0001.dng.png"),
-        ("../../x/IMG.dng", "x__IMG.dng.png"),
-        ("/abs/IMG.dng", "abs__IMG.dng.png"),
-        ("..", "photo.png"),
-    ]:
-        spec = imaging.PhotoSpec(
-            tmp_path / "a.dng", name=name, rois={"w": [(0, 0), (9, 0), (9, 9)]}
-        )
-        assert imaging.preview_path(tmp_path / "pv", spec) == tmp_path / "pv" / expected
+    names = {
+        "IMG_0001.dng": "IMG_0001.dng.png",  # a plain file name keeps its name
+        "a__IMG.dng": "a__IMG.dng.png",
+        "a/IMG.dng": r"a__IMG\.dng-[0-9a-f]{8}\.png",  # flattened, with its name's hash
+        "a\\IMG.dng": r"a__IMG\.dng-[0-9a-f]{8}\.png",
+        "../../x/IMG.dng": r"x__IMG\.dng-[0-9a-f]{8}\.png",
+        "/abs/IMG.dng": r"abs__IMG\.dng-[0-9a-f]{8}\.png",
+        "..": r"photo-[0-9a-f]{8}\.png",
+    }
+    paths = []
+    for name, expected in names.items():
+        rois = {"w": [(0, 0), (9, 0), (9, 9)]}
+        spec = imaging.PhotoSpec(tmp_path / "a.dng", name=name, rois=rois)
+        path = imaging.preview_path(tmp_path / "pv", spec)
+        assert path.parent == tmp_path / "pv" and re.fullmatch(expected, path.name), (name, path)
+        paths.append(path)
+    assert len(set(paths)) == len(paths)  # issue 42: a/IMG.dng and a__IMG.dng shared one file
 
 
 @pytest.mark.parametrize(
@@ -1156,3 +1164,50 @@ def test_an_output_that_is_a_loop_of_links_is_one_line(
     status, err = run(capsys, *argv, "--force")
     assert_one_line_user_error(status, err, command, str(loop), "is a loop of symbolic links")
     assert _entries(tmp_path) == ["loop", "photos"]
+
+
+def test_results_say_which_values_came_from_the_cache(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # issue 42 case 5: a cache edited with its checksum recomputed was trusted, and results.json
+    # listed the photos' hashes as if measured from them (the issue's set-up: 5 views)
+    import json
+
+    from stairfit.imaging._cache import checksum_path, table_digest
+
+    photos = tmp_path / "photos"
+    simulate = ["simulate", str(photos), "--megapixels", "0.5", "--views", "5", "--seed", "1"]
+    assert run(capsys, *simulate, "--quiet")[0] == 0
+
+    assert run(capsys, "measure", str(photos), "-o", str(tmp_path / "m"), "--quiet")[0] == 0
+    cache = photos / ".stairfit-cache" / "measurements.csv"
+    _tamper(cache, "scale-one-photo")
+    check = json.loads(checksum_path(cache).read_text())  # recomputed, as anyone could
+    check.update(scheme="sha256", digest=table_digest(cache.read_bytes(), check["table_version"],
+                                                      None, check["previews"]))  # fmt: skip
+    checksum_path(cache).write_text(json.dumps(check))
+    fit = ["fit", str(photos), "-o", str(tmp_path / "out"), "--no-posterior", "--model",
+           "sharp+floor", "--quiet", "--force"]  # fmt: skip
+    status, err = run(capsys, *fit)
+    assert status == 0 and "written without this user's cache key" in err, err
+
+    def results() -> dict:
+        return json.loads((tmp_path / "out" / "results.json").read_text())
+
+    assert {p["measured_from"] for p in results()["inputs"]["photos"]} == {"photo"}
+    status = cli_errors.main(fit)
+    printed = capsys.readouterr()
+    assert status == 0, printed.err
+    assert {p["measured_from"] for p in results()["inputs"]["photos"]} == {"cache"}
+    assert "came from the measurement cache" in printed.out
+    assert any("came from the measurement cache" in n for n in results()["diagnostics"]["notes"])
+
+
+def test_no_user_cache_folder_without_a_home() -> None:
+    # issue 42: `HOME=` made the caches at /.cache/stairfit
+    from stairfit._jaxcache import cache_dir, user_cache_dir
+
+    for env in ({"HOME": ""}, {"HOME": "/"}, {}, {"HOME": "relative"}, {"XDG_CACHE_HOME": "x"}):
+        assert user_cache_dir(env) is None and cache_dir(env) is None, env
+    assert user_cache_dir({"HOME": "/home/u"}) == Path("/home/u/.cache/stairfit")
+    assert user_cache_dir({"HOME": "", "XDG_CACHE_HOME": "/c"}) == Path("/c/stairfit")

@@ -18,8 +18,8 @@ import numpy as np
 from .. import _ranges
 from .._compile_watch import watching_compilation
 from .._prefetch import FIT_MODULES, REPORT_MODULES, prefetch
-from ..errors import StairfitWarning, UserError
-from ..imaging_specs import CACHE_DIR, MEASUREMENT_CACHE, extraction_settings, photo_specs
+from ..errors import UserError
+from ..imaging_specs import CACHE_DIR, extraction_settings, measurement_cache, photo_specs
 from ..outcome import FitOptions, FitOutcome
 from ..presets import PRESETS, Preset, get_preset
 from ..scene import Scene, load_scene
@@ -217,6 +217,7 @@ def _fit_measured(
         where = keep_previews(kept, out / "previews", photo_specs(scene), table.photos(), shown)
         raise UserError(f"{err}{where}") from None
     notes.extend(excluded_notes)
+    notes.extend(cache_notes(scene, table))
     spectral, aperture = fit_setup(scene, options.preset)
     notes.extend(index_notes(scene, spectral))
     with watching_compilation(options.progress) as compiled:
@@ -268,18 +269,7 @@ def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
     from stairfit import imaging
 
     settings = extraction_settings(scene)
-    cache = scene.folder / CACHE_DIR / MEASUREMENT_CACHE if options.cache else None
-    try:
-        if cache is not None:
-            cache.parent.mkdir(exist_ok=True)
-    except OSError as e:  # a read-only photo folder, or a file in the way: measure without
-        warnings.warn(
-            f"{cache.parent}: cannot keep the measurement cache there ({e.strerror or e}); "
-            "measuring without it",
-            StairfitWarning,
-            stacklevel=2,
-        )
-        cache = None
+    cache, secret = measurement_cache(scene, options.cache)
     specs = photo_specs(scene)
     kept = scene.folder / CACHE_DIR / FAILED_PREVIEWS
     try:
@@ -290,6 +280,7 @@ def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
             preview_dir=out / "previews",
             progress=options.progress,
             max_workers=options.workers,
+            cache_secret=secret,
         )
     except imaging.ImagingError as err:
         failed = getattr(err, "failed_photos", ())
@@ -297,6 +288,20 @@ def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
         raise UserError(f"{scene.path}: {err}{where}") from None
     forget_previews(kept)
     return table
+
+
+def cache_notes(scene: Scene, table: Any) -> list[str]:
+    """A note (printed, and in results.json) saying which photos' values came from the
+    measurement cache rather than from decoding the photos now."""
+    reused = tuple(getattr(table, "from_cache", ()))
+    if not reused:
+        return []
+    shown = ", ".join(reused[:5]) + (f" and {len(reused) - 5} more" if len(reused) > 5 else "")
+    return [
+        f"the measurements of {len(reused)} of {len(table.photos())} photos ({shown}) came from "
+        f"the measurement cache in {scene.folder / CACHE_DIR} (checked against each photo's "
+        "SHA-256 and this user's cache key); --no-cache measures them again"
+    ]
 
 
 def _spread(row: Any, extent_deg: float, to_deg: float) -> float:

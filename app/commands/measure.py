@@ -21,9 +21,9 @@ from ..errors import UserError
 from ..fileio import write_file
 from ..imaging_specs import (
     CACHE_DIR,
-    MEASUREMENT_CACHE,
     calibration_spec,
     extraction_settings,
+    measurement_cache,
     photo_specs,
     radiometry_fields,
 )
@@ -137,17 +137,13 @@ def measure_table(scene: Scene, specs: Sequence[Any], out: Path, args: argparse.
     """The measurement table of every photo that could be measured (failures in `.failed`)."""
     from stairfit import imaging
 
-    cache = None if args.no_cache else scene.folder / CACHE_DIR / MEASUREMENT_CACHE
-    try:
-        if cache is not None:
-            cache.parent.mkdir(exist_ok=True)
-    except OSError:
-        cache = None  # a read-only photo folder: measure without a cache
+    cache, secret = measurement_cache(scene, not args.no_cache)
     try:
         return imaging.measure_photos(
             specs,
             extraction_settings(scene),
             cache=cache,
+            cache_secret=secret,
             preview_dir=out / "previews",
             progress=not args.quiet,
             max_workers=args.workers,
