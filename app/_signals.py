@@ -51,20 +51,3 @@ def terminate_by_exception() -> Iterator[None]:
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
-
-
-@contextmanager
-def deferred() -> Iterator[None]:
-    """Within the block, SIGINT, SIGTERM and SIGHUP wait until it ends (POSIX; else no-op).
-
-    For the few renames that put a finished result in place: a signal arriving between them
-    would otherwise leave the old result set aside and the new one not yet moved in.
-    """
-    if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - Windows
-        yield
-        return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, *HANDLED})
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)

@@ -398,8 +398,7 @@ def reflected_colours(
 
 
 SaveFigure = Callable[[Figure, Path], Path]
-"""What draws a figure and writes it to a path: `save`, or `stairfit._drawing.Drawer` (which
-draws in a second process)."""
+"""What draws a figure and writes it to a path (`save`)."""
 
 
 def save(fig: Figure, path: Path, dpi: int = 120) -> Path:

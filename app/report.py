@@ -201,8 +201,7 @@ def write_outputs(
 ) -> None:
     """Write every output into `out` (a temporary folder moved into place by the caller);
     `drawn`: the figures `fit_figures` already drew into `out / "figures"` (drawn here if
-    None); `draw`: how a figure is drawn and written (`figures.save`, or a
-    `_drawing.Drawer`, which may still be writing when this returns)."""
+    None); `draw`: how a figure is drawn and written (`figures.save`)."""
     from .photo_reports import MARKER_COLUMNS, fit_marker_reports, write_table
 
     out.mkdir(parents=True, exist_ok=True)
@@ -503,8 +502,7 @@ FIGURE_ORDER = ("fit", "residuals", "misfit", "corner", "brdf_map", "colours")
 def fit_figures(outcome: FitOutcome, folder: Path, draw: SaveFigure = save) -> dict[str, str]:
     """The figures that need the least-squares fit only (every one but the corner plot);
     returns {key: relative path}. `stairfit fit` builds them in a second thread while the
-    posterior is sampled (its model evaluations release the interpreter most of the time), and
-    `draw` (a `_drawing.Drawer`) has them drawn and written by a second process.
+    posterior is sampled (its model evaluations release the interpreter most of the time).
 
     The model-only figures (fitted BRDF, reflected colours) follow the preset's
     `diffuse_nodes` and `float32_figures`.

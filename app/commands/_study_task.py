@@ -126,11 +126,9 @@ def fit_or_skip(task: FolderTask) -> FolderReport:
     note = replaced_note(dest, ledger, fingerprint, task.refit)
     check_photos(scene)
     ledger.unlink(missing_ok=True)  # the old fingerprint no longer describes dest
-    # a worker goes on to further folders: it neither freezes what it imported (what is
-    # frozen is never collected) nor starts a drawing process (it is one of one per core)
-    options = dataclasses.replace(
-        task.options, progress=False, figure_process=False, freeze_imports=False
-    )
+    # a worker goes on to further folders: it does not freeze what it imported (what is
+    # frozen is never collected)
+    options = dataclasses.replace(task.options, progress=False, freeze_imports=False)
     with staged_folder(dest, force=True, command="fit") as tmp:
         fit_scene(scene, tmp, options)
     write_ledger(ledger, task, fingerprint)

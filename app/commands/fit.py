@@ -27,7 +27,6 @@ from . import _exclusions
 from ._failed_previews import FAILED_PREVIEWS, forget_previews, keep_previews
 
 if TYPE_CHECKING:
-    from .._drawing import Drawer
     from ..figures import SaveFigure
 
 DEG = np.pi / 180
@@ -189,12 +188,7 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     # the posterior's and the report's imports, in a thread while the model is compiled and
     # fitted (not while the photos are decoded, which keeps both cores busy)
     prefetch(FIT_MODULES if options.posterior else REPORT_MODULES, options.freeze_imports)
-    from .._drawing import drawing
-
-    # the figures drawn by a second process while the posterior is sampled (without a
-    # posterior there is nothing to draw beside: starting the process would cost more)
-    with drawing(options.figure_process and options.posterior) as draw:
-        return _fit_measured(scene, out, options, table, timings, notes, draw)
+    return _fit_measured(scene, out, options, table, timings, notes)
 
 
 def _fit_measured(
@@ -204,10 +198,10 @@ def _fit_measured(
     table: Any,
     timings: dict[str, float],
     notes: list[str],
-    draw: Drawer,
 ) -> FitOutcome:
-    """`fit_scene` once the photos are measured: fit, posterior, outputs; the figures are
-    drawn and written by `draw` (every one written when this returns)."""
+    """`fit_scene` once the photos are measured: fit, posterior, outputs (the figures drawn
+    in a thread beside the posterior, in this process: nothing is left running if it is
+    killed)."""
     t0 = time.perf_counter()
     try:
         observations, row_info, excluded_notes = to_observations(scene, table)
@@ -230,14 +224,13 @@ def _fit_measured(
         drawn = None
         if options.posterior:
             t0 = time.perf_counter()
-            outcome.posterior, drawn = sample_while_drawing(outcome, out, draw)
+            outcome.posterior, drawn = sample_while_drawing(outcome, out)
             timings["posterior_s"] = time.perf_counter() - t0
     timings.update(compiled.as_timings())
     from ..report import write_outputs
 
     t0 = time.perf_counter()
-    write_outputs(outcome, out, drawn, draw)
-    draw.finish()
+    write_outputs(outcome, out, drawn)
     timings["outputs_s"] = time.perf_counter() - t0
     return outcome
 
@@ -246,10 +239,9 @@ def sample_while_drawing(
     outcome: FitOutcome, out: Path, draw: SaveFigure | None = None
 ) -> tuple[Any, dict[str, str]]:
     """The posterior of the chosen fit, and meanwhile, in a second thread, the report's figures
-    that need the least-squares fit only (`report.fit_figures`), built there and drawn by
-    `draw` (default `figures.save`; `fit_scene` gives a `_drawing.Drawer`, which draws them in
-    a second process): the sampler's model evaluations release the interpreter most of the
-    time. Whatever ends the sampling (an error, Ctrl-C), the figures are handed over first."""
+    that need the least-squares fit only (`report.fit_figures`), drawn by `draw` (default
+    `figures.save`): the sampler's model evaluations release the interpreter most of the time.
+    Whatever ends the sampling (an error, Ctrl-C), the figures are handed over first."""
     from concurrent.futures import ThreadPoolExecutor
 
     from ..figures import save

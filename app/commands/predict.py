@@ -104,6 +104,10 @@ def run(args: argparse.Namespace) -> int:
     operation separately (about 40 small programs for one `--lobes` case, most of its
     start-up; issue 14).
     """
+    if args.output is None and getattr(args, "stdout_closed", False):
+        raise UserError(
+            "standard output is closed (>&-), so the table has nowhere to go; give -o FILE"
+        )
     check_combination(args)
     check_scalars(args)
     wedges, lam, theta_i, theta_o = _grids(args)

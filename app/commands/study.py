@@ -15,7 +15,6 @@ import hashlib
 import logging
 import os
 import re
-import shutil
 import uuid
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -24,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__
+from .._signals import Terminated
 from ..errors import UserError
 from ..fileio import resolved
 from ..scene import SCENE_FILE
@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         with output_lock(plan.out), connect(plan) as client:
             prepare_output(plan.out)  # only once a cluster is there: a failed start leaves none
             run_tasks(client, plan, reports)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, Terminated):  # Ctrl-C, SIGTERM, SIGHUP: the same clean-up
         sweep_partial_folders(plan)
         write_study(plan.out, with_interrupted(plan, reports))
         raise
@@ -392,18 +392,22 @@ def with_interrupted(plan: StudyPlan, reports: Sequence[FolderReport]) -> list[F
 
 
 def sweep_partial_folders(plan: StudyPlan) -> None:
-    """Remove the staging folders a killed local worker left in OUT (`.NAME.*.partial`).
+    """Clean what killed local workers left in OUT, as the next run into each folder would
+    (`outputs.remove_stale_leftovers`: a complete result left aside is put back, incomplete
+    staging folders are removed).
 
     Only for the local cluster, which is closed by now: on an existing cluster a task that was
-    running when the study stopped goes on and finishes or removes its own staging folder.
+    running when the study stopped goes on and finishes or removes its own staging folder (and
+    holds its folder's lock meanwhile).
     """
+    from ..outputs import output_lock, remove_stale_leftovers
+
     if plan.scheduler is not None or plan.scheduler_file is not None:
         return
     for task in plan.tasks:
-        for partial in plan.out.glob(f".{glob_escape(task.name)}.*.partial"):
-            shutil.rmtree(partial, ignore_errors=True)
-
-
-def glob_escape(name: str) -> str:
-    """`name` with glob metacharacters escaped (output names hold none, but be exact)."""
-    return re.sub(r"([*?\[])", r"[\1]", name)
+        dest = plan.out / task.name
+        try:
+            with output_lock(dest):
+                remove_stale_leftovers(dest)
+        except (UserError, OSError):  # still locked by a live task, or not ours to clean
+            continue
