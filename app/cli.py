@@ -146,6 +146,9 @@ def main(
     """
     argv = sys.argv[1:] if argv is None else argv
     name = argv[0] if argv and argv[0] in COMMANDS else ""
+    for stream in (sys.stdout, sys.stderr):  # a file name that is not UTF-8 is still printed
+        with suppress(AttributeError, ValueError):
+            stream.reconfigure(errors="backslashreplace")
     with terminate_by_exception():  # before the imports: a SIGTERM there is one line too
         try:
             return _run(argv, freeze_imports, stdout_closed)

@@ -42,6 +42,9 @@ MARKER = ".stairfit-output"
 """The file inside every output folder stairfit makes: which command made it, written last (a
 folder holding it is complete), and the proof that `--force` may replace the folder."""
 _TOKEN_HEX = 4  # bytes of randomness in temporary names: 8 hex digits
+_TEXT = {"newline": "", "encoding": "utf-8", "errors": "surrogateescape"}
+"""How text files are written: UTF-8, and a file or folder name that is not UTF-8 (its bytes
+held as surrogates by Python) written back as the bytes it has on disk."""
 _READ_CHUNK = 1 << 20
 
 
@@ -222,8 +225,9 @@ def atomic_path(path: str | Path, *, shown: str | Path | None = None) -> Iterato
 
 @contextmanager
 def atomic_text(path: str | Path, *, shown: str | Path | None = None) -> Iterator[TextIO]:
-    """A text file (UTF-8) written via a temporary sibling, renamed into place on success."""
-    with atomic_path(path, shown=shown) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+    """A text file (UTF-8, `_TEXT`) written via a temporary sibling, renamed into place on
+    success."""
+    with atomic_path(path, shown=shown) as tmp, open(tmp, "w", **_TEXT) as fh:
         yield fh
 
 
@@ -240,7 +244,7 @@ def writing(path: str | Path) -> Iterator[TextIO]:
     folder); an `OSError` (a full disk) names the file."""
     path = Path(path)
     try:
-        with open(path, "w", newline="", encoding="utf-8") as fh:
+        with open(path, "w", **_TEXT) as fh:
             yield fh
     except OSError as e:
         raise named_error(e, path, path) from e

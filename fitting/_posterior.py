@@ -697,13 +697,26 @@ def _run_chunks(
     from tqdm import tqdm
 
     backend: ChainBackend = sampler.backend
+    # one bar for the whole chain (emcee's own draws a new bar for every chunk)
+    bar = tqdm(desc="posterior", unit="step", disable=not progress, initial=backend.iteration)
+    with bar:  # closed also when interrupted, so that the next message starts a line
+        return _chunks(sampler, state, t, opts, bar)
+
+
+def _chunks(
+    sampler: emcee.EnsembleSampler,
+    state: emcee.State | None,
+    t: Target,
+    opts: PosteriorOptions,
+    bar: Any,
+) -> _Run:
+    """`_run_chunks`'s loop, advancing `bar`."""
+    backend: ChainBackend = sampler.backend
     guarded: _Guarded = sampler.log_prob_fn.f
     tau = np.full(t.slots.size, np.inf)
     spent, check_at, last = 0.0, 0, _Run(tau, False, 0.0)
     done = backend.get_chain() if backend.iteration else None
     chain = None if done is None else _physical_chain(t, done)
-    # one bar for the whole chain (emcee's own draws a new bar for every chunk)
-    bar = tqdm(desc="posterior", unit="step", disable=not progress, initial=backend.iteration)
     while (n_run := min(opts.chunk_steps, opts.max_steps - backend.iteration)) > 0:
         t0 = time.perf_counter()
         try:
@@ -731,10 +744,8 @@ def _run_chunks(
             last = last._replace(diagnostics=d, diagnosed=n)
             bar.set_postfix_str(f"tau {np.max(tau):.3g}, R-hat {np.max(d.rhat):.4f}")
             if _diagnostics_pass(d, opts):
-                bar.close()
                 return last._replace(converged=True)
             check_at = math.ceil(DIAGNOSE_GROWTH * n)
-    bar.close()
     return last
 
 

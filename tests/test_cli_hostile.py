@@ -928,13 +928,14 @@ def test_predict_defaults_and_documented_combinations_still_run(
         assert status == 0 and err == "", (options, err)
 
 
-@pytest.mark.parametrize("command", ["fit", "simulate"])
+@pytest.mark.parametrize("command", ["fit", "simulate", "measure"])
 def test_too_many_workers_is_refused(
     photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
 ) -> None:
     target = (
-        [str(photos), "-o", str(tmp_path / "out")] if command == "fit" else [str(tmp_path / "s")]
-    )
+        [str(photos), "-o", str(tmp_path / "out")] if command != "simulate"
+        else [str(tmp_path / "s")]
+    )  # fmt: skip
     status, err = run(capsys, command, *target, "--workers", "100000", "--quiet")
     assert_one_line_user_error(status, err, command, "--workers", "<= 32", "100000")
     assert _entries(tmp_path) == ["photos"]
@@ -1211,3 +1212,22 @@ def test_no_user_cache_folder_without_a_home() -> None:
         assert user_cache_dir(env) is None and cache_dir(env) is None, env
     assert user_cache_dir({"HOME": "/home/u"}) == Path("/home/u/.cache/stairfit")
     assert user_cache_dir({"HOME": "", "XDG_CACHE_HOME": "/c"}) == Path("/c/stairfit")
+
+
+@POSIX
+def test_a_folder_name_that_is_not_utf8_is_measured_and_printed(
+    photos: Path, tmp_path: Path
+) -> None:
+    # issue 42: a non-UTF-8 folder name gave a UnicodeEncodeError after the whole fit
+    base = os.fsencode(tmp_path)
+    folder, out = base + b"/bad\xffname", base + b"/out\xff"
+    os.rename(photos, folder)
+    argv = [sys.executable, "-c", "from stairfit.cli import entry; entry()", "measure",
+            os.fsdecode(folder), "-o", os.fsdecode(out), "--quiet"]  # fmt: skip
+    done = subprocess.run(argv, capture_output=True, timeout=600,
+                          env={**os.environ, "STAIRFIT_JAX_CACHE": "off"})  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert b"Traceback" not in done.stderr
+    assert b"bad\\udcffname" in done.stdout  # printed, its odd byte shown as an escape
+    with open(out + b"/report.html", "rb") as fh:
+        assert b"bad\xffname" in fh.read()  # the name's own bytes, as on disk

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from .. import _ranges
 from ..errors import UserError
 from ..fileio import write_file
 from ..imaging_specs import (
@@ -75,8 +76,7 @@ def run(args: argparse.Namespace) -> int:
     from ..outputs import staged_folder
     from .fit import check_photos
 
-    if args.workers < 1:
-        raise UserError("--workers: must be >= 1")
+    _ranges.check_workers(args.workers)
     scene = load_scene(args.folder, measure_only=True)
     out = args.output or default_output(args.folder)
     check_photos(scene)
