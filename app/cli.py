@@ -181,7 +181,7 @@ def _run(argv: list[str], freeze_imports: bool, stdout_closed: bool) -> int:
         gc.freeze()
     try:
         with one_line_warnings(args.command):
-            return int(args.func(args) or 0)
+            return _call(args)
     except UserError as e:
         _say(args.command, f"error: {one_line(str(e))}")
         return EXIT_USER_ERROR
@@ -201,6 +201,68 @@ def _run(argv: list[str], freeze_imports: bool, stdout_closed: bool) -> int:
             raise
         _say(args.command, f"error: {one_line(str(e))}")
         return EXIT_USER_ERROR
+
+
+def _call(args: argparse.Namespace) -> int:
+    """Run the command; if JAX failed while its persistent compilation cache is on, run it once
+    more without the cache (a foreign, swapped or damaged file there is loaded without any
+    check, and makes the program it stands for fail), with a one-line warning; `predict`
+    writing to standard output, which may have printed rows already, says so instead."""
+    try:
+        return int(args.func(args) or 0)
+    except Exception as e:
+        folder = _jax_cache_folder()
+        ours = isinstance(e, UserError | OSError) or _is_imaging_error(e) or is_out_of_memory(e)
+        if folder is None or ours or not _raised_in_jax(e):
+            raise
+        what = (
+            f"a compiled program in the JAX cache {folder} did not fit this run (a file from "
+            "another machine or version, or damaged)"
+        )
+        if args.command == "predict" and getattr(args, "output", None) is None:
+            raise UserError(f"{what}; delete the folder and run again") from None
+    _turn_off_jax_cache()
+    warnings.warn(
+        f"{what}; the run was repeated without the cache: delete the folder to rebuild it",
+        StairfitWarning,
+        stacklevel=1,
+    )
+    return int(args.func(args) or 0)
+
+
+def _jax_cache_folder() -> str | None:
+    """JAX's persistent compilation cache folder when it is on (None if JAX is not loaded)."""
+    jax = sys.modules.get("jax")
+    if jax is None or not jax.config.jax_enable_compilation_cache:
+        return None
+    return jax.config.jax_compilation_cache_dir or None
+
+
+def _turn_off_jax_cache() -> None:
+    """No persistent compilation cache for the rest of this process, and nothing compiled so
+    far kept in memory (it may have come from the cache)."""
+    import jax
+
+    jax.config.update("jax_enable_compilation_cache", False)
+    jax.clear_caches()
+
+
+def _raised_in_jax(e: BaseException) -> bool:
+    """Whether the exception passed through JAX's own code (JAX removes its frames from the
+    traceback it raises and says so in a note, or keeps them on the exception's cause)."""
+    seen: BaseException | None = e
+    for _ in range(10):
+        if seen is None:
+            return False
+        if any("JAX has removed its internal frames" in n for n in getattr(seen, "__notes__", ())):
+            return True
+        tb = seen.__traceback__
+        while tb is not None:
+            if f"{os.sep}jax{os.sep}_src{os.sep}" in tb.tb_frame.f_code.co_filename:
+                return True
+            tb = tb.tb_next
+        seen = seen.__cause__ or seen.__context__
+    return False
 
 
 def _silence_stdout() -> None:
