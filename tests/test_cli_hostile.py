@@ -1231,3 +1231,34 @@ def test_a_folder_name_that_is_not_utf8_is_measured_and_printed(
     assert b"bad\\udcffname" in done.stdout  # printed, its odd byte shown as an escape
     with open(out + b"/report.html", "rb") as fh:
         assert b"bad\xffname" in fh.read()  # the name's own bytes, as on disk
+
+
+def test_a_huge_sparse_photo_is_refused_by_its_size(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # issue 42: a 3 GB sparse DNG was read whole; a 20 GB one ran out of memory and was told
+    # about "the accurate preset's filleted rungs"
+    target = photos / "IMG_0002.dng"
+    target.unlink()
+    with open(target, "wb") as fh:
+        fh.truncate(20 * 2**30)  # sparse: no disk used
+    t0 = time.monotonic()
+    status, err = run(capsys, "measure", str(photos), "-o", str(tmp_path / "m"), "--quiet")
+    assert time.monotonic() - t0 < 60
+    assert status == 2 and "Traceback" not in err, err
+    line = err.strip().splitlines()[-1]
+    assert "IMG_0002.dng" in line and "is 20 GiB, more than the 2 GiB allowed" in line, line
+    assert "filleted" not in err
+
+
+@POSIX
+def test_a_link_to_dev_zero_in_the_cache_is_skipped(photos: Path, tmp_path: Path) -> None:
+    # issue 42 case 7: a link to /dev/zero in place of the cache read until memory ran out
+    from stairfit import imaging
+
+    cache = tmp_path / "cache" / "measurements.csv"
+    cache.parent.mkdir()
+    cache.symlink_to("/dev/zero")
+    with pytest.warns(imaging.ImagingWarning, match="a link to /dev/zero, a character device"):
+        table = imaging.measure_photos(_specs(photos), cache=cache)
+    assert len(table) > 0
