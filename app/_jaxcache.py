@@ -28,20 +28,20 @@ XLA_QUIET_LEVEL = "3"
 level 2 would still print them; real failures still reach Python as exceptions."""
 MIN_COMPILE_TIME_S = 0.0
 """Compilations faster than this are not written to disk (JAX's default is 1 s). Every one is
-kept: a warm `stairfit fit` of the demo scene otherwise recompiled about 35 small programs
-(0.06 s each, 2.3 s in all), while reading one back takes about 0.01 s."""
+kept: otherwise a warm `stairfit fit` recompiles dozens of small programs, each of which is
+read back from disk several times faster than it compiles."""
 
 
 XLA_FLAGS_VAR = "XLA_FLAGS"
 FAST_COMPILE_OPTION = "xla_cpu_use_fusion_emitters"
 FAST_COMPILE_FLAG = f"--{FAST_COMPILE_OPTION}=false"
 """XLA:CPU compiles fusions with its earlier (LLVM IR) emitters instead of the MLIR ones: a third
-less compilation for stairfit's programs at the same run time (README "Start-up", "XLA's
-earlier fusion emitters"; benchmarks/results/cold.md); results equal to about 1e-13 relative,
+less compilation for stairfit's programs at the same run time (docs/fitting.md §7;
+benchmarks/results/cold.md); results equal to about 1e-13 relative,
 the differences of a different order of floating-point operations."""
 FAST_COMPILE_JAXLIB = ((0, 6), (0, 10))
 """The jaxlib releases (major, minor), first and last, whose XLA knows the option: it appeared
-in 0.6 (0.5.0 lacks it) and 0.10.2 is the release measured. XLA stops the process on an option
+in 0.6 (0.5.0 lacks it), and 0.10 is the newest release checked. XLA stops the process on an option
 it does not know, so a release outside this range compiles with its defaults (widen the range
 once a newer release is checked: tests/test_jaxcache.py)."""
 

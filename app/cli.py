@@ -315,7 +315,8 @@ def entry() -> None:
     Before the interpreter shuts down, `gc.freeze()` moves every object into the collector's
     permanent generation, so the shutdown's last garbage collection does not walk the whole
     heap of JAX, XLA and matplotlib objects only to free memory the operating system frees
-    anyway: that walk took 0.5 s of a 9 s warm `stairfit fit` (issue 14; median of 5 runs).
+    anyway: that walk is a visible part of a warm `stairfit fit` (issue 14;
+    benchmarks/results/cold.md).
     Files are closed and atexit handlers still run. Not done in `main()`, which tests and
     notebooks call in a process that goes on; for the same reason only this entry asks `main`
     to freeze the imports as they are made (`freeze_imports`). A closed standard output or

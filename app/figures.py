@@ -9,7 +9,7 @@ last expression, or `display(fig)`).
 These take physical parameters, not fits, so notebooks and the report share them.
 
 Speed (issue 6: the report is part of the user's wait): every model evaluation of a figure is
-one compiled call (eager JAX compiles each operation separately, about 25 ms apiece), and the
+one compiled call (eagerly, JAX compiles every operation as a program of its own), and the
 figures place their axes with fixed margins in inches (`fixed_layout`) instead of
 `tight_layout`, which measures every tick label and then makes `savefig` draw the figure twice.
 """
@@ -32,8 +32,8 @@ from .fileio import named_error
 
 DEG = np.pi / 180
 PNG_COMPRESS_LEVEL = 1
-"""zlib level of the PNGs: with RGB instead of RGBA, the five report figures encode in about
-0.1 s instead of 0.2-0.25 s (matplotlib's RGBA at level 6), for files about 3% larger."""
+"""zlib level of the PNGs: with RGB instead of RGBA, the report's figures encode in about half
+the time of matplotlib's RGBA at level 6, for files a few percent larger."""
 SPECTRUM_STEP_NM = 20.0
 """Wavelength step at which `reflected_spectra` evaluates a dispersive material before linear
 interpolation onto the 5 nm grid: the reflected spectra are smooth in wavelength (dispersive
@@ -80,7 +80,7 @@ _SUPERSCRIPT = str.maketrans(
 
 class PlainLogFormatter(LogFormatterSciNotation):
     """Log-axis labels `10⁵`, `2×10⁴` as plain text: matplotlib's default choice of labels and
-    look, without mathtext, whose parser costs ~0.2 s to build on first use.
+    look, without mathtext, whose parser is slow to build on first use.
 
     A panel spanning less than a decade gets its minor ticks from matplotlib's linear fallback
     (`LogLocator` hands over to `AutoLocator`: 1.1, 1.2, ... x 10⁵), so the coefficient keeps

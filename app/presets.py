@@ -1,9 +1,10 @@
 """Quality presets: named settings of every knob that trades accuracy for time.
 
-The knobs and their measured effect are in the README's "Speed and accuracy" section; the numbers
-come from `python benchmarks/bench_tradeoff.py`, which measures every knob setting (model error
-against a converged reference, fit bias in standard errors on synthetic data with known truth,
-wall time with compilation apart) and then each preset as a whole, writing
+The knobs are in the README's "Speed and accuracy" section, their measured effect in
+docs/performance.md; the numbers come from `python benchmarks/bench_tradeoff.py`, which
+measures every knob setting (model error against a converged reference, fit bias in standard
+errors on synthetic data with known truth, wall time with compilation apart) and then each
+preset as a whole, writing
 `benchmarks/results/tradeoff.{csv,md}` and the Pareto plot `tradeoff_pareto.png`. The three
 presets are points on that measured front (case: dispersive PLA, a 5-deg light seen over a 3-deg
 face, sigma 6 deg, 2% noise):
@@ -22,17 +23,16 @@ face, sigma 6 deg, 2% noise):
   ran 2500 steps (0.022 sd) for 3x the time; 100 tau takes 4000 steps (0.018 sd);
 * float32 figures: half the time of float64 at full sampling, error unchanged at 3e-3;
 * diffuse nodes 3 / 6 / 8: error 1e-4 / 3e-9 / 3e-12 of the maximum;
-* rounded resolution 2 / 4 / 8: error 1e-4 / 2e-5 / 2e-6 (model/_rounded.py as of that run).
+* rounded resolution 2 / 4 / 8: error 1e-4 / 2e-5 / 2e-6.
 * fillet rays 256 / 512 / 4096 (the filleted rungs only): rms error 0.55 / 0.25 / below 0.1
   measurement standard errors on the standard scene at 1% noise and sigma 2 deg, the worst
   of five radius pairs, against 16384 rays (measured by `benchmarks/bench_rounded.py
-  --fillet-accuracy`, not by bench_tradeoff; docs/rounded.md §11); 512 matches the 2048
-  uniform rays the fits used before.
+  --fillet-accuracy`, not by bench_tradeoff; docs/rounded.md §11); 512 rays on the fillet's
+  footprint are as accurate as 2048 spread uniformly over the period.
 
-Measured presets (least-squares fit of the standard scene after compilation; compilation about
-4-6 s; posterior of 32 walkers; run of 2026-12-01 on the idle 2-core machine): fast 11 ms +
-2.1 s, balanced 12 ms + 2.3 s, accurate 35 ms + 17 s; fit bias 0.16 / 0.16 / 0.0004 standard
-errors. `fit` uses `balanced` by default. The `ladder` field (model choice, not numerical
+What each preset costs (a least-squares fit and a posterior of the standard scene) and its fit
+bias are in docs/performance.md and benchmarks/results/tradeoff.md. `fit` uses `balanced` by
+default. The `ladder` field (model choice, not numerical
 accuracy) is not measured by the benchmark.
 """
 
@@ -62,7 +62,7 @@ class Preset:
     * `rounded_rungs`: "always" fits the rounded-edge variants of the ladder; "when_needed"
       fits them only when the best sharp variant does not describe the data (it needs a
       model-error term, or its chi^2 tail probability is below 1e-3; `stairfit.fitting.
-      rounding_needed`). A rounded fit costs minutes (compilation), a sharp one seconds.
+      rounding_needed`). A rounded fit compiles several times longer than a sharp one.
     * `posterior_tau_factor`: the chain must be this many autocorrelation times long;
       `posterior_max_steps`: the step limit (then a warning); `posterior_chunk_steps`: how
       often (in steps) the stopping rule is checked (a chain stops at a multiple of it).

@@ -351,7 +351,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         "python": sys.version.split()[0],
         "platform": platform.platform(),
         "package_versions": package_versions(),
-        # XLA's options change the last bits of the numbers (README "Start-up")
+        # XLA's options change the last bits of the numbers (docs/fitting.md §7)
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "settings": {
             "preset": outcome.options.preset.as_dict(),

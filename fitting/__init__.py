@@ -4,8 +4,8 @@ Public API (everything else is internal). Conventions: docs/conventions.md; desi
 transforms and the selection rule: docs/fitting.md.
 
 The posterior (`sample_posterior`, its options and result, the chain file) is loaded on first
-use (PEP 562 `__getattr__`): it imports emcee, which imports SciPy, about 1 s that a fit
-without a posterior and every `import stairfit.fitting` need not pay (issue 14).
+use (PEP 562 `__getattr__`): it imports emcee, which imports SciPy, a cost that a fit without
+a posterior and every `import stairfit.fitting` need not pay (issue 14).
 """
 
 from typing import TYPE_CHECKING, Any

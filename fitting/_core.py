@@ -184,9 +184,8 @@ def _solve_and_evaluate(
     max_steps: int,
 ) -> tuple[Array, Array, Array, Evaluation]:
     """`_solve_one` through the exported-program cache (`_export`). A rounded model's solver
-    and evaluation compile as two programs: one program holding both took 43 s of compilation
-    against 18 s + 20 s for the two (rounded+floor, 2 MP x 9 views, CPU seconds at load 3-5),
-    while for the sharp model one program is the cheaper (6.9 s against 4.4 s + 3.2 s)."""
+    and evaluation compile as two programs, which together compile faster than one program
+    holding both; for the sharp model one program is the cheaper."""
     together = not static.rounded
     key = repr((static, solver_key(solver), max_steps))
     out = _export.call(
@@ -274,10 +273,10 @@ MODEL_ERROR_RISE = 0.05
 """A model-error term whose removal (the same model, the term set to 0) raises `-2 log L` by
 less than this is on its way to its bound 0 even where it is not yet below
 `MODEL_ERROR_NEGLIGIBLE` of every stderr: the data cannot tell it from 0 (the profile rule
-`_least_squares.PROFILE_DELTA` is 1). Seen on the demo (2 MP, 9 views, seed 12, after the
-viewing conversion of conventions §9): all six starts stood at one optimum (-2 log L 794.187 in
-each) with the term creeping from 1.2e-5 to 6e-6, above the stderr rule on the brightest rows,
-and the forced `sharp+floor` fit raised "did not converge"."""
+`_least_squares.PROFILE_DELTA` is 1). Without this rule every start can stand at one optimum
+with the term creeping towards 0, above the stderr rule, so that no start meets the tolerance
+and a fit the data describe is reported as not converged (docs/fitting.md §4, "Starts that all
+miss")."""
 
 
 def model_error_rise(ev: Evaluation, data: Data, frac: float) -> float:
@@ -319,19 +318,16 @@ def _to_model_error_bound(run: StartRun, problem: Problem, spec: FreeSpec, data:
 CONTINUE_ROUNDS = 3
 """The best start that only ran out of steps continues from where it stopped, at most this many
 times `max_steps` more (the same compiled program), when no start converged or when it beats
-every converged start by `BETTER_BY` (`_short_to_continue`). A small model-error term (2.7e-5 on
-an independent photo set, whose log-determinant residual is singular at 0) slows
-Levenberg-Marquardt: 256 steps ended every start of 2 of 50 sets short of the tolerance, 2048
-converged."""
+every converged start by `BETTER_BY` (`_short_to_continue`). Why: a small model-error term,
+whose log-determinant residual is singular at 0, slows Levenberg-Marquardt, so that `max_steps`
+can end every start short of the tolerance although more steps converge."""
 
 BETTER_BY = 1.0
 """A start that ran out of steps but whose `-2 log L` is lower than every converged start's by
 more than this (the data can tell the two apart, as `_least_squares.PROFILE_DELTA`) is not
-discarded for not converging: the converged starts then sit in a worse optimum. Seen on 3 of
-100 model-data sets of the demo (benchmarks/bench_demo_model_data.py, seed 1): the start at
-1 deg "converged" to sigma = 7 rad, scale 1e-26 and a 180% model-error term (-2 log L 3823),
-while the starts at 4 and 12 deg stood at the truth (-2 log L 780) with the model-error term
-creeping to 0; the fit was reported as unidentifiable."""
+discarded for not converging: the converged starts then sit in a worse optimum, e.g. a
+degenerate width and scale with a huge model-error term, while the short start stands at the
+truth with its term creeping to 0 (docs/fitting.md §4, "Starts that all miss")."""
 
 
 def _objective(run: StartRun) -> float:
@@ -457,9 +453,8 @@ def _run(z0: np.ndarray, static: Static, data: Data, solver: optx.AbstractLeastS
 START_THREADS = 2
 """Threads that solve the starts of a sharp fit side by side (the machine the project targets
 has 2 cores). XLA runs a compiled program without holding the interpreter, so two starts
-really run at once: 4 starts of a 2 MP x 9-view scene's `sharp+floor` with the model-error
-term took 0.15 s instead of 0.25 s, with identical results; a warm default `stairfit fit` spent
-3.4 s instead of 3.8 s fitting (6 runs each, interleaved; issue 14)."""
+really run at once, with results identical to the bit (tests/test_fitting_starts.py); the
+time saved is in benchmarks/results/cold.md (issue 14)."""
 
 
 def _run_starts(

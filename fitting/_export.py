@@ -109,8 +109,8 @@ def _program_path(
     folder: Path, name: str, static_key: str, treedef: Any, shapes: tuple[Any, ...]
 ) -> Path:
     """The file of a program (`program_key`), remembered: the posterior calls its program
-    hundreds of times, and hashing the tree's description each time cost about 0.2 s of a warm
-    default fit."""
+    hundreds of times, and hashing the tree's description on every call would add up to a
+    visible part of a warm fit."""
     specs = [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in shapes]
     return folder / f"{program_key(name, static_key, treedef, specs)}.bin"
 

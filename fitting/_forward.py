@@ -360,9 +360,9 @@ def _fillet_impl(
 FILLET_CHUNK_BYTES = 64 * 2**20
 """The fillet correction's contraction over the rays holds, per ray, the ray power at every
 (key, light node, index sample, lane) and the kernel at every (key, light node, view, lane);
-above this many bytes for all rays at once it is summed over chunks of rays (`lax.scan`). The
-accurate knobs (5 nm sampling, 4096 rays) on a 2 MP x 9-view folder asked for 99 GB in one
-pass; the balanced ones stay in one pass."""
+above this many bytes for all rays at once it is summed over chunks of rays (`lax.scan`), so
+that the accurate knobs (5 nm sampling, 4096 rays) on a photo folder, which would need tens of
+GB in one pass, fit in memory; the balanced ones stay in one pass."""
 
 
 def _fillet_bytes_per_ray(g: EvaluationGrid, views: int, samples: int, itemsize: int) -> int:

@@ -122,7 +122,7 @@ otherwise; the stopping rule uses `integrated_time(tol=0)`, which does not)."""
 def _block_physical(block: Array, base_z: Array, slots: Array, static: Static, data: Data) -> Array:
     """Physical values of the free slots for one block of unconstrained samples `(B, p)`: the
     samples scattered into the full parameter vector, transformed, and the free slots read back
-    (all inside one compiled program; eager scatters cost about 1 ms each)."""
+    (all inside one compiled program: eagerly, every scatter would be a dispatch of its own)."""
     full = jnp.broadcast_to(base_z, (block.shape[0], base_z.shape[0])).at[:, slots].set(block)
     return jax.vmap(physical, in_axes=(0, None, None))(full, static, data)[:, slots]
 
@@ -451,8 +451,8 @@ class Target(NamedTuple):
         if n < self.batch:  # pad with copies of the first walker; their values are dropped
             theta = np.concatenate([theta, np.repeat(theta[:1], self.batch - n, axis=0)])
         # NumPy arrays go to the compiled program as they are (its C++ dispatch transfers
-        # them): `jnp.asarray` of the three took about 0.2 ms of each 0.5-0.8 ms call, and the
-        # sampler makes thousands of calls (same values either way; same program keys;
+        # them): `jnp.asarray` of the three was a large part of each call, and the sampler
+        # makes thousands of calls (same values either way; same program keys;
         # benchmarks/bench_posterior_calls.py)
         prior_slots, dists = split_priors(self.priors)
         out = _export.call(

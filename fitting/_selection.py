@@ -165,7 +165,7 @@ def _criterion(fit: FitResult, criterion: str) -> float | None:
 ROUNDED_RUNGS: tuple[str, ...] = ("always", "when_needed")
 """`always` fits every rounded-edge variant of the ladder; `when_needed` first selects among
 the sharp variants and adds the rounded ones only when the chosen sharp variant does not
-describe the data (`rounding_needed`): a rounded fit costs minutes of compilation."""
+describe the data (`rounding_needed`): a rounded fit compiles several times longer."""
 
 
 def select_model(
@@ -358,7 +358,7 @@ def rounding_needed(selection: Selection) -> tuple[bool, str]:
     misfit rule of `describe_fit` (a model-error term above the smaller of 1% and twice the
     median relative standard error, or a chi^2 tail probability below `P_VALUE_LIMIT`), the
     rule that also puts MISFIT at the top of the summary. A smaller model-error term is
-    reported but does not trigger minutes of rounded compilation: with precise data the term
+    reported but does not trigger the rounded fits' compilation: with precise data the term
     is significant at a level no resolvable edge radius changes (measured: 1-2.3e-4 on the
     sharp demo and the independent renderer's sharp photos). Returns (needed, the reason in
     words). docs/fitting.md §4."""

@@ -381,8 +381,8 @@ def _fit_plane(
     keep = _total_degree_mask(degree)
     design = np.einsum("ai,bj->abij", vy, vx)[..., keep][ok]  # (cells, terms)
     # Normal equations with einsum: the Legendre basis keeps them well conditioned, and a
-    # BLAS least-squares call on this small matrix can take a second on a loaded machine
-    # (OpenBLAS threads oversubscribed), against milliseconds this way.
+    # BLAS least-squares call on this small matrix is slow when OpenBLAS's threads compete
+    # with other work for the cores.
     wn = n[ok]
     normal = np.einsum("ci,c,cj->ij", design, wn, design)
     a = np.linalg.solve(normal, np.einsum("ci,c->i", design, wn * m[ok]))

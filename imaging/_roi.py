@@ -22,8 +22,8 @@ Polygon = tuple[tuple[float, float], ...]
 _SHIFT = 8  # fixed-point bits for cv2.fillPoly: vertices are placed to 1/256 px
 
 MAX_ERODE_PX = 64
-"""The largest erosion radius: the disk erosion's time grows about as radius^2 x area (1.5 s for
-a 1500 px ROI at 64 px, 7 s at 128 px on the loaded development machine), docs/imaging.md."""
+"""The largest erosion radius: the disk erosion's time grows about as radius^2 x area, so larger
+radii on large ROIs take seconds (benchmarks/bench_limits.py; docs/imaging.md §Pixels)."""
 
 
 def as_polygon(points: Iterable[Sequence[float]], what: str) -> Polygon:

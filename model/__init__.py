@@ -74,3 +74,27 @@ from ._fillet import filleted_binned as filleted_binned
 from ._fillet import filleted_total as filleted_total
 from ._fillet import max_fillet_radius as max_fillet_radius
 from ._fillet import split_rays as split_rays
+
+# isort: split
+# Any pair of 3-D directions, Gaussian or microfacet facets (issue 40; docs/model.md §7).
+from ._lab import LAB_KERNELS as LAB_KERNELS
+from ._lab import InPlane as InPlane
+from ._lab import Lobes3D as Lobes3D
+from ._lab import RoughRetro as RoughRetro
+from ._lab import face_direction as face_direction
+from ._lab import facet_normals as facet_normals
+from ._lab import lab_body as lab_body
+from ._lab import lab_density_gaussian as lab_density_gaussian
+from ._lab import lab_density_microfacet as lab_density_microfacet
+from ._lab import lab_lobes as lab_lobes
+from ._lab import line_gaussian as line_gaussian
+from ._lab import lit_fractions as lit_fractions
+from ._lab import lobe_fresnel_3d as lobe_fresnel_3d
+from ._lab import projected_incidence as projected_incidence
+from ._lab import projected_view as projected_view
+from ._lab import retro_weight_rough as retro_weight_rough
+from ._lab import rough_retro as rough_retro
+from ._microfacet import DISTRIBUTIONS as DISTRIBUTIONS
+from ._microfacet import ndf as ndf
+from ._microfacet import smith_g1 as smith_g1
+from ._microfacet import smith_lambda as smith_lambda

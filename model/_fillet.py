@@ -205,8 +205,8 @@ def _nearest(ray: tuple, c: _Cell) -> tuple[Array, Array, Array]:
     from the tip at the origin, the riser `[r, l1 - r_f]` down from the tip at `(L, 0)`, the
     fillet (concave) between them and the two tip arcs (convex) at `x = 0` and `x = L`, normals
     in `[beta2 - 90 deg, beta2]`. Returns the ray parameter (inf = none) and the outward normal
-    at the hit (the first of equal ones: an argmin over the stacked candidates; a running
-    minimum measured slower).
+    at the hit (the first of equal ones: an argmin over the stacked candidates, cheaper than a
+    running minimum).
 
     Why five primitives suffice (docs/rounded.md §11, "the groove"): the profile is a graph
     `z = h(x)` (every normal has a positive `z`), highest at the tops of the tip arcs, `x =
@@ -634,10 +634,10 @@ def _is_zero(t: object) -> bool:
 def _fd_correction_jvp(static: _Static, primals: tuple, tangents: tuple) -> tuple:
     """One batched trace serves the value and every difference: the geometry at the primal and
     at each differenced argument's points is stacked on a new leading axis and traced in one
-    `_pair_rays` call (one tracer in the compiled program, not one per point: eleven for a
-    full Jacobian made its compilation 20 s, issue 14). The difference in `r_f` is one pair
-    (`r_f` at its upper point against its lower, `fillet_rays`); every other argument's is two
-    pairs (the correction at its upper point minus at its lower)."""
+    `_pair_rays` call (one tracer in the compiled program, not one per point: a full Jacobian
+    would otherwise hold eleven, and compile for as many times as long). The difference in
+    `r_f` is one pair (`r_f` at its upper point against its lower, `fillet_rays`); every other
+    argument's is two pairs (the correction at its upper point minus at its lower)."""
     geom, rest = primals
     d_geom, d_rest = tangents
     moved = [k for k in range(len(geom)) if not _is_zero(d_geom[k])]

@@ -1,9 +1,9 @@
 """Spectral sampling, camera channels and colour [conventions §8].
 
 The CIE data, illuminants and camera sensitivities are colour-science's, shipped with stairfit
-as package data (`model/_spectral_data.py`: importing colour-science costs 0.7-1.9 s; nothing is
-downloaded). They are turned into plain weight matrices here, so that everything downstream is a
-differentiable JAX contraction over wavelength.
+as package data (`model/_spectral_data.py`: importing colour-science would also import
+matplotlib and SciPy; nothing is downloaded). They are turned into plain weight matrices here,
+so that everything downstream is a differentiable JAX contraction over wavelength.
 """
 
 from __future__ import annotations

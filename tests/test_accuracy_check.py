@@ -115,8 +115,8 @@ def test_a_refit_that_runs_out_of_memory_keeps_the_preset_fit_and_says_so(precis
 
 
 def test_a_filleted_fit_is_not_refitted_automatically_but_warned(precise, monkeypatch):
-    """A filleted variant's refit with the accurate knobs takes tens of minutes (a 2 MP x 9-view
-    folder had not ended after 23 min): balanced warns with the way to refine it instead."""
+    """A filleted variant's refit with the accurate knobs takes many minutes: balanced warns with
+    the way to refine it instead."""
     from stairfit.commands import _accuracy_check as ac
 
     sel, obs = precise

@@ -3,7 +3,7 @@
 stairfit's spectral code needs four tables: the CIE 1931 2-degree colour-matching functions,
 the CIE illuminants, the measured camera sensitivities and the XYZ -> linear sRGB matrix.
 colour-science has them all, but `import colour` also imports `colour.plotting`, matplotlib and
-SciPy (about 0.7-1.9 s, measured in the README's "Start-up"), so the tables are shipped as
+SciPy (seconds of every process's start-up; docs/performance.md), so the tables are shipped as
 package data, copied here from colour-science's own datasets. Run after upgrading
 colour-science, then `pytest tests/test_spectral_data.py` (which checks the shipped tables
 equal colour-science's):

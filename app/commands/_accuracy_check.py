@@ -34,11 +34,11 @@ CHI2_ROSE_NOTE = (
 
 FILLET_NOT_REFITTED = (
     "a filleted variant is not refitted automatically: with the accurate knobs (5 nm sampling, "
-    "4096 rays) one value + Jacobian takes about 25 s and a refit of a 2 MP x 9-view folder "
-    "had not ended after 23 min; rerun with --preset accurate to refine it"
+    "4096 rays) a refit of a photo folder takes many minutes; rerun with --preset accurate to "
+    "refine it"
 )
-"""The filleted variants' exception to the refit (docs/fitting.md §3): a wait of tens of
-minutes is not started without the user asking for it."""
+"""The filleted variants' exception to the refit (docs/fitting.md §3): a wait of many minutes
+is not started without the user asking for it."""
 
 
 class AccuracyCheck(NamedTuple):

@@ -17,9 +17,9 @@ from typing import Any
 from ..errors import UserError
 
 MAX_ROWS = 1_000_000
-"""The largest CSV table `predict` writes: a million rows of the density took 35 s (14 s of it
-start-up) with a peak of 0.8 GB on the 2-core development machine at load average 10
-(benchmarks/bench_limits.py); split a larger request into several."""
+"""The largest CSV table `predict` writes: a million rows of the density take tens of seconds
+and most of a gigabyte (benchmarks/bench_limits.py, benchmarks/results/limits.md); split a
+larger request into several."""
 
 SIGMA_MAX_DEG = 90.0
 """Broadening beyond this is no longer a lobe: the truncated Gaussian is flat over +-90 deg."""

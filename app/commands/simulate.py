@@ -399,8 +399,8 @@ def _sampling(settings: SimulationSettings) -> str:
 
     With a constant index the density is the same at every wavelength, and a channel's band
     average of a constant is that constant [conventions §8]. The rounded and filleted models'
-    memory grows with the samples (81 at 5 nm): one face's 33 nodes took 7.3 GB with fillets,
-    and 4 views x 6 wedges of the rounded model more than 8 GB (measured, loaded).
+    memory grows with the samples (81 at 5 nm): at 81 a single filleted face's profile nodes
+    need gigabytes (docs/history.md).
     """
     from stairfit.model import materials
 

@@ -1,0 +1,465 @@
+"""The staircase for any pair of 3-D directions: out of the plane of incidence, with Gaussian or
+microfacet facets (the "lab" model; docs/model.md §7) [conventions §1-§6, §11, §12].
+
+The profile is extruded along the layer lines (y), so every facet normal lies in the (x, z)
+plane. A ray's path over the profile is therefore the in-plane path of its projection onto
+(x, z): lit widths, shadowing, masking and which facets a ray meets follow from the projected
+angles alone, and each reflection keeps the ray's component along y (a mirror whose normal has
+no y component). What changes out of the plane is (1) each reflection's local angle, whose
+cosine is the in-plane one times the projection's length `c = sqrt(1 - t^2)` (`t` the y
+component), (2) the s and p axes of a two-bounce path, which rotate between its two reflections,
+and (3) where the reflected light goes: its direction is `(c sin theta', -t_i, c cos theta')`
+for the in-plane lobe direction `theta'`. On the unit sphere `d omega = d theta' d t` exactly
+(Archimedes), so an in-plane density in 1/rad times a density in `t` is a density per steradian.
+
+Units: every density here is the reflected power per steradian per unit incident power,
+`p(w_i, w_o) = f(w_i, w_o) cos(theta_o)` with `f` the BRDF (1/sr) [conventions §11].
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.special import erf
+from jaxtyping import Array, ArrayLike, Float
+
+from ._broadening import hemisphere_gaussian
+from ._cell import facet_projections
+from ._fresnel import fresnel_sp, fresnel_unpolarised
+from ._lobes import lobe_directions, lobe_weights
+from ._microfacet import DISTRIBUTIONS, ndf, smith_g1
+from ._shapes import same_rank
+
+LAB_KERNELS: tuple[str, ...] = ("gaussian", *DISTRIBUTIONS)
+"""How the facets spread their reflections: "gaussian" (the paper's broadening, lifted to 3-D)
+or a microfacet distribution ("ggx", "beckmann") [conventions §12]."""
+
+ARC_SIGMA_PER_ALPHA = 2.0**0.5
+"""The arcs of rounded edges spread their light with a Gaussian of width
+`ARC_SIGMA_PER_ALPHA * alpha` (rad) when the facets are microfacet-rough: a reflection doubles
+a micro-normal's tilt, and Beckmann's slopes along one axis have the standard deviation
+`alpha / sqrt(2)` (docs/model.md §7.5)."""
+
+_TINY = 1e-12
+
+
+# --------------------------------------------------------------------------------------------
+# Directions
+# --------------------------------------------------------------------------------------------
+
+
+class InPlane(NamedTuple):
+    """A 3-D direction split into its projected angle (rad) and its component along the layer
+    lines [conventions §11]: `w = (c sin a, t, c cos a)` with `c = sqrt(1 - t^2)` (for a light
+    direction `a = -theta`, see `projected_incidence`)."""
+
+    theta: Float[Array, "..."]
+    t: Float[Array, "..."]
+    c: Float[Array, "..."]
+
+
+def _unit(w: ArrayLike) -> Array:
+    w = jnp.asarray(w)
+    norm2 = jnp.sum(w * w, axis=-1, keepdims=True)
+    ok = norm2 > _TINY
+    return jnp.where(ok, w / jnp.sqrt(jnp.where(ok, norm2, 1.0)), jnp.asarray([0.0, 0.0, 1.0]))
+
+
+def _split(w: ArrayLike, sign: float) -> InPlane:
+    """`theta = atan2(sign * w_x, w_z)` clipped to the hemisphere, `t = w_y`, `c = sqrt(1-t^2)`,
+    with finite gradients where the projection vanishes (a direction along the layer lines)."""
+    w = _unit(w)
+    x, t, z = w[..., 0], w[..., 1], w[..., 2]
+    has = x * x + z * z > _TINY
+    x_s, z_s = jnp.where(has, x, 0.0), jnp.where(has, z, 1.0)
+    theta = jnp.clip(jnp.arctan2(sign * x_s, z_s), -jnp.pi / 2, jnp.pi / 2)
+    c2 = 1.0 - t * t
+    c = jnp.where(c2 > _TINY, jnp.sqrt(jnp.where(c2 > _TINY, c2, 1.0)), 0.0)
+    return InPlane(theta=theta, t=t, c=c)
+
+
+def projected_incidence(w_i: ArrayLike) -> InPlane:
+    """The direction towards the light as (`theta_i'`, `t_i`, `c_i`): `theta_i'` the in-plane
+    angle of incidence of its projection, signed as [conventions §1] (`w_i = (-c sin theta_i',
+    t_i, c cos theta_i')`) [conventions §11]."""
+    return _split(w_i, -1.0)
+
+
+def projected_view(w_o: ArrayLike) -> InPlane:
+    """The direction towards the viewer as (`theta_o'`, `t_o`, `c_o`), `w_o = (c sin theta_o',
+    t_o, c cos theta_o')` [conventions §1, §11]."""
+    return _split(w_o, 1.0)
+
+
+def face_direction(theta: ArrayLike, t: ArrayLike, sign: float = 1.0) -> Float[Array, "... 3"]:
+    """The unit vector `(sign c sin theta, t, c cos theta)`, `c = sqrt(1 - t^2)`: the inverse of
+    `projected_view` (`sign = 1`) and `projected_incidence` (`sign = -1`) [conventions §11]."""
+    theta, t = same_rank(theta, t)
+    theta, t = jnp.broadcast_arrays(theta, t)
+    c = jnp.sqrt(jnp.clip(1.0 - t * t, 0.0, 1.0))
+    return jnp.stack([sign * c * jnp.sin(theta), t, c * jnp.cos(theta)], axis=-1)
+
+
+# --------------------------------------------------------------------------------------------
+# Sharp lobes in 3-D
+# --------------------------------------------------------------------------------------------
+
+
+def lobe_fresnel_3d(
+    theta_i: ArrayLike, t_i: ArrayLike, beta2: ArrayLike, n: ArrayLike
+) -> Float[Array, "... 3"]:
+    """Unpolarised Fresnel factor of each sharp lobe for light out of the plane
+    [conventions §6, §11].
+
+    `theta_i` is the projected angle of incidence and `t_i` the direction's component along the
+    layer lines. A facet's local cosine is the in-plane one times `c = sqrt(1 - t_i^2)`:
+    `a = c cos(beta2 + theta_i)` (tread), `b = c sin(beta2 + theta_i)` (riser). In the
+    retroreflection the s axis turns between the two reflections by `phi` with
+    `sin^2 phi = t^2 / ((a^2 + t^2)(b^2 + t^2))` (docs/model.md §7.2), so a share `sin^2 phi`
+    of the light reflected as s at the first facet meets the second as p:
+    `((R_s R_s' + R_p R_p') cos^2 phi + (R_s R_p' + R_p R_s') sin^2 phi) / 2`. At `t_i = 0` this
+    is `lobe_fresnel` exactly.
+    """
+    theta_i, t_i, beta2, n = same_rank(theta_i, t_i, beta2, n)
+    u = beta2 + theta_i
+    c = jnp.sqrt(jnp.clip(1.0 - t_i * t_i, 0.0, 1.0))
+    a, b = c * jnp.cos(u), c * jnp.sin(u)
+    tread, riser = fresnel_sp(a, n), fresnel_sp(b, n)
+    same = 0.5 * (tread.s * riser.s + tread.p * riser.p)
+    crossed = 0.5 * (tread.s * riser.p + tread.p * riser.s)
+    t2 = t_i * t_i
+    den = (a * a + t2) * (b * b + t2)
+    ok = (den > _TINY) & (t2 > 0.0)
+    sin2 = jnp.clip(jnp.where(ok, t2 / jnp.where(ok, den, 1.0), 0.0), 0.0, 1.0)
+    retro = same + sin2 * (crossed - same)
+    return jnp.stack([0.5 * (tread.s + tread.p), 0.5 * (riser.s + riser.p), retro], axis=-1)
+
+
+class Lobes3D(NamedTuple):
+    """The sharp staircase's three lobes for one direction of incidence [conventions §3, §11]:
+    in-plane directions `theta_o` (rad), the shared component along the layer lines `t_o`
+    (`= -t_i`: each reflection keeps the ray's y component), weights (the in-plane weights at
+    the projected angle) and Fresnel factors (`lobe_fresnel_3d`)."""
+
+    theta_o: Float[Array, "... 3"]
+    t_o: Float[Array, "..."]
+    weight: Float[Array, "... 3"]
+    fresnel: Float[Array, "... 3"]
+
+    @property
+    def ratio(self) -> Float[Array, "... 3"]:
+        """Reflectance ratio of each lobe (weight x Fresnel), dimensionless."""
+        return self.weight * self.fresnel
+
+
+def lab_lobes(w_i: ArrayLike, beta2: ArrayLike, n: ArrayLike) -> Lobes3D:
+    """The sharp lobes for light from the 3-D direction `w_i` (face frame) [conventions §11]."""
+    inc = projected_incidence(w_i)
+    ti, t, b, n = same_rank(inc.theta, inc.t, beta2, n)
+    ti, t, b, n = jnp.broadcast_arrays(ti, t, b, n)
+    return Lobes3D(
+        theta_o=lobe_directions(ti, b),
+        t_o=-t,
+        weight=lobe_weights(ti, b),
+        fresnel=lobe_fresnel_3d(ti, t, b, n),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Gaussian facets
+# --------------------------------------------------------------------------------------------
+
+
+def line_gaussian(t: ArrayLike, centre: ArrayLike, sigma: ArrayLike) -> Float[Array, "..."]:
+    """Density in `t` (the component along the layer lines) of a Gaussian of width `sigma`
+    centred on `centre`, truncated to `[-1, 1]` and renormalised there [conventions §11]: the
+    out-of-plane factor of the Gaussian lab model."""
+    t, centre, sigma = same_rank(t, centre, sigma)
+    centre = jnp.clip(centre, -1.0, 1.0)
+    root2s = jnp.sqrt(2.0) * sigma
+    mass = 0.5 * (erf((1.0 - centre) / root2s) - erf((-1.0 - centre) / root2s))
+    z = (t - centre) / sigma
+    density = jnp.exp(-0.5 * z * z) / (jnp.sqrt(2.0 * jnp.pi) * sigma * mass)
+    return jnp.where(jnp.abs(t) <= 1.0, density, 0.0)
+
+
+def lab_density_gaussian(
+    w_i: ArrayLike,
+    w_o: ArrayLike,
+    beta2: ArrayLike,
+    n: ArrayLike,
+    sigma: ArrayLike,
+    sigma_perp: ArrayLike | None = None,
+) -> Float[Array, "..."]:
+    """Reflected power per steradian (per unit incident power) of the sharp staircase with the
+    paper's Gaussian broadening, for 3-D directions (face frame) [conventions §5, §11].
+
+    Each lobe's delta becomes the in-plane hemisphere Gaussian of `brdf` (width `sigma`, rad) in
+    the projected viewing angle times `line_gaussian` (width `sigma_perp`, default `sigma`) in
+    the viewing direction's y component about the lobe's `-t_i`. Every lobe keeps its ratio.
+    In the plane (`t_i = t_o = 0`) this is `brdf(theta_i, theta_o) * line_gaussian(0, 0,
+    sigma_perp)`.
+    """
+    sigma_perp = sigma if sigma_perp is None else sigma_perp
+    lobes = lab_lobes(w_i, beta2, n)
+    view = projected_view(w_o)
+    to, t_o, s, sp, tc = same_rank(view.theta, view.t, sigma, sigma_perp, lobes.t_o)
+    k_in = hemisphere_gaussian(to[..., None], lobes.theta_o, s[..., None])
+    in_plane = jnp.sum(lobes.ratio * k_in, axis=-1)
+    up = (jnp.asarray(w_o)[..., 2] > 0.0) & (jnp.asarray(w_i)[..., 2] > 0.0)
+    return jnp.where(up, in_plane * line_gaussian(t_o, tc, sp), 0.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Microfacet facets
+# --------------------------------------------------------------------------------------------
+
+
+def _ratio01(num: Array, den: Array) -> Array:
+    """`num / den` clipped to [0, 1], 0 where `den <= 0` (double where)."""
+    ok = den > _TINY
+    return jnp.where(ok, jnp.clip(num / jnp.where(ok, den, 1.0), 0.0, 1.0), 0.0)
+
+
+def lit_fractions(theta: ArrayLike, beta2: ArrayLike) -> Float[Array, "... 2"]:
+    """Fractions (tread, riser) of each facet's length lit by light at the projected angle
+    `theta` [conventions §2, §11]: 1 where nothing shadows it, less where the neighbouring tip
+    does (regime A for the tread, C for the riser), 0 where it faces away. The shadow always
+    starts at the concave corner, so the same function of `-theta_o` is the visible fraction,
+    and a facet's part both lit and seen is the smaller of the two."""
+    theta, beta2 = same_rank(theta, beta2)
+    proj = facet_projections(theta, beta2)
+    u = beta2 + theta
+    tread = _ratio01(proj.tread, jnp.cos(beta2) * jnp.cos(u))
+    riser = _ratio01(proj.riser, jnp.sin(beta2) * jnp.sin(u))
+    return jnp.stack([tread, riser], axis=-1)
+
+
+def facet_normals(beta2: ArrayLike) -> Float[Array, "... 2 3"]:
+    """Outward unit normals (tread, riser) in the face frame: `(sin b2, 0, cos b2)` and
+    `(-cos b2, 0, sin b2)` [conventions §2]."""
+    b = jnp.asarray(beta2)
+    sb, cb, zero = jnp.sin(b), jnp.cos(b), jnp.zeros_like(b)
+    tread = jnp.stack([sb, zero, cb], axis=-1)
+    riser = jnp.stack([-cb, zero, sb], axis=-1)
+    return jnp.stack([tread, riser], axis=-2)
+
+
+def microfacet_lobe(
+    w_i: Array, w_o: Array, normal: Array, n: Array, alpha: Array, kind: str
+) -> Array:
+    """`D(h) F(w_i . h) G1(w_i) G1(w_o) / 4` of a rough facet with outward `normal` (the
+    microfacet reflection without its `1 / (w_i . n)(w_o . n)`), `h` the half vector; unit
+    vectors on the last axis [conventions §12]."""
+    s = w_i + w_o
+    h = _unit(s)
+    cos_h = jnp.sum(h * normal, axis=-1)
+    cos_ih = jnp.sum(w_i * h, axis=-1)
+    cos_i = jnp.sum(w_i * normal, axis=-1)
+    cos_o = jnp.sum(w_o * normal, axis=-1)
+    g = smith_g1(cos_i, cos_ih, alpha, kind) * smith_g1(cos_o, cos_ih, alpha, kind)
+    f = fresnel_unpolarised(jnp.clip(cos_ih, 0.0, 1.0), n)
+    return ndf(cos_h, alpha, kind) * f * g / 4.0
+
+
+RETRO_NODES = 16
+"""Nodes of the rule over a rough facet's in-plane deflection in the two-bounce path."""
+
+
+def _deflection_rule(kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """In-plane deflections (in units of `alpha`) and weights (sum 1) of one rough reflection:
+    twice a micro-normal's in-plane slope, whose marginal is normal (Beckmann, standard
+    deviation `alpha / sqrt 2`) or Student's t with 2 degrees of freedom (GGX, scale
+    `alpha / sqrt 2`). Beckmann: Gauss-Hermite; GGX: the midpoints of equal-probability bins
+    (closed-form quantiles `y sqrt(2 / (1 - y^2))`, `y = 2u - 1`) [conventions §12]."""
+    if kind == "beckmann":
+        x, w = np.polynomial.hermite_e.hermegauss(RETRO_NODES)
+        return np.sqrt(2.0) * x, w / w.sum()
+    y = 2.0 * (np.arange(RETRO_NODES) + 0.5) / RETRO_NODES - 1.0
+    return np.sqrt(2.0) * y * np.sqrt(2.0 / (1.0 - y * y)), np.full(RETRO_NODES, 1.0 / RETRO_NODES)
+
+
+class RoughRetro(NamedTuple):
+    """The rough two-bounce path for one direction of incidence, per first facet (tread,
+    riser) and deflection node (last two axes): `mass`, the share of the rays hitting a period
+    that take it (their first reflection deflected by `shift` in the plane and not seen from
+    outside), and `shift` (rad), by how much that turns the path's outgoing in-plane direction
+    (`-deflection`: the second mirror reverses it) [conventions §3, §12]."""
+
+    mass: Float[Array, "... 2 N"]
+    shift: Float[Array, "... 2 N"]
+
+    @property
+    def weight(self) -> Float[Array, "..."]:
+        """The path's share of the rays: its geometric weight."""
+        return jnp.sum(self.mass, axis=(-2, -1))
+
+
+def rough_retro(
+    theta_i: ArrayLike, beta2: ArrayLike, alpha: ArrayLike, kind: str = "ggx"
+) -> RoughRetro:
+    """Which rays of a rough staircase reflect twice, by first facet and in-plane deflection.
+
+    Of each facet's lit rays (the share `p_k / cos theta_i` of a period) a reflection deflected
+    by `delta` (`_deflection_rule`) is seen from outside for the share
+    `min(1, visible(mirror + delta) / lit)` (`lit_fractions`); the rest meets the other facet.
+    As `alpha -> 0` the total is the sharp retro weight `2 min(p_r, p_t) / cos theta_i`.
+    """
+    theta_i, beta2, alpha = same_rank(theta_i, beta2, alpha)
+    x, w = (jnp.asarray(a, jnp.result_type(theta_i, float)) for a in _deflection_rule(kind))
+    lit = lit_fractions(theta_i, beta2)  # (..., 2)
+    mirror = lobe_directions(theta_i, beta2)[..., :2]  # tread, riser lobe directions
+    delta = alpha[..., None, None] * x  # (..., 1, N)
+    out = jnp.clip(mirror[..., None] + delta, -jnp.pi / 2, jnp.pi / 2)  # (..., 2, N)
+    b = beta2[..., None]
+    seen = jnp.stack([lit_fractions(-out[..., k, :], b)[..., k] for k in range(2)], axis=-2)
+    trapped = 1.0 - jnp.minimum(1.0, seen / jnp.where(lit > 0, lit, 1.0)[..., None])
+    proj = facet_projections(theta_i, beta2)
+    cos_i = proj.riser + proj.tread
+    share = (
+        jnp.stack([proj.tread, proj.riser], axis=-1)
+        / jnp.where(cos_i > _TINY, cos_i, 1.0)[..., None]
+    )
+    share = jnp.where((cos_i > _TINY)[..., None] & (lit > 0), share, 0.0)
+    mass = share[..., None] * trapped * w
+    return RoughRetro(mass=mass, shift=jnp.broadcast_to(-delta, mass.shape))
+
+
+def retro_weight_rough(
+    theta_i: ArrayLike, beta2: ArrayLike, alpha: ArrayLike, kind: str = "ggx"
+) -> Float[Array, "..."]:
+    """Share of the rays hitting a period that reflect twice when the facets are rough
+    (`rough_retro`'s total) [conventions §3, §12]."""
+    return rough_retro(theta_i, beta2, alpha, kind).weight
+
+
+def _broadcast(
+    w_i: ArrayLike, w_o: ArrayLike, *scalars: ArrayLike
+) -> tuple[Array, Array, tuple[Array, ...]]:
+    """Unit `w_i`, `w_o` (last axis 3) and scalars broadcast to one leading shape."""
+    w_i, w_o = _unit(w_i), _unit(w_o)
+    xs = [jnp.asarray(x) for x in scalars]
+    lead = jnp.broadcast_shapes(w_i.shape[:-1], w_o.shape[:-1], *(x.shape for x in xs))
+    w_i = jnp.broadcast_to(w_i, (*lead, 3))
+    w_o = jnp.broadcast_to(w_o, (*lead, 3))
+    return w_i, w_o, tuple(jnp.broadcast_to(x, lead) for x in xs)
+
+
+GGX_SCALE_POWER = 1.5
+"""Two independent deflections with GGX's slope distribution (Student's t, 2 degrees of
+freedom) of scales `a` and `b` add to about that distribution with the scale
+`(a^p + b^p)^(1/p)`, `p = GGX_SCALE_POWER`: between the Cauchy's sum of scales (`p = 1`) and
+the normal's quadrature (`p = 2`, exact for Beckmann); checked against the 3-D ray tracer
+(tests/test_lab_vs_raytrace.py)."""
+
+
+def _combined_scale(a: Array, b: Array, kind: str) -> Array:
+    """`(a^p + b^p)^(1/p)` with `p = 2` (Beckmann) or `GGX_SCALE_POWER` (GGX), finite
+    gradients at `a = b = 0`."""
+    p = 2.0 if kind == "beckmann" else GGX_SCALE_POWER
+    total = (a + _TINY) ** p + (b + _TINY) ** p
+    return total ** (1.0 / p)
+
+
+def _retro_one_way(
+    w_i: Array, w_o: Array, beta2: Array, n: Array, alpha: Array, kind: str
+) -> Array:
+    """The rough two-bounce path's reflected power per steradian for light from `w_i`, seen
+    from `w_o` (unit vectors, face frame; broadcast) [conventions §11, §12].
+
+    Per first facet and deflection node of `rough_retro`, the path leaves in the plane at
+    `-theta_i' + shift` and along the layer lines at `-t_i`; the second reflection spreads it by
+    a microfacet lobe in the deflection `(d theta', d t)` (`d omega = d theta' d t`) with scales
+    `s1 = 2 alpha` (one reflection's in-plane turn) and `s2 = 2 alpha |(a, b)|` (both
+    reflections' turn along the layer lines, `a`, `b` the facets' local cosines, their scales
+    combined by `_combined_scale`): GGX
+    `1 / (pi s1 s2 (1 + x^2 + y^2)^2)`, Beckmann `exp(-x^2 - y^2) / (pi s1 s2)`, `x = (d theta' -
+    shift) / s1`, `y = d t / s2` (docs/model.md §7.4). The power is the mass times the 3-D
+    Fresnel factor and each reflection's micro-shadowing `G1(a)^2 G1(b)^2` (a narrow lobe's
+    albedo). Deflections beyond the horizon are lost.
+    """
+    inc, view = projected_incidence(w_i), projected_view(w_o)
+    paths = rough_retro(inc.theta, beta2, alpha, kind)
+    u = beta2 + inc.theta
+    a, b = inc.c * jnp.cos(u), inc.c * jnp.sin(u)
+    fresnel = lobe_fresnel_3d(inc.theta, inc.t, beta2, n)[..., 2]
+    shadow = (smith_g1(a, a, alpha, kind) * smith_g1(b, b, alpha, kind)) ** 2
+    s1 = (2.0 * alpha)[..., None, None]
+    s2 = (2.0 * alpha * _combined_scale(jnp.abs(a), jnp.abs(b), kind))[..., None, None]
+    x = ((view.theta + inc.theta)[..., None, None] - paths.shift) / s1
+    y = (view.t + inc.t)[..., None, None] / s2
+    r2 = x * x + y * y
+    if kind == "ggx":
+        kern = 1.0 / (jnp.pi * s1 * s2 * (1.0 + r2) ** 2)
+    else:
+        kern = jnp.exp(-r2) / (jnp.pi * s1 * s2)
+    return fresnel * shadow * jnp.sum(paths.mass * kern, axis=(-2, -1))
+
+
+def lab_density_microfacet(
+    w_i: ArrayLike,
+    w_o: ArrayLike,
+    beta2: ArrayLike,
+    n: ArrayLike,
+    alpha: ArrayLike,
+    kind: str = "ggx",
+) -> Float[Array, "..."]:
+    """Reflected power per steradian (per unit incident power) of the sharp staircase whose
+    facets are microfacet-rough (roughness `alpha`, distribution `kind`), for 3-D directions
+    (face frame) [conventions §11, §12].
+
+    Single reflections: for each facet `k` of length `L_k` (`l2` tread, `l1` riser, per period
+    `l`), `(L_k / l) V_k D F G / (4 w_i . z)` with `V_k` the share of the facet both lit and seen
+    (`lit_fractions` at `theta_i'` and `-theta_o'`): the microfacet BRDF of each facet, weighted
+    by its visible lit area, exact for single scattering and reciprocal (docs/model.md §7.3).
+    The two-bounce retroreflection follows `_retro_one_way`, averaged with its reverse (light
+    and viewer swapped) so that it is reciprocal.
+    """
+    w_i, w_o, (beta2, n, alpha) = _broadcast(w_i, w_o, beta2, n, alpha)
+    inc, view = projected_incidence(w_i), projected_view(w_o)
+    cos_i, cos_o = w_i[..., 2], w_o[..., 2]
+    up = (cos_i > 0.0) & (cos_o > 0.0)
+    visible = jnp.minimum(lit_fractions(inc.theta, beta2), lit_fractions(-view.theta, beta2))
+    normals = facet_normals(beta2)
+    length = jnp.stack([jnp.cos(beta2), jnp.sin(beta2)], axis=-1)  # L_k / l
+    lobes = jnp.stack(
+        [microfacet_lobe(w_i, w_o, normals[..., k, :], n, alpha, kind) for k in range(2)], -1
+    )
+    cos_i_safe = jnp.where(up, cos_i, 1.0)
+    single = jnp.sum(length * visible * lobes, axis=-1) / cos_i_safe
+    # the two-bounce path, made reciprocal: the mean of the path from the light and the
+    # reversed path from the viewer (p(w_o -> w_i) cos_o / cos_i)
+    forward = _retro_one_way(w_i, w_o, beta2, n, alpha, kind)
+    backward = _retro_one_way(w_o, w_i, beta2, n, alpha, kind)
+    retro = 0.5 * (forward + backward * jnp.where(up, cos_o, 0.0) / cos_i_safe)
+    return jnp.where(up, single + retro, 0.0)
+
+
+# --------------------------------------------------------------------------------------------
+# The diffuse body and the radiance
+# --------------------------------------------------------------------------------------------
+
+
+def lab_body(w_i: ArrayLike, w_o: ArrayLike, beta2: ArrayLike, n: ArrayLike) -> Float[Array, "..."]:
+    """The diffuse body of the staircase's material, per unit albedo (1/sr x pi): light that
+    enters a facet (transmittance `1 - F`), is scattered inside and leaves through a facet
+    (`1 - F` again), Lambertian, each facet weighted by its visible lit share:
+    `sum_k (L_k / l) V_k (w_i . n_k)(w_o . n_k) T_i T_o / (w_i . z)` [conventions §11].
+    For a flat surface it is `cos(theta_o) T_i T_o`, so `floor * lab_body / cos(theta_o)` is a
+    Lambertian radiance per unit irradiance (`floor cos(theta_i)` when `n -> 1`)."""
+    w_i, w_o, (beta2, n) = _broadcast(w_i, w_o, beta2, n)
+    inc, view = projected_incidence(w_i), projected_view(w_o)
+    visible = jnp.minimum(lit_fractions(inc.theta, beta2), lit_fractions(-view.theta, beta2))
+    normals = facet_normals(beta2)
+    cos_i = jnp.clip(jnp.einsum("...j,...kj->...k", w_i, normals), 0.0, 1.0)
+    cos_o = jnp.clip(jnp.einsum("...j,...kj->...k", w_o, normals), 0.0, 1.0)
+    trans = (1.0 - fresnel_unpolarised(cos_i, n[..., None])) * (
+        1.0 - fresnel_unpolarised(cos_o, n[..., None])
+    )
+    length = jnp.stack([jnp.cos(beta2), jnp.sin(beta2)], axis=-1)
+    up = (w_i[..., 2] > 0.0) & (w_o[..., 2] > 0.0)
+    cos_z = jnp.where(up, w_i[..., 2], 1.0)
+    body = jnp.sum(length * visible * cos_i * cos_o * trans, axis=-1) / cos_z
+    return jnp.where(up, body, 0.0)

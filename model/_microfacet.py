@@ -1,0 +1,88 @@
+"""Microfacet distributions of a rough facet: GGX and Beckmann, with Smith shadowing-masking.
+
+A rough facet is a surface whose micro-normals `m` scatter about its normal `n` with the
+density `D(m)` (per steradian of `m`, normalised so that the integral of `D (m . n)` over the
+hemisphere is 1), and whose micro-surface shadows and masks itself by Smith's `G1`
+[conventions §12]. `alpha` is the roughness: GGX's width (Trowbridge-Reitz), Beckmann's RMS
+slope. The definitions are Walter et al. 2007 ("Microfacet models for refraction through rough
+surfaces"); they are the ones Mitsuba 3 uses (`include/mitsuba/render/microfacet.h`), except
+that Beckmann's `G1` is the exact Smith form here (erf), not a rational approximation.
+
+Everything takes cosines relative to the facet normal, so no frame is built; every function is
+finite, with finite gradients, for cosines in [-1, 1] and `alpha > 0`.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax.scipy.special import erfc
+from jaxtyping import Array, ArrayLike, Float
+
+from ._shapes import same_rank
+
+DISTRIBUTIONS: tuple[str, ...] = ("ggx", "beckmann")
+"""The microfacet distributions `ndf` and `smith_g1` know [conventions §12]."""
+
+_TINY = 1e-12
+
+
+def _check(kind: str) -> None:
+    if kind not in DISTRIBUTIONS:
+        raise ValueError(f"microfacet distribution {kind!r}: use one of {', '.join(DISTRIBUTIONS)}")
+
+
+def ndf(cos_m: ArrayLike, alpha: ArrayLike, kind: str = "ggx") -> Float[Array, "..."]:
+    """Density `D(m)` (1/sr) of micro-normals at angle `acos(cos_m)` from the facet normal.
+
+    GGX: `alpha^2 / (pi ((alpha^2 - 1) c^2 + 1)^2)`; Beckmann:
+    `exp(-tan^2 / alpha^2) / (pi alpha^2 c^4)`, `c = cos_m`. Zero for `c <= 0` (a micro-normal
+    facing away) [conventions §12].
+    """
+    _check(kind)
+    c, a = same_rank(cos_m, alpha)
+    up = c > 0.0
+    c_safe = jnp.where(up, jnp.clip(c, _TINY, 1.0), 1.0)
+    c2 = c_safe * c_safe
+    a2 = a * a
+    if kind == "ggx":
+        d = a2 / (jnp.pi * ((a2 - 1.0) * c2 + 1.0) ** 2)
+    else:
+        tan2 = (1.0 - c2) / c2
+        d = jnp.exp(-tan2 / a2) / (jnp.pi * a2 * c2 * c2)
+    return jnp.where(up, d, 0.0)
+
+
+def smith_lambda(cos_v: ArrayLike, alpha: ArrayLike, kind: str = "ggx") -> Float[Array, "..."]:
+    """Smith's `Lambda` of a direction at `acos(cos_v)` from the facet normal (`cos_v > 0`).
+
+    GGX: `(sqrt(1 + alpha^2 tan^2) - 1) / 2`; Beckmann, with `a = 1 / (alpha tan)`:
+    `(exp(-a^2) / (a sqrt(pi)) - erfc(a)) / 2`. 0 at normal incidence, growing without bound
+    towards grazing [conventions §12].
+    """
+    _check(kind)
+    c, a = same_rank(cos_v, alpha)
+    c = jnp.clip(c, _TINY, 1.0)
+    tan2 = (1.0 - c * c) / (c * c)
+    if kind == "ggx":
+        # (sqrt(1 + x) - 1) / 2 written as x / (2 (sqrt(1 + x) + 1)): no cancellation near 0
+        x = a * a * tan2
+        return x / (2.0 * (jnp.sqrt(1.0 + x) + 1.0))
+    flat = tan2 <= 0.0
+    tan_safe = jnp.sqrt(jnp.where(flat, 1.0, tan2))
+    aa = 1.0 / (a * tan_safe)
+    big = aa > 6.0  # Lambda < 1e-17: the two terms cancel to nothing
+    aa_safe = jnp.where(big, 1.0, aa)
+    lam = 0.5 * (jnp.exp(-aa_safe * aa_safe) / (aa_safe * jnp.sqrt(jnp.pi)) - erfc(aa_safe))
+    return jnp.where(flat | big, 0.0, lam)
+
+
+def smith_g1(
+    cos_v: ArrayLike, cos_vm: ArrayLike, alpha: ArrayLike, kind: str = "ggx"
+) -> Float[Array, "..."]:
+    """Smith's shadowing-masking `G1 = 1 / (1 + Lambda)` of a direction `v` for micro-normal
+    `m`: `cos_v = v . n`, `cos_vm = v . m`. Zero when `v` sees the back of the facet or of the
+    micro-facet (`cos_v <= 0` or `cos_vm <= 0`) [conventions §12]."""
+    cos_v, cos_vm, alpha = same_rank(cos_v, cos_vm, alpha)
+    seen = (cos_v > 0.0) & (cos_vm > 0.0)
+    g = 1.0 / (1.0 + smith_lambda(jnp.where(seen, cos_v, 1.0), alpha, kind))
+    return jnp.where(seen, g, 0.0)
