@@ -90,14 +90,14 @@ def fast_compile(
 
 def user_cache_dir(environ: Mapping[str, str] | None = None) -> Path | None:
     """stairfit's folder in the user's cache: `$XDG_CACHE_HOME/stairfit`, else
-    `$HOME/.cache/stairfit`; None when neither names a folder (HOME empty, unset or "/", a
-    relative XDG_CACHE_HOME): never a cache at the root of the filesystem or in the current
-    folder."""
+    `$HOME/.cache/stairfit` (HOME unset: the account's home); None when neither names a folder
+    (HOME empty, "/" or relative): never a cache at the root of the filesystem or in the
+    current folder."""
     env = os.environ if environ is None else environ
     base = env.get("XDG_CACHE_HOME", "").strip()
     if base and Path(base).is_absolute():
         return Path(base) / "stairfit"
-    home = env.get("HOME", "").strip()
+    home = env["HOME"].strip() if "HOME" in env else os.path.expanduser("~")  # unset: passwd
     if not home or not Path(home).is_absolute() or Path(home) == Path(home).parent:
         return None
     return Path(home) / ".cache" / "stairfit"
