@@ -6,8 +6,9 @@ A fit compiles its least-squares and posterior functions once per model variant 
 kept static across photos and wedges, so one scene compiles once); the persistent cache keeps
 those compilations on disk so that the next `stairfit fit` or `demo` on this machine skips
 them. Location: `$STAIRFIT_JAX_CACHE` if set (`off` disables the cache), otherwise
-`$XDG_CACHE_HOME/stairfit/jax` (default `~/.cache/stairfit/jax`). Only the CLI enables it;
-library users choose for themselves (`jax.config.update("jax_compilation_cache_dir", ...)`).
+`$XDG_CACHE_HOME/stairfit/jax` (default `~/.cache/stairfit/jax`; none when HOME is empty or
+"/"). Only the CLI enables it; library users choose for themselves
+(`jax.config.update("jax_compilation_cache_dir", ...)`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from __future__ import annotations
 import os
 import re
 import sys
-from collections.abc import MutableMapping
+from collections.abc import Mapping, MutableMapping
 from importlib import metadata
 from pathlib import Path
 
@@ -87,17 +88,32 @@ def fast_compile(
     return True
 
 
-def cache_dir(environ: dict[str, str] | None = None) -> Path | None:
-    """Where the CLI keeps compiled programs (None when `STAIRFIT_JAX_CACHE=off`)."""
+def user_cache_dir(environ: Mapping[str, str] | None = None) -> Path | None:
+    """stairfit's folder in the user's cache: `$XDG_CACHE_HOME/stairfit`, else
+    `$HOME/.cache/stairfit` (HOME unset: the account's home); None when neither names a folder
+    (HOME empty, "/" or relative): never a cache at the root of the filesystem or in the
+    current folder."""
+    env = os.environ if environ is None else environ
+    base = env.get("XDG_CACHE_HOME", "").strip()
+    if base and Path(base).is_absolute():
+        return Path(base) / "stairfit"
+    home = env["HOME"].strip() if "HOME" in env else os.path.expanduser("~")  # unset: passwd
+    if not home or not Path(home).is_absolute() or Path(home) == Path(home).parent:
+        return None
+    return Path(home) / ".cache" / "stairfit"
+
+
+def cache_dir(environ: Mapping[str, str] | None = None) -> Path | None:
+    """Where the CLI keeps compiled programs (None when `STAIRFIT_JAX_CACHE=off`, or when there
+    is no user cache folder: `user_cache_dir`)."""
     env = os.environ if environ is None else environ
     value = env.get(ENV_VAR, "").strip()
     if value.lower() in ("off", "0", "none", "false"):
         return None
     if value:
         return Path(value).expanduser()
-    base = env.get("XDG_CACHE_HOME", "").strip()
-    root = Path(base).expanduser() if base else Path.home() / ".cache"
-    return root / "stairfit" / "jax"
+    folder = user_cache_dir(env)
+    return None if folder is None else folder / "jax"
 
 
 def enable_persistent_cache(environ: dict[str, str] | None = None) -> Path | None:

@@ -28,6 +28,8 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import LogFormatterSciNotation, LogLocator
 from numpy.typing import NDArray
 
+from .fileio import named_error
+
 DEG = np.pi / 180
 PNG_COMPRESS_LEVEL = 1
 """zlib level of the PNGs: with RGB instead of RGBA, the report's figures encode in about half
@@ -396,8 +398,7 @@ def reflected_colours(
 
 
 SaveFigure = Callable[[Figure, Path], Path]
-"""What draws a figure and writes it to a path: `save`, or `stairfit._drawing.Drawer` (which
-draws in a second process)."""
+"""What draws a figure and writes it to a path (`save`)."""
 
 
 def save(fig: Figure, path: Path, dpi: int = 120) -> Path:
@@ -421,6 +422,8 @@ def save(fig: Figure, path: Path, dpi: int = 120) -> Path:
         Image.fromarray(rgb).save(
             path, format="png", compress_level=PNG_COMPRESS_LEVEL, dpi=(dpi, dpi)
         )
+    except OSError as e:  # a full disk: name the figure (Pillow's write names no file)
+        raise named_error(e, path, path) from e
     finally:
         if managed:  # pyplot made it, so pyplot is already imported
             import matplotlib.pyplot as plt

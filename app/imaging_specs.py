@@ -6,13 +6,88 @@ extraction settings, and where the measurement cache lives. Shared by `stairfit 
 
 from __future__ import annotations
 
+import os
+import secrets
+import warnings
+from collections.abc import Mapping
+from contextlib import suppress
+from pathlib import Path
 from typing import Any
 
-from .errors import UserError
+from . import fileio
+from .errors import StairfitWarning, UserError
+from .fileio import read_bytes
 from .scene import Photo, Scene, visible
 
 CACHE_DIR = ".stairfit-cache"
 MEASUREMENT_CACHE = "measurements.csv"
+KEY_FILE = "measurement-cache.key"
+"""The key (32 random bytes, readable by the user only) that signs the measurement caches this
+user writes, in the user's cache folder (`_jaxcache.user_cache_dir`): a cache edited by anyone
+without it, its checksum recomputed or not, is measured again (imaging/_cache.py)."""
+
+
+def measurement_cache(scene: Scene, use: bool) -> tuple[Path | None, bytes | None]:
+    """The measurement cache of a scene's photo folder and this user's key for it, or (None,
+    None) with a one-line warning why when it cannot be kept (no user cache folder for the key,
+    a read-only photo folder, a file in the way). Temporary files that killed runs left beside
+    the cache are removed."""
+    if not use:
+        return None, None
+    cache = scene.folder / CACHE_DIR / MEASUREMENT_CACHE
+    secret = cache_secret()
+    if secret is None:
+        warnings.warn(
+            "no user cache folder for the measurement-cache key (HOME is empty, or its .cache "
+            "cannot be written); measuring every photo without the cache",
+            StairfitWarning,
+            stacklevel=2,
+        )
+        return None, None
+    try:
+        cache.parent.mkdir(exist_ok=True)
+    except OSError as e:  # a read-only photo folder, or a file in the way: measure without
+        warnings.warn(
+            f"{cache.parent}: cannot keep the measurement cache there ({e.strerror or e}); "
+            "measuring without it",
+            StairfitWarning,
+            stacklevel=2,
+        )
+        return None, None
+    for name in (cache.name, f"{cache.stem}.checksum.json"):
+        for leftover in fileio.leftovers(cache.with_name(name)):
+            with suppress(OSError):
+                fileio.remove_tree(leftover)
+    return cache, secret
+
+
+def cache_secret(environ: Mapping[str, str] | None = None) -> bytes | None:
+    """This user's measurement-cache key, made on first use; None where there is no user cache
+    folder or it cannot be written (then no measurement cache is used)."""
+    from ._jaxcache import user_cache_dir
+
+    folder = user_cache_dir(environ)
+    if folder is None:
+        return None
+    path = folder / KEY_FILE
+    for _ in range(2):
+        try:
+            key = read_bytes(path, max_bytes=4096)
+            return key if len(key) == 32 else None
+        except FileNotFoundError:
+            pass
+        except OSError:
+            return None
+        try:
+            folder.mkdir(parents=True, exist_ok=True, mode=0o700)
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:
+            continue  # another run made it first: read that one
+        except OSError:
+            return None
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(secrets.token_bytes(32))
+    return None
 
 
 def photo_specs(scene: Scene) -> list[Any]:

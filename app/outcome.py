@@ -29,9 +29,6 @@ class FitOptions:
     freeze_imports: bool = False
     """Freeze what the late imports made out of the collector's way (`_prefetch.prefetch`):
     the console script only (`cli.entry`)."""
-    figure_process: bool = True
-    """Draw the report's figures in a second process while the posterior is sampled
-    (`stairfit._drawing`); a study's workers, already one process per core, draw their own."""
 
 
 @dataclass

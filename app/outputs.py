@@ -1,6 +1,7 @@
 """Output files and folders: the one home of output safety (README "Commands", "Outputs").
 
-Every command that writes a result goes through this module:
+Every command that writes a result goes through this module (and it, for the files themselves,
+through `stairfit.fileio`):
 
 * `check_output(out, inputs=..., reserved=...)` refuses an output that is, or contains, a file
   or folder the run reads (the photo folder, the scene file, every photo: `Scene.input_files()`),
@@ -8,15 +9,18 @@ Every command that writes a result goes through this module:
 * `output_lock(out)` lets one run at a time write an output: `fcntl.flock` on a hidden lock file
   `.NAME.lock` beside it, released by the operating system when the process dies, so a killed
   run never blocks a later one; a second run into the same output is refused with one line;
-* `remove_stale_leftovers(out)` removes what killed runs left beside the output: the staging
-  folders `.NAME.XXXXXXXX.partial`, `.NAME.old-PID` and temporary files `.NAME.XXXXXXXX.tmp`
-  of the same output (under its lock, so none of them belongs to a live run), and staging
-  folders of other outputs in the same parent older than `STALE_AGE_S` whose lock is free;
-* `staged_folder(out, force, ...)` and `staged_file(path, force, ...)` build a result under a
-  temporary name and move it into place only when complete; an existing output is replaced only
-  with `force`, and leaves nothing behind (a file, a folder or a link);
-* `atomic_text(path)` / `atomic_bytes(path, data)` write one file via a temporary sibling that
-  gets the user's umask (not the 0600 of `tempfile.mkstemp`);
+* `remove_stale_leftovers(out)` first puts back a result a killed replacement left aside
+  (`fileio.recover`), then removes what killed runs left that holds no complete result: this
+  output's temporary files, incomplete staging folders and superseded old copies (under its
+  lock, so none of them belongs to a live run), and incomplete staging folders of other
+  outputs in the same parent older than `STALE_AGE_S` whose lock is free;
+* `staged_folder(out, force, command=...)` and `staged_file(path, force, signature=...)` build
+  a result under a temporary name and move it into place only when complete. With `force` an
+  existing output is replaced only when stairfit made it: a folder whose `fileio.MARKER` names
+  the same command, a file that starts with the command's `signature`; anything else (a photo
+  folder, a file of the user's, a link) is refused;
+* `atomic_text(path)` / `atomic_bytes(path, data)` write one file via a temporary sibling
+  (`stairfit.fileio`);
 * an `OSError` raised while writing names the real target (`results/report.html`), never the
   hidden temporary (`.results.1a2b3c4d.partial/report.html`).
 
@@ -27,9 +31,6 @@ from __future__ import annotations
 
 import errno
 import os
-import re
-import secrets
-import shutil
 import stat
 import time
 import warnings
@@ -38,8 +39,10 @@ from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import TextIO
 
-from ._signals import deferred
+from . import __version__, fileio
 from .errors import StairfitWarning, UserError
+from .fileio import atomic_bytes as atomic_bytes
+from .fileio import atomic_text as atomic_text
 
 try:  # POSIX; on other systems runs are not locked (documented in the README)
     import fcntl
@@ -49,9 +52,7 @@ except ImportError:  # pragma: no cover - Windows
 STALE_AGE_S = 3600.0
 """A staging folder of *another* output older than this (and whose lock is free) is removed."""
 
-_FILE_MODE = 0o666  # the umask takes its share, as for any file the user creates
 _NO_LOCKS = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS}
-_TOKEN_HEX = 4  # bytes of randomness in temporary names: 8 hex digits
 
 
 # --- refusing outputs that would destroy inputs --------------------------------------------
@@ -77,9 +78,9 @@ def check_output(
     option in the message.
     """
     _refuse_special(Path(out))
-    resolved = Path(os.path.abspath(out)).resolve()
+    resolved = fileio.resolved(out)
     for path in inputs:
-        p = Path(path).resolve()
+        p = fileio.resolved(path)
         if _contains(resolved, p):
             what = "is" if p == resolved else "contains"
             raise UserError(
@@ -87,12 +88,12 @@ def check_output(
                 f"the input, so choose an output outside it (with or without --force)"
             )
     for path in reserved:
-        p = Path(path).resolve()
+        p = fileio.resolved(path)
         if _contains(resolved, p) or _contains(p, resolved):
             raise UserError(f"{out}: {option} overlaps {p}, which stairfit keeps; choose another")
     for name, p in (("the current folder", Path.cwd()), ("your home folder", Path.home())):
-        if _contains(resolved, p.resolve()):
-            what = "is" if p.resolve() == resolved else "contains"
+        if _contains(resolved, fileio.resolved(p)):
+            what = "is" if fileio.resolved(p) == resolved else "contains"
             example = f"{option} results" if option.startswith("-") else "results"
             raise UserError(
                 f"{out}: {option} {what} {name} ({p}); an output is replaced as a whole, so give "
@@ -118,7 +119,7 @@ def _try_lock(lock: Path) -> int | None:
     the meantime makes us retry, so two runs never both hold "the" lock of one output.
     """
     while True:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, _FILE_MODE)
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, fileio.FILE_MODE)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -181,33 +182,17 @@ def output_lock(out: Path) -> Iterator[None]:
 
 # --- leftovers of killed runs ---------------------------------------------------------------
 
-_PARTIAL = re.compile(r"^\.(?P<name>.+)\.[0-9a-f]{8}\.partial$")
-
 
 def in_staging(path: Path) -> bool:
     """Whether `path` lies inside a staging folder (removed when its run fails)."""
-    return any(_PARTIAL.match(p.name) for p in Path(path).parents)
-
-
-def _own_leftover(name: str) -> re.Pattern[str]:
-    """Names that runs writing output `name` create beside it (staging, old copy, temp file)."""
-    n = re.escape(name)
-    return re.compile(rf"^\.{n}\.(?:[0-9a-f]{{8}}\.partial|old-\d+|[A-Za-z0-9_]{{8}}\.tmp)$")
-
-
-def _remove(path: Path) -> None:
-    """Remove a file, a link or a folder tree (not following links)."""
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
-    else:
-        with suppress(FileNotFoundError):
-            path.unlink()
+    partial = fileio.partial_pattern()
+    return any(partial.match(p.name) for p in Path(path).parents)
 
 
 def _is_stale_partial(path: Path, now: float) -> bool:
-    """Another output's staging folder, old, and no run holds that output's lock."""
-    m = _PARTIAL.match(path.name)
-    if m is None or not path.is_dir() or path.is_symlink():
+    """Another output's incomplete staging folder, old, and no run holds that output's lock."""
+    m = fileio.partial_pattern().match(path.name)
+    if m is None or not path.is_dir() or path.is_symlink() or fileio.made_by(path) is not None:
         return False
     try:
         old = now - path.lstat().st_mtime > STALE_AGE_S
@@ -225,99 +210,92 @@ def _is_stale_partial(path: Path, now: float) -> bool:
     return True
 
 
-def remove_stale_leftovers(out: Path) -> list[Path]:
-    """Remove what earlier, killed runs left beside output `out`; call it holding its lock.
+def remove_stale_leftovers(out: Path, *, complete_too: bool = False) -> list[Path]:
+    """Recover, then clean what earlier, killed runs left beside output `out`; call it holding
+    its lock. Returns what was removed.
 
-    Only entries of `out`'s parent folder whose names stairfit makes are considered: this
-    output's `.NAME.XXXXXXXX.partial`, `.NAME.old-PID` and `.NAME.XXXXXXXX.tmp` (any age: the
-    lock proves that no live run owns them), and other outputs' `.OTHER.XXXXXXXX.partial`
-    folders older than `STALE_AGE_S` whose lock is free. Returns what was removed.
+    A result a killed replacement left aside is moved back first (`fileio.recover`); then
+    removed are this output's temporary files, incomplete staging folders, old copies that a
+    stairfit result in place has replaced (`fileio.leftovers`; with `complete_too`, once this
+    run's own result is in place, complete staging folders too), and other outputs' incomplete
+    staging folders older than `STALE_AGE_S` whose lock is free. A complete result is never
+    removed before one is in place.
     """
-    own = _own_leftover(out.name)
+    fileio.recover(out)
     now = time.time()
     removed = []
+    candidates = fileio.leftovers(out, complete_too=complete_too)
     try:
-        entries = list(out.parent.iterdir())
+        others = [p for p in out.parent.iterdir() if p not in candidates]
     except OSError:
-        return []
-    for path in entries:
+        others = []
+    for path in candidates + [p for p in others if _is_stale_partial(p, now)]:
         try:
-            stale = own.match(path.name) is not None or _is_stale_partial(path, now)
-            if stale:
-                _remove(path)
-                removed.append(path)
+            fileio.remove_tree(path)
         except OSError:  # not ours to clean after all (permissions): leave it
             continue
+        removed.append(path)
     return removed
 
 
 # --- staged folders and files ---------------------------------------------------------------
 
 
-def _fresh_partial_folder(out: Path) -> Path:
-    """A new, empty hidden folder `.NAME.XXXXXXXX.partial` next to `out`.
-
-    Made with `mkdir`, so it gets the user's umask like any folder they create (tempfile.mkdtemp
-    would make it private, 0700, and the finished results would stay that way).
-    """
-    for _ in range(100):
-        tmp = out.with_name(f".{out.name}.{secrets.token_hex(_TOKEN_HEX)}.partial")
-        try:
-            tmp.mkdir()
-        except FileExistsError:
-            continue
-        return tmp
-    raise FileExistsError(f"{out.parent}: cannot find a free name for a temporary folder")
-
-
-def _replace(new: Path, out: Path) -> None:
-    """Move `new` to `out`; an existing `out` (file, link or folder) is set aside, then removed."""
-    if not (out.exists() or out.is_symlink()):
-        new.rename(out)
-        return
-    trash = out.with_name(f".{out.name}.old-{os.getpid()}")
-    _remove(trash)
-    with deferred():  # no signal between the two renames
-        out.rename(trash)
-        try:
-            new.rename(out)
-        except BaseException:
-            trash.rename(out)  # put the old result back
-            raise
-    _remove(trash)
-
-
-def _real_target(e: OSError, tmp: Path, out: Path) -> OSError:
-    """`e` with its file name mapped from the temporary `tmp` (or none) to the real `out`."""
-    name = str(e.filename) if e.filename is not None else None
-    if name is None:
-        new = str(out)
-    elif name == str(tmp) or name.startswith(str(tmp) + os.sep):
-        new = str(out) + name[len(str(tmp)) :]
-    else:
-        return e
-    return type(e)(e.errno, e.strerror or os.strerror(e.errno or errno.EIO), new)
-
-
 def _refuse_special(shown: Path) -> None:
-    """A device, pipe or socket (`-o /dev/null`) is never replaced by an output."""
+    """A device, pipe or socket (`-o /dev/null`) or a loop of links is never an output."""
     try:
         mode = os.stat(shown).st_mode
-    except OSError:
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise UserError(
+                f"{_short(shown)}: is a loop of symbolic links; give a real file or folder name"
+            ) from None
+        if e.errno == errno.ENOTDIR:
+            parent = fileio.file_in_the_way(Path(shown).parent)
+            raise UserError(
+                f"{_short(shown)}: {_short(parent)} is a file, not a folder; give an output "
+                "whose parent folders are folders"
+            ) from None
         return
     if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
         raise UserError(
-            f"{shown}: is a device, pipe or socket, not a file or folder stairfit can replace; "
-            "give a file name (predict writes to stdout without -o)"
+            f"{_short(shown)}: is {fileio.kind(mode)}, not a file or folder stairfit can "
+            "replace; give a file name (predict writes to stdout without -o)"
         )
 
 
-def _refuse_existing(out: Path, shown: Path, force: bool) -> None:
-    """An existing output is only replaced with `force`."""
-    if (out.exists() or out.is_symlink()) and not force:
+def _short(value: object, limit: int = 200) -> str:
+    """`value` as text, shortened in the middle to about `limit` characters for a message."""
+    text = str(value)
+    if len(text) <= limit:
+        return text
+    return f"{text[: limit // 2]}...{text[-limit // 2 :]} ({len(text)} characters)"
+
+
+def _refuse_existing_folder(out: Path, shown: Path, force: bool, command: str) -> None:
+    """An existing output folder is replaced only with `force`, and only when `command` made
+    it (its `fileio.MARKER`)."""
+    if not (out.exists() or out.is_symlink()):
+        return
+    if not force:
         raise UserError(
             f"{shown}: already exists; choose another output or add --force to replace it"
         )
+    made = fileio.made_by(out)
+    if made == command:
+        return
+    if out.is_symlink():
+        what = f"is a link to {os.path.realpath(out)}"
+    elif made is not None:
+        what = f"was made by 'stairfit {made}', not by 'stairfit {command}'"
+    elif out.is_dir():
+        what = f"is a folder that 'stairfit {command}' did not make (no {fileio.MARKER} in it)"
+    else:
+        what = "is a file, not a folder stairfit made"
+    raise UserError(
+        f"{shown}: {what}; --force replaces only a result 'stairfit {command}' made itself, so "
+        "choose another output (or move it away yourself)"
+    )
 
 
 @contextmanager
@@ -325,6 +303,7 @@ def staged_folder(
     out: Path,
     force: bool,
     *,
+    command: str,
     inputs: Iterable[Path] = (),
     reserved: Iterable[Path] = (),
     option: str = "--output",
@@ -332,41 +311,64 @@ def staged_folder(
     """Build a folder under a temporary name next to `out` and move it into place on success.
 
     The whole output-folder safety in one place: `check_output` (never an output that holds an
-    input), the lock of `out`, the refusal of an existing `out` without `force`, the removal of
-    stale leftovers, then the staging folder `.NAME.XXXXXXXX.partial` that is renamed to `out`
-    when the block ends without an exception and removed otherwise (SIGINT and SIGTERM included,
-    see `stairfit.cli`). A crash leaves no folder named `out`; an `OSError` names `out`.
+    input), the lock of `out`, the recovery of a result a killed run left aside, the refusal of
+    an existing `out` without `force` or that `stairfit COMMAND` did not make, then the staging
+    folder `.NAME.XXXXXXXX.partial`, marked complete (`fileio.mark_complete`) and moved to `out`
+    when the block ends without an exception, removed otherwise (SIGINT and SIGTERM included,
+    see `stairfit.cli`). A crash leaves no folder named `out` that is not complete; an
+    `OSError` names `out`.
     """
     shown = Path(out)
     out = check_output(shown, inputs, reserved, option)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise _real_target(e, out.parent, shown.parent) from None
+        raise fileio.named_error(e, out.parent, shown.parent) from None
     with output_lock(out):
-        _refuse_existing(out, shown, force)
         remove_stale_leftovers(out)
-        tmp = _fresh_partial_folder(out)
+        _refuse_existing_folder(out, shown, force, command)
+        tmp = fileio.fresh_staging_folder(out)
         try:
             yield tmp
-            _replace(tmp, out)
+            fileio.mark_complete(tmp, command, __version__)
+            fileio.replace_folder(tmp, out)
         except OSError as e:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise _real_target(e, tmp, shown) from e
+            fileio.remove_tree(tmp)
+            raise fileio.named_error(e, tmp, shown) from e
         except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
+            fileio.remove_tree(tmp)
             raise
+        with suppress(OSError):
+            remove_stale_leftovers(out, complete_too=True)
+
+
+def _starts_with(path: Path, signature: bytes) -> bool:
+    """Whether the regular file `path` begins with `signature`."""
+    try:
+        fd = fileio.open_regular(path)
+    except OSError:
+        return False
+    with os.fdopen(fd, "rb") as fh:
+        return fh.read(len(signature)) == signature
 
 
 @contextmanager
 def staged_file(
-    path: Path, force: bool, *, inputs: Iterable[Path] = (), option: str = "--output"
+    path: Path,
+    force: bool,
+    *,
+    signature: bytes,
+    command: str,
+    inputs: Iterable[Path] = (),
+    option: str = "--output",
 ) -> Iterator[TextIO]:
     """A text file written under a temporary name and moved to `path` on success.
 
     As `staged_folder` for one file: refused when it is an input, a folder, or exists without
-    `force`; locked; stale temporary files of earlier runs removed; the temporary file removed
-    on any failure (SIGINT and SIGTERM included).
+    `force`; with `force` an existing file is replaced only when it begins with `signature`
+    (the first bytes `stairfit COMMAND` writes, e.g. its CSV header); locked; stale temporary
+    files of earlier runs removed; the temporary file removed on any failure (SIGINT and
+    SIGTERM included).
     """
     shown = Path(path)
     target = check_output(shown, inputs, (), option)
@@ -375,61 +377,19 @@ def staged_file(
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise _real_target(e, target.parent, shown.parent) from None
+        raise fileio.named_error(e, target.parent, shown.parent) from None
     with output_lock(target):
-        _refuse_existing(target, shown, force)
+        if target.exists() or target.is_symlink():
+            if not force:
+                raise UserError(
+                    f"{shown}: already exists; choose another output or add --force to replace it"
+                )
+            if target.is_symlink() or not _starts_with(target, signature):
+                raise UserError(
+                    f"{shown}: was not written by 'stairfit {command}' (it does not start with "
+                    f"its header); --force replaces only stairfit's own output, so choose "
+                    "another file name (or move it away yourself)"
+                )
         remove_stale_leftovers(target)
         with atomic_text(target, shown=shown) as fh:
             yield fh
-
-
-def _create_sibling(path: Path) -> tuple[int, Path]:
-    """Create and open a new temporary file `.NAME.XXXXXXXX.tmp` beside `path` (umask applies)."""
-    for _ in range(100):
-        tmp = path.with_name(f".{path.name}.{secrets.token_hex(_TOKEN_HEX)}.tmp")
-        try:
-            return os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, _FILE_MODE), tmp
-        except FileExistsError:
-            continue
-    raise FileExistsError(f"{path.parent}: cannot find a free name for a temporary file")
-
-
-@contextmanager
-def atomic_text(path: Path, *, shown: Path | None = None) -> Iterator[TextIO]:
-    """Write a text file via a temporary sibling that is renamed into place only on success.
-
-    The file gets the user's umask; an `OSError` names `shown` (default `path`), not the
-    temporary file.
-    """
-    path = Path(path)
-    shown = shown or path
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = _create_sibling(path)
-    try:
-        with os.fdopen(fd, "w", newline="", encoding="utf-8") as fh:
-            yield fh
-        os.replace(tmp, path)
-    except OSError as e:
-        tmp.unlink(missing_ok=True)
-        raise _real_target(e, tmp, shown) from e
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
-def atomic_bytes(path: Path, data: bytes) -> Path:
-    """Write `data` to `path` atomically (as `atomic_text`); returns `path`."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = _create_sibling(path)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except OSError as e:
-        tmp.unlink(missing_ok=True)
-        raise _real_target(e, tmp, path) from e
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .fileio import writing
 from .scene import Scene
 
 NEAR_LIMIT = 1.5
@@ -99,7 +100,7 @@ def _cells(report: PhotoReport, columns: Sequence[str]) -> list[str]:
 
 def write_table(path: Path, reports: Sequence[PhotoReport], columns: Sequence[str]) -> None:
     """A CSV of the reports' `columns` (markers.csv, photos.csv)."""
-    with open(path, "w", newline="", encoding="utf-8") as fh:
+    with writing(path) as fh:
         writer = csv.writer(fh)
         writer.writerow(columns)
         writer.writerows(_cells(r, columns) for r in reports)

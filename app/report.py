@@ -40,6 +40,7 @@ from .figures import (
     refractive_index,
     save,
 )
+from .fileio import write_file, writing
 from .outcome import FitOutcome, sha256_of
 
 DEG = np.pi / 180
@@ -200,8 +201,7 @@ def write_outputs(
 ) -> None:
     """Write every output into `out` (a temporary folder moved into place by the caller);
     `drawn`: the figures `fit_figures` already drew into `out / "figures"` (drawn here if
-    None); `draw`: how a figure is drawn and written (`figures.save`, or a
-    `_drawing.Drawer`, which may still be writing when this returns)."""
+    None); `draw`: how a figure is drawn and written (`figures.save`)."""
     from .photo_reports import MARKER_COLUMNS, fit_marker_reports, write_table
 
     out.mkdir(parents=True, exist_ok=True)
@@ -211,8 +211,8 @@ def write_outputs(
     write_observations(outcome, out / "observations.csv")
     figures = write_figures(outcome, out / "figures", drawn, draw)
     results = results_dict(outcome, figures)
-    (out / "results.json").write_text(json.dumps(results, indent=2, allow_nan=False))
-    (out / "report.html").write_text(report_html(outcome, results, figures, out))
+    write_file(out / "results.json", json.dumps(results, indent=2, allow_nan=False))
+    write_file(out / "report.html", report_html(outcome, results, figures, out))
     if outcome.posterior is not None:  # the chain for ArviZ (docs/fitting.md §5)
         outcome.posterior.to_netcdf(out / "chain.nc", degrees=True)
 
@@ -222,7 +222,7 @@ def write_observations(outcome: FitOutcome, path: Path) -> None:
     what the fit's error model and aperture used per row: the ROI group and its channel
     correlations (docs/fitting.md §Correlated channels) and the row's viewing spread."""
     fit = outcome.selection.fit
-    with open(path, "w", newline="") as fh:
+    with writing(path) as fh:
         w = csv.writer(fh)
         w.writerow(
             [
@@ -454,12 +454,18 @@ def package_versions() -> dict[str, str | None]:
 
 
 def inputs_record(outcome: FitOutcome) -> dict[str, Any]:
-    """results.json's `inputs`: SHA-256 of the scene file, every photo and calibration frame."""
+    """results.json's `inputs`: SHA-256 of the scene file, every photo and calibration frame;
+    for each photo whether its values were measured now or read from the measurement cache."""
     scene = outcome.scene
+    cached = set(getattr(outcome.table, "from_cache", ()))
     return {
         "scene": {"file": scene.path.name, "sha256": sha256_of(scene.path)},
         "photos": [
-            {"file": name, "sha256": outcome.table.for_photo(name)[0].photo_sha256}
+            {
+                "file": name,
+                "sha256": outcome.table.for_photo(name)[0].photo_sha256,
+                "measured_from": "cache" if name in cached else "photo",
+            }
             for name in outcome.table.photos()
         ],  # a bracket's: SHA-256 of its files' digests joined by "," (docs/imaging.md)
         "calibration": [
@@ -543,8 +549,7 @@ FIGURE_ORDER = ("fit", "residuals", "misfit", "corner", "brdf_map", "colours")
 def fit_figures(outcome: FitOutcome, folder: Path, draw: SaveFigure = save) -> dict[str, str]:
     """The figures that need the least-squares fit only (every one but the corner plot);
     returns {key: relative path}. `stairfit fit` builds them in a second thread while the
-    posterior is sampled (its model evaluations release the interpreter most of the time), and
-    `draw` (a `_drawing.Drawer`) has them drawn and written by a second process.
+    posterior is sampled (its model evaluations release the interpreter most of the time).
 
     The model-only figures (fitted BRDF, reflected colours) follow the preset's
     `diffuse_nodes` and `float32_figures`.

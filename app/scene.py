@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import UserError
+from .fileio import FileTooLargeError, describe, read_bytes, resolved
 
 SCENE_FILE = "scene.toml"
 SCENE_VERSION = 1
@@ -304,7 +305,7 @@ class Scene:
             c = self.calibration
             out += [(f"calibration.flat_field[{j}]", f) for j, f in enumerate(c.flat_field)]
             out += [(f"calibration.dark_frames[{j}]", f) for j, f in enumerate(c.dark_frames)]
-        return tuple((where, name, (self.folder / name).resolve()) for where, name in out)
+        return tuple((where, name, resolved(self.folder / name)) for where, name in out)
 
     def input_files(self) -> tuple[Path, ...]:
         """Every file this scene makes a run read, as absolute resolved paths, without repeats.
@@ -313,7 +314,7 @@ class Scene:
         photos and dark frames (`input_fields`). Whoever adds a new kind of input file adds it
         there: outputs are refused when they would replace any of these (app/outputs.py).
         """
-        files = [Path(self.path).resolve(), *(path for _, _, path in self.input_fields())]
+        files = [resolved(self.path), *(path for _, _, path in self.input_fields())]
         return tuple(dict.fromkeys(files))
 
     def lamp_position_mm(self, photo: Photo) -> tuple[float, float, float] | None:
@@ -351,6 +352,12 @@ class Scene:
 # --- loading and validation -----------------------------------------------------------------
 
 
+MAX_NAME = 100
+"""The longest name of a wedge, patch or reference patch."""
+MAX_SCENE_BYTES = 16 * 2**20
+"""The largest scene file read (16 MiB; a scene of a thousand photos is well under 1 MiB)."""
+
+
 def load_scene(path: Path, measure_only: bool = False) -> Scene:
     """Read and validate a scene file (or the `scene.toml` inside a folder).
 
@@ -358,23 +365,35 @@ def load_scene(path: Path, measure_only: bool = False) -> Scene:
     `[specimen]`, and photos without angles when there is no specimen.
     """
     path = Path(path)
-    if not path.exists():
+    problem = describe(path)
+    if problem == "does not exist":
         raise UserError(
             f"{path}: no such folder or file; give the photo folder that holds {SCENE_FILE}"
         )
     if path.is_dir():
         path = path / SCENE_FILE
-    if not path.is_file():
+        problem = describe(path)
+    if problem == "does not exist":
         raise UserError(
             f"{path}: no scene file; write one (annotated example: docs/scene.md, or run "
             "'stairfit simulate OUT' to see a complete one)"
         )
+    if problem is not None:
+        raise UserError(f"{path}: {problem}, not a scene file; make it a UTF-8 TOML text file")
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))  # a BOM (Notepad) is fine
+        text = read_bytes(path, MAX_SCENE_BYTES).decode("utf-8-sig")  # a BOM (Notepad) is fine
+        raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise UserError(f"{path}: not valid TOML ({e}); fix the syntax at that line") from None
+    except RecursionError:
+        raise UserError(
+            f"{path}: its tables or arrays are nested too deeply to read; a scene file needs a "
+            "few levels (docs/scene.md)"
+        ) from None
     except UnicodeDecodeError:
         raise UserError(f"{path}: not a UTF-8 text file; save it as UTF-8 TOML") from None
+    except FileTooLargeError as e:
+        raise UserError(f"{path}: {e.strerror} for a scene file; give the scene's TOML") from None
     except OSError as e:
         raise UserError(
             f"{path}: cannot read the scene file ({e.strerror or e}); check its permissions"
@@ -490,6 +509,16 @@ class _Reader:
             self.fail(name, f"{v!r} is outside [{lo}, {hi}]; fix the value")
         return v
 
+    def name(self, d: dict[str, Any], where: str, default: Any = ...) -> str:
+        """A `name` field (of a wedge, a patch, the reference): a non-empty string, at most
+        `MAX_NAME` characters (it names columns, files and lines of a report)."""
+        v = self.get(d, "name", str, where, default=default)
+        if not v.strip():
+            self.fail(_join(where, "name"), f"{v!r} is empty; give a name such as \"w30\"")
+        if len(v) > MAX_NAME:
+            self.fail(_join(where, "name"), f"has {len(v)} characters; keep it to {MAX_NAME}")
+        return v
+
     def choice(self, d: dict[str, Any], key: str, where: str, choices: dict[str, str]) -> str:
         """A string field that must be one of `choices` (value -> meaning; the first is the
         default); the error lists each with its meaning."""
@@ -550,7 +579,7 @@ def _specimen(r: _Reader, d: dict[str, Any]) -> Specimen:
         r.table(wd, where, ["name", "angle_deg", "roi_px", "face_mm"])
         wedges.append(
             Wedge(
-                name=r.get(wd, "name", str, where),
+                name=r.name(wd, where),
                 angle_deg=r.get(wd, "angle_deg", float, where, lo=0.01, hi=89.99),
                 roi_px=r.polygon(wd, "roi_px", where),
                 face_mm=r.polygon(wd, "face_mm", where),
@@ -801,25 +830,46 @@ def _markers(r: _Reader, d: Any, w: str) -> Markers:
     items = d.get("marker")
     if not isinstance(items, list) or not items:
         r.fail(f"{w}.marker", "missing; add [[markers.marker]] tables with id and corners_mm")
-    markers = []
+    dictionary = r.get(d, "dictionary", str, w, default="DICT_4X4_50")
+    size = _dictionary_size(r, dictionary, f"{w}.dictionary")
+    markers: list[Marker] = []
     for k, m in enumerate(items):
         where = f"{w}.marker[{k}]"
         r.table(m, where, ["id", "corners_mm"])
         corners = r.polygon(m, "corners_mm", where)
         if corners is None or len(corners) != 4:
             r.fail(f"{where}.corners_mm", "must list the marker's 4 corners in mm")
-        markers.append(Marker(r.get(m, "id", int, where, lo=0, hi=10_000), corners))
-    return Markers(
-        dictionary=r.get(d, "dictionary", str, w, default="DICT_4X4_50"),
-        markers=tuple(markers),
-        min_markers=r.get(d, "min_markers", int, w, default=2, lo=1, hi=1000),
-    )
+        marker_id = r.get(m, "id", int, where, lo=0, hi=size - 1)
+        same = [j for j, other in enumerate(markers) if other.id == marker_id]
+        if same:
+            r.fail(f"{where}.id", f"{marker_id} is also {w}.marker[{same[0]}].id; give each "
+                   "marker its own id, as printed on the base")  # fmt: skip
+        markers.append(Marker(marker_id, corners))
+    least = r.get(d, "min_markers", int, w, default=2, lo=1, hi=1000)
+    if "min_markers" in d and least > len(markers):
+        r.fail(f"{w}.min_markers", f"{least} is more than the {len(markers)} markers listed; "
+               f"give at most {len(markers)}")  # fmt: skip
+    return Markers(dictionary=dictionary, markers=tuple(markers), min_markers=least)
+
+
+def _dictionary_size(r: _Reader, name: str, where: str) -> int:
+    """How many markers the ArUco dictionary `name` has (an unknown name is refused)."""
+    import cv2
+
+    code = getattr(cv2.aruco, name, None) if name.startswith("DICT_") else None
+    if not isinstance(code, int):
+        from stairfit.imaging import ARUCO_DICTIONARIES
+
+        near = difflib.get_close_matches(name, ARUCO_DICTIONARIES, n=1)
+        hint = f"did you mean {near[0]!r}?" if near else "e.g. \"DICT_4X4_50\""
+        r.fail(where, f"{name!r} is not an OpenCV ArUco dictionary; {hint}")
+    return int(cv2.aruco.getPredefinedDictionary(code).bytesList.shape[0])
 
 
 def _reference(r: _Reader, d: Any, w: str) -> Reference:
     r.table(d, w, ["name", "roi_px", "face_mm"])
     ref = Reference(
-        r.get(d, "name", str, w, default="reference"),
+        r.name(d, w, default="reference"),
         r.polygon(d, "roi_px", w),
         r.polygon(d, "face_mm", w),
     )
@@ -865,7 +915,7 @@ def _patches(
     for k, d in enumerate(items):
         w = f"patches[{k}]"
         r.table(d, w, ["name", "roi_px", "face_mm"])
-        name = r.get(d, "name", str, w)
+        name = r.name(d, w)
         patch = Patch(name, r.polygon(d, "roi_px", w), r.polygon(d, "face_mm", w))
         if (patch.roi_px is None) == (patch.face_mm is None):
             r.fail(w, "give either roi_px (pixels) or face_mm (base-plane mm), one of them")
@@ -1004,16 +1054,16 @@ def _check_input_paths(r: _Reader, scene: Scene) -> None:
                 f"{name!r} is outside the photo folder {folder}; copy the file (or a link to "
                 "it) into the folder and give its name relative to the folder",
             )
-        resolved = lexical.resolve()
-        if resolved in seen:
-            other_where, other = seen[resolved]
+        real = resolved(lexical)
+        if real in seen:
+            other_where, other = seen[real]
             what = (
                 f"is listed twice (also as {other_where})"
                 if other == name
                 else f"is the same file as {other_where} {other!r}"
             )
             r.fail(where, f"{name!r} {what}; list every file once")
-        seen[resolved] = (where, name)
+        seen[real] = (where, name)
 
 
 VISIBILITY_LIMIT_DEG = 89.0
@@ -1070,6 +1120,10 @@ def _check_rois(r: _Reader, scene: Scene) -> None:
                 )
 
 
+MAX_COORDINATE = 1e6
+"""The largest |coordinate| of a polygon (pixels or millimetres): 1e300 overflowed OpenCV."""
+
+
 def _check_polygon(r: _Reader, name: str, points: list[list[float]]) -> None:
     """Finite coordinates, and a simple outline (corners in order, not crossing)."""
     from ._polygons import polygon_problem
@@ -1077,6 +1131,12 @@ def _check_polygon(r: _Reader, name: str, points: list[list[float]]) -> None:
     for k, p in enumerate(points):
         if not all(math.isfinite(c) for c in p):
             r.fail(name, f"point {k} is {p!r}; every coordinate must be a finite number")
+        if not all(abs(c) <= MAX_COORDINATE for c in p):
+            r.fail(
+                name,
+                f"point {k} is {p!r}, beyond +-{MAX_COORDINATE:g}: no photo has such pixels and "
+                "no base such millimetres; fix the coordinate",
+            )
     problem = polygon_problem([(float(x), float(y)) for x, y in points])
     if problem is not None:
         r.fail(name, f"the polygon {problem}")

@@ -10,13 +10,13 @@ docs/fitting.md ("Chain file"); `load_chain` reads it as a dict of arrays [conve
 
 from __future__ import annotations
 
-import os
-import secrets
 from pathlib import Path
 from typing import NamedTuple
 
 import emcee
 import numpy as np
+
+from stairfit.fileio import atomic_path
 
 from ._errors import FitInputError
 
@@ -67,19 +67,10 @@ def _unpack_random_state(f: dict[str, np.ndarray]) -> tuple:
 
 
 def save_npz(path: Path, payload: dict[str, np.ndarray]) -> None:
-    """Write `payload` to `path` atomically: a temporary file in the same folder, then
-    `os.replace` (never a half-written file). Not `tempfile.mkstemp`: its 0600 would stay on the
-    chain file; 0666 less the umask instead, as for every other output."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = str(path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp"))
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **payload)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write `payload` to `path` atomically (`stairfit.fileio.atomic_path`: a temporary file in
+    the same folder, mode 0666 less the umask, then renamed; never a half-written file)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **payload)
 
 
 class ChainBackend(emcee.backends.Backend):

@@ -11,14 +11,14 @@ docs/fitting.md §5 ("Diagnostics").
 
 from __future__ import annotations
 
-import os
 import re
-import secrets
 import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
+
+from stairfit.fileio import atomic_path
 
 from ._errors import FitWarning
 
@@ -159,15 +159,8 @@ def inference_data(
 
 def write_netcdf(idata: Any, path: str | Path) -> Path:
     """Write an `InferenceData` to `path` (netCDF-4 through h5netcdf, ArviZ's default engine;
-    `arviz.from_netcdf(path)` reads it) atomically: a temporary file in the same folder, then
-    `os.replace`, as the chain file is written (`_chain.ChainBackend.save`)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
-    try:
+    `arviz.from_netcdf(path)` reads it) atomically (`stairfit.fileio.atomic_path`), as the
+    chain file is written (`_chain.ChainBackend.save`)."""
+    with atomic_path(path) as tmp:
         idata.to_netcdf(str(tmp), engine="h5netcdf")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    return Path(path)

@@ -17,18 +17,21 @@ app/_jaxcache.py) the exported program is kept in its subfolder `EXPORT_SUBDIR`,
   optimistix, equinox and lineax, so an edited or upgraded checkout never reuses a stale
   program;
 
-and written atomically. Where no cache folder is configured (library use, the tests), or with
-`STAIRFIT_EXPORTED=off`, `fn` is called as it is. A program that cannot be exported or a file
-that cannot be read falls back to `fn`; the result is the same either way (tested).
+and written atomically, with its key and its SHA-256 in the file: a file copied or swapped
+under another program's name, damaged or foreign is not used (and neither is one whose program
+takes other arguments), only traced again. Where no cache folder is configured (library use,
+the tests), or with `STAIRFIT_EXPORTED=off`, `fn` is called as it is. A program that cannot
+be exported or a file that cannot be read falls back to `fn`; the result is the same either
+way (tested).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import os
 import re
-import secrets
 from collections.abc import Callable, Sequence
 from importlib import metadata
 from pathlib import Path
@@ -36,6 +39,8 @@ from typing import Any
 
 import jax
 import numpy as np
+
+from stairfit.fileio import atomic_bytes, read_bytes
 
 EXPORT_SUBDIR = "stairfit-exported"
 """Subfolder of JAX's persistent compilation cache that holds the exported programs."""
@@ -129,13 +134,47 @@ def _caller(exported: jax.export.Exported, name: str) -> Callable[..., Any]:
     return jax.jit(_named(exported.call, name))
 
 
-def _load(path: Path, name: str) -> Callable[..., Any] | None:
-    """The caller of the exported program in `path` (None if absent or unreadable)."""
+_MAGIC = b"stairfit exported program 1\n"
+MAX_PROGRAM_BYTES = 1 << 30
+"""The largest program file read."""
+
+
+def _pack(key: str, payload: bytes) -> bytes:
+    """A program file: `_MAGIC`, the program's key, the payload's SHA-256, the payload."""
+    digest = hashlib.sha256(payload).hexdigest()
+    return _MAGIC + f"{key}\n{digest}\n".encode() + payload
+
+
+def _unpack(blob: bytes, key: str) -> bytes | None:
+    """The payload of a program file written for `key`, or None: a file written for another
+    key (swapped or copied under another name), damaged or foreign."""
+    if not blob.startswith(_MAGIC):
+        return None
+    header, _, payload = blob[len(_MAGIC) :].partition(b"\n")
+    digest, _, payload = payload.partition(b"\n")
+    if header.decode(errors="replace") != key:
+        return None
+    intact = hashlib.sha256(payload).hexdigest() == digest.decode("ascii", "replace")
+    return payload if intact else None
+
+
+def _fits(exported: jax.export.Exported, name: str, shapes: tuple[Any, ...]) -> bool:
+    """Whether a deserialised program is `name` and takes arguments of `shapes`."""
+    avals = [(tuple(a.shape), np.dtype(a.dtype)) for a in exported.in_avals]
+    return exported.fun_name == name and avals == [(tuple(s), np.dtype(d)) for s, d in shapes]
+
+
+def _load(path: Path, name: str, shapes: tuple[Any, ...] = ()) -> Callable[..., Any] | None:
+    """The caller of the exported program in `path` (None if absent, unreadable, damaged, or
+    written for another program: a missed saving, never an error or a wrong result)."""
     if path in _PROGRAMS:
         return _PROGRAMS[path]
     try:
-        exported = jax.export.deserialize(bytearray(path.read_bytes()))
+        payload = _unpack(read_bytes(path, MAX_PROGRAM_BYTES), path.stem)
+        exported = None if payload is None else jax.export.deserialize(bytearray(payload))
     except Exception:  # a missing, damaged or foreign file is a missed saving, not an error
+        return None
+    if exported is None or (shapes and not _fits(exported, name, shapes)):
         return None
     _PROGRAMS[path] = caller = _caller(exported, name)
     return caller
@@ -168,14 +207,10 @@ def _export(flat: Callable[..., Any], specs: list[jax.ShapeDtypeStruct]) -> jax.
 
 
 def _save(exported: jax.export.Exported, path: Path) -> None:
-    """Write atomically (a temporary file in the same folder, then `os.replace`)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
-    try:
-        tmp.write_bytes(exported.serialize())
-        os.replace(tmp, path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
+    """Write atomically (`stairfit.fileio.atomic_bytes`) under the program's key (`_pack`); a
+    file that cannot be written is only a missed saving."""
+    with contextlib.suppress(OSError):
+        atomic_bytes(path, _pack(path.stem, bytes(exported.serialize())))
 
 
 def call(
@@ -194,8 +229,9 @@ def call(
     if folder is None:
         return fn(*args)
     leaves, treedef = jax.tree.flatten(args)
-    path = _program_path(folder, name, static_key, treedef, tuple(map(_shape_dtype, leaves)))
-    caller = _load(path, name)
+    shapes = tuple(map(_shape_dtype, leaves))
+    path = _program_path(folder, name, static_key, treedef, shapes)
+    caller = _load(path, name, shapes)
     if caller is None:
 
         def flat(*lv: Any) -> tuple[Any, ...]:

@@ -15,6 +15,7 @@ import hashlib
 import itertools
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -595,24 +596,55 @@ def _resumed(t: Target, path: Path | None) -> ChainBackend:
     return backend
 
 
+class _Guarded:
+    """The log posterior as emcee calls it, holding back any exception raised inside it.
+
+    emcee wraps the likelihood in a bare `except:` that prints the walkers' parameters and a
+    traceback to stdout before re-raising, also for Ctrl-C and a SIGTERM turned into an
+    exception. Here an exception (of any kind) is kept and every walker gets -inf, which
+    emcee rejects quietly; `reraise` raises it once emcee has returned.
+    """
+
+    def __init__(self, log_prob: Callable[[np.ndarray], np.ndarray]) -> None:
+        self._log_prob = log_prob
+        self.error: BaseException | None = None
+
+    def __call__(self, theta: np.ndarray) -> np.ndarray:
+        if self.error is None:
+            try:
+                return self._log_prob(theta)
+            except BaseException as e:  # raised again by `reraise`
+                self.error = e
+        return np.full(theta.shape[0], -np.inf)
+
+    def reraise(self) -> None:
+        """Raise the exception held back, if any."""
+        if self.error is not None:
+            error, self.error = self.error, None
+            raise error
+
+
 def _sampler(
     t: Target, opts: PosteriorOptions, path: Path | None, resume: bool
 ) -> tuple[emcee.EnsembleSampler, emcee.State | None, int]:
-    """(sampler, initial state or None when resuming, the seed the chain belongs to)."""
+    """(sampler, initial state or None when resuming, the seed the chain belongs to); the
+    sampler's log posterior is `_Guarded` (`sampler.log_prob_fn.f`)."""
     p = t.slots.size
     if resume:
         backend = _resumed(t, path)
         t = t._replace(batch=backend.nwalkers)
-        sampler = emcee.EnsembleSampler(backend.nwalkers, p, t.log_prob, vectorize=True,
-                                        backend=backend, moves=_moves(opts.moves, t))  # fmt: skip
+        sampler = emcee.EnsembleSampler(backend.nwalkers, p, _Guarded(t.log_prob),
+                                        vectorize=True, backend=backend,
+                                        moves=_moves(opts.moves, t))  # fmt: skip
         return sampler, None, backend.info.seed
     walkers = _walker_count(opts.n_walkers, p)
     t = t._replace(batch=walkers)
     state = _initial_state(t, walkers, opts)
     backend = ChainBackend(t.chain_info(opts.seed), path)
     sampler = emcee.EnsembleSampler(
-        walkers, p, t.log_prob, vectorize=True, backend=backend, moves=_moves(opts.moves, t)
-    )
+        walkers, p, _Guarded(t.log_prob), vectorize=True, backend=backend,
+        moves=_moves(opts.moves, t),
+    )  # fmt: skip
     sampler.random_state = state.random_state
     if not np.array_equal(sampler.random_state[1], state.random_state[1]):
         raise FitError("emcee did not accept the random state; cannot guarantee reproducibility")
@@ -665,15 +697,32 @@ def _run_chunks(
     from tqdm import tqdm
 
     backend: ChainBackend = sampler.backend
+    # one bar for the whole chain (emcee's own draws a new bar for every chunk)
+    bar = tqdm(desc="posterior", unit="step", disable=not progress, initial=backend.iteration)
+    with bar:  # closed also when interrupted, so that the next message starts a line
+        return _chunks(sampler, state, t, opts, bar)
+
+
+def _chunks(
+    sampler: emcee.EnsembleSampler,
+    state: emcee.State | None,
+    t: Target,
+    opts: PosteriorOptions,
+    bar: Any,
+) -> _Run:
+    """`_run_chunks`'s loop, advancing `bar`."""
+    backend: ChainBackend = sampler.backend
+    guarded: _Guarded = sampler.log_prob_fn.f
     tau = np.full(t.slots.size, np.inf)
     spent, check_at, last = 0.0, 0, _Run(tau, False, 0.0)
     done = backend.get_chain() if backend.iteration else None
     chain = None if done is None else _physical_chain(t, done)
-    # one bar for the whole chain (emcee's own draws a new bar for every chunk)
-    bar = tqdm(desc="posterior", unit="step", disable=not progress, initial=backend.iteration)
     while (n_run := min(opts.chunk_steps, opts.max_steps - backend.iteration)) > 0:
         t0 = time.perf_counter()
-        sampler.run_mcmc(state, n_run, progress=False)
+        try:
+            sampler.run_mcmc(state, n_run, progress=False)
+        finally:
+            guarded.reraise()  # Ctrl-C or a SIGTERM inside the likelihood, raised here
         spent += time.perf_counter() - t0
         bar.update(n_run)
         state = None
@@ -695,10 +744,8 @@ def _run_chunks(
             last = last._replace(diagnostics=d, diagnosed=n)
             bar.set_postfix_str(f"tau {np.max(tau):.3g}, R-hat {np.max(d.rhat):.4f}")
             if _diagnostics_pass(d, opts):
-                bar.close()
                 return last._replace(converged=True)
             check_at = math.ceil(DIAGNOSE_GROWTH * n)
-    bar.close()
     return last
 
 

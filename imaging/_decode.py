@@ -19,6 +19,9 @@ import exifread
 import numpy as np
 import rawpy
 
+from stairfit import fileio
+
+from ._dng import DngHeaderError, check_dng
 from ._errors import ImagingError
 
 CHANNELS: tuple[str, str, str] = ("R", "G", "B")
@@ -37,6 +40,13 @@ _EXIF_ISO = (
 )
 EXPOSURE_TAG_SOURCES: tuple[str, str] = ("exif", "ifd0")
 """Where `decode_raw` finds exposure tags: the EXIF sub-IFD ("exif") or IFD0 ("ifd0")."""
+PLAUSIBLE_EXPOSURE_S = (1e-6, 3600.0)
+"""An ExposureTime tag outside this open interval (seconds) is damaged or crafted: treated as
+absent, so that the scene file's `exposure_time_s` must give the value."""
+MAX_RAW_BYTES = 2 * 2**30
+"""The largest photo file read (2 GiB): camera RAW files are tens to a few hundred MB, and the
+whole file is held in memory while it is decoded. A larger file (a damaged or sparse copy) is
+refused before it is read."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,27 +129,36 @@ class RawFrame:
         return " ".join(s for s in (self.make, self.model) if s)
 
 
-def file_sha256(path: str | Path) -> str:
-    """SHA-256 (hex) of a file's bytes, read in 1 MiB chunks."""
+def file_sha256(path: str | Path, max_bytes: int | None = None) -> str:
+    """SHA-256 (hex) of a regular file's bytes, read in 1 MiB chunks (`fileio.FileTypeError`
+    for a pipe, a device or a loop of links; `fileio.FileTooLargeError` over `max_bytes`)."""
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    fd = fileio.open_regular(Path(path))
+    with open(fd, "rb") as f:
+        fileio.check_size(fd, Path(path), max_bytes)
         while chunk := f.read(1 << 20):
             h.update(chunk)
     return h.hexdigest()
 
 
 def _read_blob(path: Path, name: str) -> bytes:
-    """The file's bytes, or an `ImagingError` naming the photo and the fix."""
-    if not path.is_file():
-        raise ImagingError(
-            f"photo {name!r}: file {path} does not exist; check the photo's file name "
-            "(it is relative to the scene file's folder)"
-        )
+    """The file's bytes, or an `ImagingError` naming the photo, what the path is and the fix."""
     try:
-        return path.read_bytes()
+        return fileio.read_bytes(path, MAX_RAW_BYTES)
+    except fileio.FileTooLargeError as e:
+        raise ImagingError(
+            f"photo {name!r}: {path} {e.strerror} for a photo; a camera RAW file is far "
+            "smaller, so this one is damaged (or a sparse copy): copy it from the camera again"
+        ) from None
+    except (fileio.FileTypeError, FileNotFoundError) as e:
+        what = fileio.describe(path) or e.strerror
+        raise ImagingError(
+            f"photo {name!r}: {path} {what}; give the photo's RAW file (its name is relative to "
+            "the scene file's folder)"
+        ) from None
     except OSError as e:
         raise ImagingError(
-            f"photo {name!r}: cannot read {path} ({e}); check its permissions"
+            f"photo {name!r}: cannot read {path} ({e.strerror or e}); check its permissions"
         ) from e
 
 
@@ -220,6 +239,13 @@ def decode_raw(path: str | Path, name: str | None = None) -> RawFrame:
     path = Path(path)
     name = name or path.name
     blob = _read_blob(path, name)
+    try:
+        check_dng(blob)
+    except DngHeaderError as e:
+        raise ImagingError(
+            f"photo {name!r}: {path}: {e}; the file is damaged or was altered: copy it from "
+            "the camera again, or convert the camera's RAW file with Adobe DNG Converter"
+        ) from None
     data, cfa, black, white, wb = _libraw_parts(blob, path, name)
     tags, exif_note = _read_exif(blob)
     values, sources, tag_notes = _exposure_tags(tags)
@@ -325,12 +351,26 @@ def _exif_number(
             v = float(values[0]) if values else float("nan")
         except (TypeError, ValueError, ZeroDivisionError, IndexError):
             v = float("nan")
-        if math.isfinite(v) and v > 0:
+        if math.isfinite(v) and v > 0 and _plausible(key, v):
             return v, source, notes
-        notes.append(f"{key} is {tags[key]} (treated as absent)")
+        notes.append(f"{key} is {tags[key]}{_implausible(key, v)} (treated as absent)")
     if not notes:
         notes.append(f"{names[0][0]} is absent (and {names[-1][0]} too)")
     return None, "", notes
+
+
+def _plausible(key: str, value: float) -> bool:
+    """Whether a positive exposure value can be real (only ExposureTime has a range here)."""
+    lo, hi = PLAUSIBLE_EXPOSURE_S
+    return not key.endswith("ExposureTime") or lo < value < hi
+
+
+def _implausible(key: str, value: float) -> str:
+    """The note's reason for a positive value that `_plausible` refuses ("" otherwise)."""
+    if not (math.isfinite(value) and value > 0) or _plausible(key, value):
+        return ""
+    lo, hi = PLAUSIBLE_EXPOSURE_S
+    return f" s, outside the plausible {lo:g} to {hi:g} s"
 
 
 def _exif_text(tags: dict, key: str) -> str:

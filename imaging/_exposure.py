@@ -89,10 +89,12 @@ def resolve_exposure(
     missing = [k for k, v in chosen.items() if v is None]
     if missing:
         exif_name = {"exposure_time_s": "ExposureTime", "f_number": "FNumber", "iso": "ISO"}
+        implausible = [n for n in frame.notes if "outside the plausible" in n]
+        why = f"{'; '.join(implausible)}, " if implausible else ""
         raise ImagingError(
             f"photo {frame.name!r}: EXIF has no usable "
-            f"{', '.join(exif_name[k] for k in missing)} (absent or 0, in the EXIF IFD and in "
-            f"IFD0) and the scene file gives no override; add "
+            f"{', '.join(exif_name[k] for k in missing)} ({why}absent or 0, in the EXIF IFD and "
+            f"in IFD0) and the scene file gives no override; add "
             f"{', '.join(f'{k} = ...' for k in missing)} to this photo's [[photos]] entry"
         )
     try:

@@ -23,10 +23,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ._cache import prune_previews, read_cache, write_cache
+from stairfit.fileio import atomic_bytes
+
+from ._cache import VerifiedCache, preview_digests, prune_previews, read_cache, write_cache
 from ._calibration import Calibration, CalibrationSpec, build_calibration, combined_sha256
 from ._checks import low_signal_warnings, same_bytes_warnings
-from ._decode import CHANNELS, RawFrame, decode_raw, file_sha256
+from ._decode import CHANNELS, MAX_RAW_BYTES, RawFrame, decode_raw, file_sha256
 from ._errors import ImagingError, PhotosFailedError
 from ._exposure import Exposure, resolve_exposure
 from ._extract import (
@@ -38,7 +40,6 @@ from ._extract import (
     roi_data,
 )
 from ._hdr import BracketMember, Radiometry, prepare_radiometry
-from ._io import atomic_write_bytes
 from ._markers import MarkerDetection, MarkerLayout, detect_markers
 from ._noise import NoiseModel, fit_noise_model
 from ._placement import (
@@ -694,7 +695,8 @@ def view_radiometry(
 
 def photo_digest(spec: PhotoSpec) -> str:
     """SHA-256 of a photo's file, or the combined digest of a bracket's files (as in the rows)."""
-    return combined_sha256([file_sha256(p) for p in (spec.path, *(m.path for m in spec.bracket))])
+    paths = (spec.path, *(m.path for m in spec.bracket))
+    return combined_sha256([file_sha256(p, MAX_RAW_BYTES) for p in paths])
 
 
 def measure_photo(
@@ -793,7 +795,7 @@ def _write_previews(
     )
     for k, path in enumerate(paths):
         try:
-            atomic_write_bytes(path, png)
+            atomic_bytes(path, png)
         except OSError:
             if k == 0:
                 raise
@@ -859,11 +861,17 @@ def preview_path(preview_dir: str | Path, spec: PhotoSpec) -> Path:
     """Where `measure_photos` writes a photo's preview: `<preview_dir>/<name>.png`.
 
     Always directly inside `preview_dir`: a name with folders (`raw/IMG_1.dng`) is flattened
-    to `raw__IMG_1.dng.png`, and `.`/`..` parts are dropped, so a photo's name can never place
-    its preview elsewhere.
+    to `raw__IMG_1.dng-HASH.png`, with `.`/`..` parts dropped, so a photo's name can never
+    place its preview elsewhere; HASH (8 hex digits of the name's SHA-256) keeps two names that
+    flatten alike (`a/IMG.dng`, `a__IMG.dng`) apart. A plain file name keeps `<name>.png`.
     """
-    parts = [p for p in spec.name.replace("\\", "/").split("/") if p not in ("", ".", "..")]
-    return Path(preview_dir) / f"{'__'.join(parts) or 'photo'}.png"
+    name = spec.name
+    parts = [p for p in name.replace("\\", "/").split("/") if p not in ("", ".", "..")]
+    flat = "__".join(parts) or "photo"
+    if flat == name:
+        return Path(preview_dir) / f"{name}.png"
+    digest = hashlib.sha256(name.encode("utf-8", "surrogateescape")).hexdigest()[:8]
+    return Path(preview_dir) / f"{flat}-{digest}.png"
 
 
 def preview_cache_dir(cache: str | Path) -> Path:
@@ -886,43 +894,26 @@ def cached_preview_name(photo_sha256: str, settings_key: str) -> str:
     return f"{photo_sha256[:32]}-{settings_key}-v{PREVIEW_VERSION}-{PREVIEW_MAX_SIZE}px.png"
 
 
-_PNG_START = b"\x89PNG\r\n\x1a\n"
-_PNG_END = b"IEND\xaeB`\x82"
-
-
-def _cached_preview(folder: Path, rows: Sequence[MeasurementRow]) -> bytes | None:
-    """The cached preview PNG of a photo's (already validated) cached rows, or None.
-
-    None when it is missing, unreadable, or not a whole PNG file (it is then made again).
-    """
-    path = folder / cached_preview_name(rows[0].photo_sha256, rows[0].settings_key)
-    try:
-        png = path.read_bytes()
-    except OSError:
-        return None
-    return png if png.startswith(_PNG_START) and png.endswith(_PNG_END) else None
-
-
-def _load_cache(cache: Path | None) -> dict[str, tuple[MeasurementRow, ...]]:
-    table = read_cache(cache, TABLE_VERSION)
-    if table is None:
-        return {}
-    return {p: table.for_photo(p) for p in table.photos()}
+def _load_cache(cache: Path | None, secret: bytes | None) -> VerifiedCache | None:
+    return read_cache(cache, TABLE_VERSION, secret)
 
 
 def _cached_rows(
     spec: PhotoSpec,
     settings: ExtractionSettings,
-    cached: dict[str, tuple[MeasurementRow, ...]],
+    cached: VerifiedCache | None,
 ) -> tuple[MeasurementRow, ...] | None:
     """A photo's cached rows if the photo's SHA-256 and its `cache_key` both match, else None."""
-    rows = cached.get(spec.name)
+    rows = cached.table.for_photo(spec.name) if cached is not None else None
     if not rows or not spec.path.is_file():
         return None
     key = cache_key(spec, settings)
     if any(r.settings_key != key for r in rows):
         return None
-    sha = photo_digest(spec)
+    try:
+        sha = photo_digest(spec)
+    except OSError:  # not a regular file, or too large: decoding says why
+        return None
     if any(r.photo_sha256 != sha for r in rows):
         return None
     return rows
@@ -937,6 +928,7 @@ def measure_photos(
     progress: bool = False,
     max_workers: int | None = None,
     raise_on_failure: bool = True,
+    cache_secret: bytes | None = None,
 ) -> MeasurementTable:
     """Measure a set of photos: the measurement table, one row per photo x ROI x channel.
 
@@ -948,7 +940,8 @@ def measure_photos(
             table version) both match, so the photo is not decoded again. The file is then
             rewritten (atomically) with exactly the rows returned. With `preview_dir`, previews
             are cached too, in `preview_cache_dir(cache)`; cached previews of rows no longer in
-            the file are deleted.
+            the file are deleted. The table's `from_cache` names the photos whose rows were
+            reused.
         preview_dir: if given, a preview PNG `<name>.png` is written there for every photo:
             rendered when the photo is decoded, copied from the cache when its rows are reused
             (a photo whose cached preview is missing or stale is decoded again).
@@ -959,6 +952,9 @@ def measure_photos(
         raise_on_failure: False returns the rows of the photos that succeeded, with the
             failures in the table's `failed` ((photo, one-line reason) pairs), instead of
             raising (`stairfit measure` reports them).
+        cache_secret: the key of the cache's checksum (HMAC-SHA256; imaging/_cache.py): a
+            cache written without it, or edited since, is not used. None: a plain SHA-256,
+            which catches damage but not deliberate edits.
 
     Returns:
         The table, rows in the order of `specs`.
@@ -978,7 +974,8 @@ def measure_photos(
     cache_path = Path(cache) if cache is not None else None
     pdir = Path(preview_dir) if preview_dir is not None else None
     pcache = preview_cache_dir(cache_path) if cache_path is not None and pdir is not None else None
-    cached = _load_cache(cache_path)
+    check_preview_names(specs)
+    cached = _load_cache(cache_path, cache_secret)
     done: dict[str, tuple[MeasurementRow, ...]] = {}
     errors: dict[str, str] = {}
     bar = tqdm(total=len(specs), unit="photo", desc="photos", disable=not progress)
@@ -986,16 +983,18 @@ def measure_photos(
     for spec in specs:
         rows = _cached_rows(spec, settings, cached)
         if rows is not None and pdir is not None:
-            png = _cached_preview(pcache, rows) if pcache is not None else None
+            name = cached_preview_name(rows[0].photo_sha256, rows[0].settings_key)
+            png = cached.preview(pcache, name) if cached and pcache else None
             if png is None:
                 rows = None  # decode again to make the preview
             else:
-                atomic_write_bytes(preview_path(pdir, spec), png)
+                atomic_bytes(preview_path(pdir, spec), png)
         if rows is None:
             todo.append(spec)
         else:
             done[spec.name] = rows
             bar.update(1)
+    reused = tuple(s.name for s in specs if s.name in done)
     workers = max_workers or min(2, os.cpu_count() or 1)
     workers = max(1, min(workers, len(todo)))
     try:
@@ -1008,13 +1007,51 @@ def measure_photos(
         errors |= new_errors
     finally:
         bar.close()
-    table = MeasurementTable(tuple(r for s in specs if s.name in done for r in done[s.name]))
-    if cache_path is not None and write_cache(cache_path, table, TABLE_VERSION):
-        keep = {cached_preview_name(r.photo_sha256, r.settings_key) for r in table.rows}
-        prune_previews(preview_cache_dir(cache_path), keep)
+    rows = tuple(r for s in specs if s.name in done for r in done[s.name])
+    table = MeasurementTable(rows, from_cache=reused)
+    if cache_path is not None:
+        _write_cache(cache_path, table, cached, cache_secret, wrote_previews=pcache is not None)
     same_bytes_warnings(table)
     low_signal_warnings(table)
     return _with_failures(table, [(n, errors[n]) for n in names if n in errors], raise_on_failure)
+
+
+def _write_cache(
+    cache: Path,
+    table: MeasurementTable,
+    cached: VerifiedCache | None,
+    secret: bytes | None,
+    wrote_previews: bool,
+) -> None:
+    """Write the cache with the digests of the previews it may vouch for: those written now
+    (`wrote_previews`, of rows measured now) and those the verified cache listed with the same
+    bytes; a preview file nobody vouches for is removed."""
+    folder = preview_cache_dir(cache)
+    names = {cached_preview_name(r.photo_sha256, r.settings_key) for r in table.rows}
+    fresh = {
+        cached_preview_name(r.photo_sha256, r.settings_key)
+        for r in table.rows
+        if wrote_previews and r.photo not in table.from_cache
+    }
+    digests = preview_digests(folder, names)
+    old = cached.previews if cached is not None else {}
+    listed = {n: d for n, d in digests.items() if n in fresh or old.get(n) == d}
+    if write_cache(cache, table, TABLE_VERSION, secret, listed):
+        prune_previews(folder, set(listed))
+
+
+def check_preview_names(specs: Sequence[PhotoSpec]) -> None:
+    """No two photos may write the same preview file (names are unique, so this only fails
+    for a SHA-256 prefix collision; then rename a photo)."""
+    seen: dict[str, str] = {}
+    for spec in specs:
+        name = preview_path(".", spec).name
+        if name in seen:
+            raise ImagingError(
+                f"photos {seen[name]!r} and {spec.name!r} would share the preview {name}; "
+                "rename one of them"
+            )
+        seen[name] = spec.name
 
 
 def _measure_in_pool(

@@ -23,9 +23,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from stairfit.fileio import atomic_bytes
+
 from ._decode import RawFrame
 from ._errors import ImagingError
-from ._io import atomic_write_bytes
 from ._markers import MarkerDetection, grey_for_detection
 from ._roi import RoiMask
 
@@ -315,4 +316,4 @@ def write_preview(
         max_size: the preview's longer side in pixels, at most.
     """
     png = preview_png(frame, rois, markers, saturation_level=saturation_level, max_size=max_size)
-    return atomic_write_bytes(path, png)
+    return atomic_bytes(path, png)

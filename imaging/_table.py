@@ -13,8 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from stairfit.fileio import atomic_bytes, read_bytes
+
 from ._errors import ImagingError
-from ._io import atomic_write_bytes
 
 
 @dataclass(frozen=True)
@@ -183,11 +184,13 @@ class MeasurementTable:
     """The measurements of a set of photos: an immutable sequence of `MeasurementRow`s.
 
     `failed` lists (photo, one-line reason) of photos that could not be measured, when
-    `measure_photos` was asked not to raise (it is not written to CSV).
+    `measure_photos` was asked not to raise; `from_cache` the photos whose rows were read from
+    a verified measurement cache instead of being measured now. Neither is written to CSV.
     """
 
     rows: tuple[MeasurementRow, ...] = ()
     failed: tuple[tuple[str, str], ...] = ()
+    from_cache: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -223,7 +226,7 @@ class MeasurementTable:
 
     def write_csv(self, path: str | Path) -> Path:
         """Write the table as CSV, atomically (temporary file + os.replace)."""
-        return atomic_write_bytes(path, self.to_csv().encode())
+        return atomic_bytes(path, self.to_csv().encode())
 
     @classmethod
     def read_csv(cls, path: str | Path) -> MeasurementTable:
@@ -234,9 +237,14 @@ class MeasurementTable:
         """
         path = Path(path)
         try:
-            text = path.read_text()
-        except OSError as e:
+            text = read_bytes(path).decode("utf-8")
+        except (OSError, UnicodeDecodeError) as e:
             raise ImagingError(f"measurement table {path}: cannot read it ({e})") from e
+        return cls.from_csv_text(text, path)
+
+    @classmethod
+    def from_csv_text(cls, text: str, path: str | Path) -> MeasurementTable:
+        """The table of CSV `text` (as `to_csv` writes it); `path` names it in errors."""
         reader = csv.reader(io.StringIO(text))
         header = next(reader, None)
         if header is None or tuple(header) != COLUMNS:

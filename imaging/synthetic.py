@@ -24,10 +24,11 @@ import cv2
 import numpy as np
 import tifffile
 
+from stairfit.fileio import temporary_sibling
+
 from ._decode import CHANNELS
 from ._errors import ImagingError
 from ._exposure import Exposure
-from ._io import temporary_sibling
 from ._markers import MarkerLayout
 from ._roi import Polygon, RoiMask, as_polygon, roi_mask
 

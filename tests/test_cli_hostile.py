@@ -18,6 +18,8 @@ import textwrap
 import time
 import tomllib
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +27,7 @@ import pytest
 import test_cli_errors as cli_errors
 from test_cli_errors import _folder_snapshot, assert_one_line_user_error, run
 
-from stairfit import outputs
+from stairfit import fileio, outputs
 from stairfit.errors import UserError
 
 simulated = cli_errors.simulated  # the session's small simulated photo folder (a fixture)
@@ -108,11 +110,13 @@ def test_check_output_refuses_home_and_root(tmp_path: Path) -> None:
 
 def test_stale_leftovers_of_killed_runs_are_removed(tmp_path: Path) -> None:
     out = tmp_path / "results"
+    with outputs.staged_folder(out, force=False, command="fit") as tmp:  # an earlier result
+        (tmp / "a.txt").write_text("old")
     young_other = tmp_path / ".other.0123abcd.partial"
     old_other = tmp_path / ".older.89abcdef.partial"
     own = [
-        tmp_path / ".results.deadbeef.partial",
-        tmp_path / ".results.old-4242",
+        tmp_path / ".results.deadbeef.partial",  # incomplete: no marker
+        tmp_path / ".results.old-4242",  # an older result that `results` replaced
         tmp_path / ".results.AbC_12x9.tmp",
     ]
     for p in [young_other, old_other, *own[:2]]:
@@ -124,74 +128,158 @@ def test_stale_leftovers_of_killed_runs_are_removed(tmp_path: Path) -> None:
     keep = [tmp_path / "results.partial", tmp_path / ".results.txt", tmp_path / "mine"]
     for p in keep:
         p.write_text("not stairfit's")
-    with outputs.staged_folder(out, force=False) as tmp:
+    with outputs.staged_folder(out, force=True, command="fit") as tmp:
         (tmp / "a.txt").write_text("new")
     assert _entries(tmp_path) == sorted(p.name for p in [out, young_other, *keep])
+    assert (out / "a.txt").read_text() == "new"
 
 
-def test_existing_file_replaced_with_force_leaves_no_old_copy(tmp_path: Path) -> None:
-    for existing in ("file", "link", "folder"):
-        out = tmp_path / f"out-{existing}"
-        if existing == "file":
-            out.write_text("old")
-        elif existing == "link":
-            (tmp_path / "target").mkdir(exist_ok=True)
-            (tmp_path / "target" / "kept.txt").write_text("the link's target is not deleted")
-            out.symlink_to(tmp_path / "target")
-        else:
-            out.mkdir()
-            (out / "old.txt").write_text("old")
-        with outputs.staged_folder(out, force=True) as tmp:
+def _result(folder: Path, command: str | None, text: str = "old") -> Path:
+    """A folder holding a.txt, marked as made by `stairfit COMMAND` (None: not marked)."""
+    folder.mkdir()
+    (folder / "a.txt").write_text(text)
+    if command is not None:
+        fileio.mark_complete(folder, command, "0")
+    return folder
+
+
+def test_force_replaces_only_a_folder_the_same_command_made(tmp_path: Path) -> None:
+    (tmp_path / "target").mkdir()
+    (tmp_path / "target" / "kept.txt").write_text("the link's target is not deleted")
+    refused = {
+        "file": lambda p: p.write_text("the user's"),
+        "link": lambda p: p.symlink_to(tmp_path / "target"),
+        "unmarked-folder": lambda p: _result(p, None),
+        "another-command's": lambda p: _result(p, "simulate"),
+    }
+    for name, make in refused.items():
+        out = tmp_path / name
+        make(out)
+        before = _folder_snapshot(tmp_path)
+        refused = pytest.raises(UserError, match="--force replaces only a result 'stairfit fit'")
+        with refused, outputs.staged_folder(out, force=True, command="fit") as tmp:
             (tmp / "new.txt").write_text("new")
-        resolved = out.resolve()
-        assert (resolved / "new.txt").read_text() == "new"
-        assert _entries(resolved) == ["new.txt"]
+        assert _folder_snapshot(tmp_path) == before, name
+    out = _result(tmp_path / "ours", "fit")
+    with outputs.staged_folder(out, force=True, command="fit") as tmp:
+        (tmp / "new.txt").write_text("new")
+    assert _entries(out) == [fileio.MARKER, "new.txt"]
+    assert fileio.made_by(out) == "fit"
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], _entries(tmp_path)
 
 
-def test_simulate_over_an_existing_file_with_force_leaves_nothing_else(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+@pytest.mark.parametrize("command", ["demo", "fit"])
+def test_force_never_deletes_a_photo_folder(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
 ) -> None:
-    out = tmp_path / "existing.txt"
-    out.write_text("old")
-    argv = ["simulate", str(out), "--force", "--quiet", "--megapixels", "0.3", "--views", "3"]
-    status, err = run(capsys, *argv)
-    assert status == 0, err
-    assert _entries(tmp_path) == ["existing.txt"]
-    assert (out / "scene.toml").is_file()
+    # issue 42 case 1: `demo DIR --force` and `fit PHOTOS -o OTHER_PHOTOS --force` deleted the
+    # other folder's RAWs, scene.toml and notes; even a folder `stairfit simulate` made is kept
+    other = tmp_path / "other"
+    assert cli_errors.main(["simulate", str(other), "--megapixels", "0.3", "--views", "3",
+                            "--quiet"]) == 0  # fmt: skip
+    (other / "notes.txt").write_text("the user's notes")
+    capsys.readouterr()
+    before = _folder_snapshot(other)
+    argv = ["demo", str(other)] if command == "demo" else ["fit", str(photos), "-o", str(other)]
+    status, err = run(capsys, *argv, "--force", "--quiet")
+    assert_one_line_user_error(status, err, command, str(other), "'stairfit simulate'",
+                               "--force replaces only")  # fmt: skip
+    assert _folder_snapshot(other) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other", "photos"]
+
+
+def test_a_kill_between_the_two_renames_loses_nothing(tmp_path: Path) -> None:
+    # issue 42 case 2: a replacement killed between `out -> .out.old-PID` and `partial -> out`
+    # (SIGKILL cannot be held back) leaves the old result aside and the new one complete in its
+    # staging folder; the next run puts the newer one back before anything else
+    out = tmp_path / "results"
+    backup = _result(tmp_path / ".results.old-4242", "fit", "old")
+    partial = _result(tmp_path / ".results.0123abcd.partial", "fit", "new")
+    incomplete = _result(tmp_path / ".results.89abcdef.partial", None, "half")
+    exists = pytest.raises(UserError, match="already exists")  # without --force: not replaced
+    with exists, outputs.staged_folder(out, force=False, command="fit"):
+        pass
+    assert (out / "a.txt").read_text() == "new"  # the newer complete result, in place
+    assert not backup.exists() and not partial.exists() and not incomplete.exists()
+    # killed again before the new run has its own result: the result in place survives
+    with pytest.raises(KeyboardInterrupt), outputs.staged_folder(out, True, command="fit") as tmp:
+        (tmp / "a.txt").write_text("newest")
+        raise KeyboardInterrupt
+    assert (out / "a.txt").read_text() == "new"
+    assert _entries(tmp_path) == ["results"]
+
+
+def test_only_an_old_copy_left_is_put_back(tmp_path: Path) -> None:
+    out = tmp_path / "results"
+    _result(tmp_path / ".results.old-77", "fit", "old")
+    _result(tmp_path / ".results.00000000.partial", None, "half")  # incomplete: not a result
+    assert outputs.remove_stale_leftovers(out) == [tmp_path / ".results.00000000.partial"]
+    assert (out / "a.txt").read_text() == "old"
+    assert _entries(tmp_path) == ["results"]
 
 
 def test_failed_staging_removes_its_folder_and_names_the_real_target(tmp_path: Path) -> None:
     out = tmp_path / "results"
-    with pytest.raises(OSError) as err, outputs.staged_folder(out, force=False) as tmp:
+    with pytest.raises(OSError) as err, outputs.staged_folder(out, False, command="fit") as tmp:
         raise OSError(28, "No space left on device", str(tmp / "figures" / "corner.png"))
     assert err.value.filename == str(out / "figures" / "corner.png")
-    with pytest.raises(OSError) as err, outputs.staged_folder(out, force=False):
+    with pytest.raises(OSError) as err, outputs.staged_folder(out, False, command="fit"):
         raise OSError(28, "No space left on device")  # a write through a file object: no name
     assert err.value.filename == str(out)
     assert _entries(tmp_path) == []
 
 
+@contextmanager
+def _file_size_limit(n_bytes: int) -> Iterator[None]:
+    """Writes past `n_bytes` fail with EFBIG, as writes to a full disk fail (RLIMIT_FSIZE)."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (n_bytes, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, previous)
+
+
+@POSIX
 def test_full_disk_names_the_output_file(tmp_path: Path) -> None:
-    if not Path("/dev/full").exists():
-        pytest.skip("no /dev/full")
     # the temporary file's writes fail as on a full disk; the error names the real target
     target = tmp_path / "out.csv"
-    real_open = os.fdopen
-
-    def full_disk(fd: int, *args, **kwargs):
-        full = os.open("/dev/full", os.O_WRONLY)
-        os.dup2(full, fd)
-        os.close(full)
-        return real_open(fd, *args, **kwargs)
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(os, "fdopen", full_disk)
-        with pytest.raises(OSError) as err, outputs.atomic_text(target) as fh:
-            fh.write("x" * 100_000)
-    assert err.value.errno == 28
+    with pytest.raises(OSError) as err, _file_size_limit(1000), outputs.atomic_text(target) as fh:
+        fh.write("x" * 100_000)
     assert err.value.filename == str(target)
     assert _entries(tmp_path) == []
+
+
+_FULL_DISK = """
+import resource, signal, sys
+from stairfit.cli import main
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]), resource.RLIM_INFINITY))
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@POSIX
+@pytest.mark.parametrize("command", ["predict", "measure"])
+def test_a_full_disk_is_one_line_naming_the_file(photos: Path, tmp_path: Path, command: str):
+    # issue 42: "disk full names a folder or says Input/output error, not the file"
+    out = tmp_path / ("p.csv" if command == "predict" else "m")
+    argv = (["predict", "--theta-o-deg", "-90:90:0.01", "-o", str(out)] if command == "predict"
+            else ["measure", str(photos), "-o", str(out), "--quiet", "--no-cache"])  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", _FULL_DISK, "20000", *argv], text=True,
+                          capture_output=True, env={**os.environ, "STAIRFIT_JAX_CACHE": "off"},
+                          timeout=600)  # fmt: skip
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1 and len(lines) == 1, done.stderr
+    assert lines[0].startswith(f"stairfit {command}: error: {out}"), lines[0]
+    named = lines[0].split(": error: ")[1].split(": ")[0]
+    assert named != str(out) or command == "predict", lines[0]  # the file, not the folder
+    assert "File too large" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]
 
 
 _SLOW_SIMULATE = """
@@ -237,7 +325,7 @@ def test_signal_during_a_run_cleans_up_with_one_line(tmp_path: Path, sig: int) -
 _HOLD_LOCK = """
 import sys, time
 from pathlib import Path
-from stairfit import outputs
+from stairfit import fileio, outputs
 with outputs.output_lock(Path(sys.argv[1]).resolve()):
     print("locked", flush=True)
     time.sleep(600)
@@ -278,10 +366,8 @@ def test_written_files_honour_the_umask(tmp_path: Path, capsys: pytest.CaptureFi
         status, err = run(capsys, "predict", "--theta-o-deg", "0", "-o", str(tmp_path / "a.csv"))
         assert status == 0, err
         outputs.atomic_bytes(tmp_path / "b.bin", b"x")
-        from stairfit.imaging._io import atomic_write_bytes, temporary_sibling
-
-        atomic_write_bytes(tmp_path / "c.bin", b"x")
-        sibling = temporary_sibling(tmp_path / "d.dng")
+        fileio.atomic_bytes(tmp_path / "c.bin", b"x")
+        sibling = fileio.temporary_sibling(tmp_path / "d.dng")
     finally:
         os.umask(old)
     for p in ("a.csv", "b.bin", "c.bin", sibling.name):
@@ -377,7 +463,7 @@ def test_cache_in_the_way_or_read_only_does_not_stop_the_measurement(
     def read_only(path: Path, data: bytes) -> Path:
         raise PermissionError(13, "Permission denied", str(path))
 
-    monkeypatch.setattr(_cache, "atomic_write_bytes", read_only)
+    monkeypatch.setattr(_cache, "atomic_bytes", read_only)
     monkeypatch.setattr(Path, "unlink", lambda self, missing_ok=False: read_only(self, b""))
     with pytest.warns(imaging.ImagingWarning, match="cannot write it"):
         table = imaging.measure_photos(specs, cache=cache, preview_dir=tmp_path / "pv2")
@@ -547,7 +633,21 @@ PHOTO_FILE_CASES = [
             _link(d, "zero.dng", "/dev/zero"),
             cli_errors.edit_scene(d, _set_file(0, "zero.dng")),
         ),
-        ("photos[0].file", "'zero.dng' is a character device (a link to /dev/zero)", "RAW file"),
+        ("photos[0].file", "'zero.dng' is a link to /dev/zero, a character device", "RAW file"),
+    ),
+    (
+        "link-loop",  # issue 42 case 10: a traceback (RuntimeError: Symlink loop)
+        lambda d: (
+            _link(d, "loop.dng", "loop2.dng"),
+            _link(d, "loop2.dng", "loop.dng"),
+            cli_errors.edit_scene(d, _set_file(0, "loop.dng")),
+        ),
+        ("photos[0].file", "'loop.dng' is a loop of symbolic links", "fix the link"),
+    ),
+    (
+        "named-pipe",  # issue 42 case 7: reading it would block forever
+        lambda d: (os.mkfifo(d / "pipe.dng"), cli_errors.edit_scene(d, _set_file(0, "pipe.dng"))),
+        ("photos[0].file", "'pipe.dng' is a named pipe (FIFO), not a RAW file"),
     ),
     (
         "folder-named-like-a-photo",
@@ -603,20 +703,28 @@ def test_same_bytes_under_two_names_warns(
     assert lines[1].startswith("stairfit fit: error: ")
 
 
-def test_preview_names_never_leave_the_preview_folder(tmp_path: Path) -> None:
+def test_preview_names_never_leave_the_preview_folder_and_never_collide(tmp_path: Path) -> None:
+    import re
+
     from stairfit import imaging
 
-    for name, expected in [
-        ("IMG_0001.dng", "IMG_0001.dng.png"),
-        ("raw/IMG_0001.dng", "raw__IMG_0001.dng.png"),
-        ("../../x/IMG.dng", "x__IMG.dng.png"),
-        ("/abs/IMG.dng", "abs__IMG.dng.png"),
-        ("..", "photo.png"),
-    ]:
-        spec = imaging.PhotoSpec(
-            tmp_path / "a.dng", name=name, rois={"w": [(0, 0), (9, 0), (9, 9)]}
-        )
-        assert imaging.preview_path(tmp_path / "pv", spec) == tmp_path / "pv" / expected
+    names = {
+        "IMG_0001.dng": "IMG_0001.dng.png",  # a plain file name keeps its name
+        "a__IMG.dng": "a__IMG.dng.png",
+        "a/IMG.dng": r"a__IMG\.dng-[0-9a-f]{8}\.png",  # flattened, with its name's hash
+        "a\\IMG.dng": r"a__IMG\.dng-[0-9a-f]{8}\.png",
+        "../../x/IMG.dng": r"x__IMG\.dng-[0-9a-f]{8}\.png",
+        "/abs/IMG.dng": r"abs__IMG\.dng-[0-9a-f]{8}\.png",
+        "..": r"photo-[0-9a-f]{8}\.png",
+    }
+    paths = []
+    for name, expected in names.items():
+        rois = {"w": [(0, 0), (9, 0), (9, 9)]}
+        spec = imaging.PhotoSpec(tmp_path / "a.dng", name=name, rois=rois)
+        path = imaging.preview_path(tmp_path / "pv", spec)
+        assert path.parent == tmp_path / "pv" and re.fullmatch(expected, path.name), (name, path)
+        paths.append(path)
+    assert len(set(paths)) == len(paths)  # issue 42: a/IMG.dng and a__IMG.dng shared one file
 
 
 @pytest.mark.parametrize(
@@ -820,13 +928,14 @@ def test_predict_defaults_and_documented_combinations_still_run(
         assert status == 0 and err == "", (options, err)
 
 
-@pytest.mark.parametrize("command", ["fit", "simulate"])
+@pytest.mark.parametrize("command", ["fit", "simulate", "measure"])
 def test_too_many_workers_is_refused(
     photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
 ) -> None:
     target = (
-        [str(photos), "-o", str(tmp_path / "out")] if command == "fit" else [str(tmp_path / "s")]
-    )
+        [str(photos), "-o", str(tmp_path / "out")] if command != "simulate"
+        else [str(tmp_path / "s")]
+    )  # fmt: skip
     status, err = run(capsys, command, *target, "--workers", "100000", "--quiet")
     assert_one_line_user_error(status, err, command, "--workers", "<= 32", "100000")
     assert _entries(tmp_path) == ["photos"]
@@ -904,7 +1013,7 @@ def test_a_filesystem_without_locks_warns_and_still_runs(
 
     monkeypatch.setattr(outputs.fcntl, "flock", no_locks)
     warns = pytest.warns(UserWarning, match="does not support file locks")
-    with warns, outputs.staged_folder(tmp_path / "out", force=False) as tmp:
+    with warns, outputs.staged_folder(tmp_path / "out", force=False, command="fit") as tmp:
         (tmp / "a.txt").write_text("done")
     assert _entries(tmp_path) == ["out"]
 
@@ -913,7 +1022,7 @@ def test_no_failed_previews_are_promised_inside_a_staging_folder(tmp_path: Path)
     # the demo fits photos inside its own staging folder, which a failed run removes
     from stairfit.commands._failed_previews import keep_previews
 
-    with outputs.staged_folder(tmp_path / "demo", force=False) as tmp:
+    with outputs.staged_folder(tmp_path / "demo", force=False, command="demo") as tmp:
         assert outputs.in_staging(tmp / "photos" / ".stairfit-cache" / "failed-previews")
         (tmp / "pv").mkdir()
         (tmp / "pv" / "a.dng.png").write_bytes(b"png")
@@ -956,6 +1065,212 @@ def test_a_device_or_pipe_is_never_replaced(
     for argv in (["predict", "--theta-o-deg", "0", "-o", str(fifo), "--force"],
                  ["simulate", str(fifo), "--force", "--quiet"]):  # fmt: skip
         status, err = run(capsys, *argv)
-        assert_one_line_user_error(status, err, argv[0], "is a device, pipe or socket")
+        assert_one_line_user_error(status, err, argv[0], "is a named pipe (FIFO)", "not a file")
     assert stat.S_ISFIFO(fifo.lstat().st_mode)
     assert _entries(tmp_path) == ["pipe"]
+
+
+# --- issue 42: hostile scene files, outputs and polygons ------------------------------------
+
+
+def _replace_scene(d: Path, make: object) -> None:
+    (d / "scene.toml").unlink()
+    make(d / "scene.toml")  # type: ignore[operator]
+
+
+SCENE_FILE_CASES = [
+    ("named-pipe", lambda p: os.mkfifo(p), "is a named pipe (FIFO), not a scene file"),
+    ("folder", lambda p: p.mkdir(), "is a folder, not a scene file"),
+    ("link-to-dev-zero", lambda p: p.symlink_to("/dev/zero"),
+     "is a link to /dev/zero, a character device, not a scene file"),
+    ("link-loop", lambda p: p.symlink_to(p.name), "is a loop of symbolic links"),
+    ("deep-nesting", lambda p: p.write_text("a = " + "[" * 100_000 + "]" * 100_000),
+     "nested too deeply"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("make", "fragment"), [c[1:] for c in SCENE_FILE_CASES], ids=[c[0] for c in SCENE_FILE_CASES]
+)
+def test_a_scene_file_that_is_not_a_text_file_is_one_line(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], make, fragment: str
+) -> None:
+    _replace_scene(photos, make)
+    status, err = run(capsys, "fit", str(photos), "-o", str(tmp_path / "out"), "--quiet")
+    assert_one_line_user_error(status, err, "fit", "scene.toml", fragment)
+    assert _entries(tmp_path) == ["photos"]
+
+
+def _markers(change) -> object:
+    return lambda d: cli_errors.edit_scene(d, lambda s: change(s["markers"]))
+
+
+def _first_wedge_name(name: str) -> object:
+    return lambda d: cli_errors.edit_scene(
+        d, lambda s: s["specimen"]["wedges"][0].update(name=name)
+    )
+
+
+SCENE_VALUE_CASES = [
+    ("duplicate-marker-id", _markers(lambda m: m["marker"][1].update(id=m["marker"][0]["id"])),
+     ("markers.marker[1].id", "is also markers.marker[0].id")),
+    ("marker-id-outside-dictionary", _markers(lambda m: m["marker"][0].update(id=50)),
+     ("markers.marker[0].id", "50 is outside [0, 49]")),
+    ("unknown-dictionary", _markers(lambda m: m.update(dictionary="DICT_4X4_5O")),
+     ("markers.dictionary", "not an OpenCV ArUco dictionary", "DICT_4X4_50")),
+    ("min-markers-above-count", _markers(lambda m: m.update(min_markers=100)),
+     ("markers.min_markers", "100 is more than the 4 markers listed")),
+    ("absurd-corner", _markers(lambda m: m["marker"][0]["corners_mm"][0].__setitem__(0, 1e300)),
+     ("markers.marker[0].corners_mm", "beyond +-1e+06")),
+    ("absurd-roi-vertex", lambda d: cli_errors.edit_scene(
+        d, lambda s: s["photos"][0].update(roi_px={"w10": [[0, 0], [1e300, 0], [0, 10]]})),
+     ("photos[0].roi_px.w10", "beyond +-1e+06")),
+    ("empty-wedge-name", _first_wedge_name(""), ("specimen.wedges[0].name", "'' is empty")),
+    ("blank-wedge-name", _first_wedge_name("  "), ("specimen.wedges[0].name", "is empty")),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("breaks", "fragments"), [c[1:] for c in SCENE_VALUE_CASES],
+    ids=[c[0] for c in SCENE_VALUE_CASES],
+)  # fmt: skip
+def test_impossible_scene_values_are_one_line(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], breaks, fragments
+) -> None:
+    breaks(photos)
+    status, err = run(capsys, "fit", str(photos), "-o", str(tmp_path / "out"), "--quiet")
+    assert_one_line_user_error(status, err, "fit", "scene.toml", *fragments)
+
+
+def test_an_empty_patch_name_is_refused(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    patch = {"name": "", "roi_px": [[0, 0], [40, 0], [40, 40], [0, 40]]}
+    cli_errors.edit_scene(photos, lambda s: s.update(patches=[patch]))
+    status, err = run(capsys, "measure", str(photos), "-o", str(tmp_path / "out"), "--quiet")
+    assert_one_line_user_error(status, err, "measure", "patches[0].name", "is empty")
+
+
+def test_a_huge_value_is_not_echoed_whole(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # issue 42: a 5 MB illuminant name came back as a 5 MB error line
+    cli_errors.edit_scene(photos, lambda s: s["light"].update(illuminant="D" * 5_000_000))
+    status, err = run(capsys, "fit", str(photos), "-o", str(tmp_path / "out"), "--quiet")
+    assert_one_line_user_error(status, err, "fit", "scene.toml", "light.illuminant",
+                               "(5000003 characters)")  # fmt: skip
+    assert len(err) < 3000
+
+
+@pytest.mark.parametrize("command", ["fit", "predict", "demo"])
+def test_an_output_that_is_a_loop_of_links_is_one_line(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop.name)
+    argv = {
+        "fit": ["fit", str(photos), "-o", str(loop), "--quiet"],
+        "predict": ["predict", "--theta-o-deg", "0", "-o", str(loop)],
+        "demo": ["demo", str(loop), "--quiet"],
+    }[command]
+    status, err = run(capsys, *argv, "--force")
+    assert_one_line_user_error(status, err, command, str(loop), "is a loop of symbolic links")
+    assert _entries(tmp_path) == ["loop", "photos"]
+
+
+def test_results_say_which_values_came_from_the_cache(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # issue 42 case 5: a cache edited with its checksum recomputed was trusted, and results.json
+    # listed the photos' hashes as if measured from them (the issue's set-up: 5 views)
+    import json
+
+    from stairfit.imaging._cache import checksum_path, table_digest
+
+    photos = tmp_path / "photos"
+    simulate = ["simulate", str(photos), "--megapixels", "0.5", "--views", "5", "--seed", "1"]
+    assert run(capsys, *simulate, "--quiet")[0] == 0
+
+    assert run(capsys, "measure", str(photos), "-o", str(tmp_path / "m"), "--quiet")[0] == 0
+    cache = photos / ".stairfit-cache" / "measurements.csv"
+    _tamper(cache, "scale-one-photo")
+    check = json.loads(checksum_path(cache).read_text())  # recomputed, as anyone could
+    check.update(scheme="sha256", digest=table_digest(cache.read_bytes(), check["table_version"],
+                                                      None, check["previews"]))  # fmt: skip
+    checksum_path(cache).write_text(json.dumps(check))
+    fit = ["fit", str(photos), "-o", str(tmp_path / "out"), "--no-posterior", "--model",
+           "sharp+floor", "--quiet", "--force"]  # fmt: skip
+    status, err = run(capsys, *fit)
+    assert status == 0 and "written without this user's cache key" in err, err
+
+    def results() -> dict:
+        return json.loads((tmp_path / "out" / "results.json").read_text())
+
+    assert {p["measured_from"] for p in results()["inputs"]["photos"]} == {"photo"}
+    status = cli_errors.main(fit)
+    printed = capsys.readouterr()
+    assert status == 0, printed.err
+    assert {p["measured_from"] for p in results()["inputs"]["photos"]} == {"cache"}
+    assert "came from the measurement cache" in printed.out
+    assert any("came from the measurement cache" in n for n in results()["diagnostics"]["notes"])
+
+
+def test_no_user_cache_folder_without_a_home() -> None:
+    # issue 42: `HOME=` made the caches at /.cache/stairfit
+    from stairfit._jaxcache import cache_dir, user_cache_dir
+
+    bad = ({"HOME": ""}, {"HOME": "/"}, {"HOME": "relative"}, {"HOME": "", "XDG_CACHE_HOME": "x"})
+    for env in bad:
+        assert user_cache_dir(env) is None and cache_dir(env) is None, env
+    assert user_cache_dir({"HOME": "/home/u"}) == Path("/home/u/.cache/stairfit")
+    assert user_cache_dir({"HOME": "", "XDG_CACHE_HOME": "/c"}) == Path("/c/stairfit")
+
+
+@POSIX
+def test_a_folder_name_that_is_not_utf8_is_measured_and_printed(
+    photos: Path, tmp_path: Path
+) -> None:
+    # issue 42: a non-UTF-8 folder name gave a UnicodeEncodeError after the whole fit
+    base = os.fsencode(tmp_path)
+    folder, out = base + b"/bad\xffname", base + b"/out\xff"
+    os.rename(photos, folder)
+    argv = [sys.executable, "-c", "from stairfit.cli import entry; entry()", "measure",
+            os.fsdecode(folder), "-o", os.fsdecode(out), "--quiet"]  # fmt: skip
+    done = subprocess.run(argv, capture_output=True, timeout=600,
+                          env={**os.environ, "STAIRFIT_JAX_CACHE": "off"})  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert b"Traceback" not in done.stderr
+    assert b"bad\\udcffname" in done.stdout  # printed, its odd byte shown as an escape
+    with open(out + b"/report.html", "rb") as fh:
+        assert b"bad\xffname" in fh.read()  # the name's own bytes, as on disk
+
+
+def test_a_huge_sparse_photo_is_refused_by_its_size(
+    photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # issue 42: a 3 GB sparse DNG was read whole; a 20 GB one ran out of memory and was told
+    # about "the accurate preset's filleted rungs"
+    target = photos / "IMG_0002.dng"
+    target.unlink()
+    with open(target, "wb") as fh:
+        fh.truncate(20 * 2**30)  # sparse: no disk used
+    t0 = time.monotonic()
+    status, err = run(capsys, "measure", str(photos), "-o", str(tmp_path / "m"), "--quiet")
+    assert time.monotonic() - t0 < 60
+    assert status == 2 and "Traceback" not in err, err
+    line = err.strip().splitlines()[-1]
+    assert "IMG_0002.dng" in line and "is 20 GiB, more than the 2 GiB allowed" in line, line
+    assert "filleted" not in err
+
+
+@POSIX
+def test_a_link_to_dev_zero_in_the_cache_is_skipped(photos: Path, tmp_path: Path) -> None:
+    # issue 42 case 7: a link to /dev/zero in place of the cache read until memory ran out
+    from stairfit import imaging
+
+    cache = tmp_path / "cache" / "measurements.csv"
+    cache.parent.mkdir()
+    cache.symlink_to("/dev/zero")
+    with pytest.warns(imaging.ImagingWarning, match="a link to /dev/zero, a character device"):
+        table = imaging.measure_photos(_specs(photos), cache=cache)
+    assert len(table) > 0

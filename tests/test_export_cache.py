@@ -114,3 +114,49 @@ def test_switched_off_or_without_a_cache_folder_nothing_is_written(
     out = _export.call("toy", lambda x: x + 1.0, "k", (jnp.arange(2.0),), lambda v: v[0])
     np.testing.assert_array_equal(out, [1.0, 2.0])
     assert not cache_dir.exists()
+
+
+def test_a_program_file_swapped_for_another_is_traced_again(cache_dir: Path) -> None:
+    # issue 42 case 10: a foreign or swapped file failed the call ("Shape mismatch"), though a
+    # foreign file is promised to be only a missed saving
+    f = jax.jit(lambda x, y: (x * y, jnp.sin(x)))
+    g = jax.jit(lambda x: (x + 1.0,))
+    args = (jnp.arange(3.0), jnp.ones(3))
+    out = _export.call("toy", lambda x, y: f(x, y), "k", args, tuple)
+    _export.call("other", g, "k", (jnp.arange(4.0),), tuple)
+    (mine,) = cache_dir.glob("toy-*.bin")
+    (theirs,) = cache_dir.glob("other-*.bin")
+    mine.write_bytes(theirs.read_bytes())  # the other program under this one's name
+    _export._PROGRAMS.clear()
+    again = _export.call("toy", lambda x, y: f(x, y), "k", args, tuple)
+    for a, b in zip(out, again, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert mine.read_bytes() != theirs.read_bytes()  # written anew
+
+
+def test_a_swapped_jax_cache_entry_costs_a_compilation_not_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # JAX loads its persistent cache's files without a check: two entries swapped made
+    # `predict` fail with "safe_zip() argument 1 has length 0"; the command line repeats the
+    # run without the cache and says so in one line
+    import subprocess
+    import sys
+
+    cache = tmp_path / "jax"
+    env = {**__import__("os").environ, "STAIRFIT_JAX_CACHE": str(cache)}
+    argv = [sys.executable, "-c", "from stairfit.cli import entry; entry()", "predict",
+            "--theta-o-deg", "0"]  # fmt: skip
+    first = subprocess.run([*argv, "-o", str(tmp_path / "a.csv")], env=env, timeout=600,
+                           capture_output=True, text=True)  # fmt: skip
+    assert first.returncode == 0, first.stderr
+    entries = sorted(p for p in cache.glob("jit_*-cache"))
+    assert len(entries) >= 2
+    a, b = entries[0].read_bytes(), entries[1].read_bytes()
+    entries[0].write_bytes(b), entries[1].write_bytes(a)
+    done = subprocess.run([*argv, "-o", str(tmp_path / "b.csv")], env=env, timeout=600,
+                          capture_output=True, text=True)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "did not fit this run" in lines[0], done.stderr
+    assert (tmp_path / "a.csv").read_text() == (tmp_path / "b.csv").read_text()

@@ -8,6 +8,8 @@ positions, saturated pixels, and the tone mapping against a plain float referenc
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from pathlib import Path
 
 import cv2
@@ -333,3 +335,89 @@ def test_png_settings_are_lossless(tmp_path) -> None:
     png = _preview.encode_png(img, "x")
     back = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
     assert np.array_equal(back, img)
+
+
+# --- issue 42: a cache is verified against what it claims to be --------------------------------
+
+SECRET = b"k" * 32
+
+
+def test_swapped_cached_previews_are_made_again(tmp_path, count_decodes) -> None:
+    # issue 42 case 4: two swapped PNGs showed the wrong photos
+    specs = _specs(tmp_path)
+    cache = tmp_path / "cache" / "measurements.csv"
+    kw = {"cache": cache, "max_workers": 1, "cache_secret": SECRET}
+    imaging.measure_photos(specs, preview_dir=tmp_path / "a", **kw)
+    one, two = (_pipeline.preview_cache_dir(cache) / n for n in _cached_pngs(cache))
+    a, b = one.read_bytes(), two.read_bytes()
+    one.write_bytes(b), two.write_bytes(a)
+    count_decodes.clear()
+    table = imaging.measure_photos(specs, preview_dir=tmp_path / "b", **kw)
+    assert sorted(count_decodes) == ["p0.dng", "p1.dng"]  # neither swapped preview was used
+    assert table.from_cache == ()
+    for spec in specs:
+        assert (tmp_path / "a" / f"{spec.name}.png").read_bytes() == (
+            tmp_path / "b" / f"{spec.name}.png"
+        ).read_bytes()
+
+
+def _forge(cache: Path, secret: bytes | None) -> None:
+    """Scale every value of the cache by 2 and recompute its checksum as stairfit would
+    (with `secret`, or a plain SHA-256 when None)."""
+    from stairfit.imaging._cache import checksum_path, table_digest
+
+    table = imaging.MeasurementTable.read_csv(cache)
+    forged = imaging.MeasurementTable(
+        tuple(dataclasses.replace(r, value=2 * r.value) for r in table.rows)
+    )
+    blob = forged.to_csv().encode()
+    check = json.loads(checksum_path(cache).read_text())
+    check["digest"] = table_digest(blob, check["table_version"], secret, check["previews"])
+    if secret is None:
+        check["scheme"] = "sha256"
+    cache.write_bytes(blob)
+    checksum_path(cache).write_text(json.dumps(check))
+
+
+@pytest.mark.parametrize("forger_key", [None, b"x" * 32], ids=["plain-sha256", "another-key"])
+def test_an_edited_cache_with_a_recomputed_checksum_is_not_trusted(
+    tmp_path, count_decodes, forger_key
+) -> None:
+    # issue 42 case 5: the editor does not hold this user's key
+    specs = _specs(tmp_path)
+    cache = tmp_path / "cache" / "measurements.csv"
+    first = imaging.measure_photos(specs, cache=cache, max_workers=1, cache_secret=SECRET)
+    assert first.from_cache == ()
+    _forge(cache, forger_key)
+    count_decodes.clear()
+    with pytest.warns(imaging.ImagingWarning, match="measuring every photo again"):
+        again = imaging.measure_photos(specs, cache=cache, max_workers=1, cache_secret=SECRET)
+    assert again.to_csv() == first.to_csv() and again.from_cache == ()
+    assert sorted(count_decodes) == ["p0.dng", "p1.dng"]
+    hit = imaging.measure_photos(specs, cache=cache, max_workers=1, cache_secret=SECRET)
+    assert hit.from_cache == ("p0.dng", "p1.dng") and hit.to_csv() == first.to_csv()
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "mkfifo"), reason="POSIX named pipes")
+def test_a_named_pipe_in_the_cache_is_skipped_not_waited_for(tmp_path) -> None:
+    # issue 42 case 7: reading a FIFO in place of the cache blocked forever
+    import os
+
+    specs = _specs(tmp_path, 1)
+    cache = tmp_path / "cache" / "measurements.csv"
+    cache.parent.mkdir()
+    os.mkfifo(cache)
+    with pytest.warns(imaging.ImagingWarning, match="named pipe"):
+        table = imaging.measure_photos(specs, cache=cache, max_workers=1, cache_secret=SECRET)
+    assert len(table) == 6
+
+
+def test_leftover_temporary_files_in_the_preview_cache_are_removed(tmp_path) -> None:
+    # issue 42 case 11: a kill while writing the preview cache left a .tmp no run removed
+    specs = _specs(tmp_path, 1)
+    cache = tmp_path / "cache" / "measurements.csv"
+    folder = _pipeline.preview_cache_dir(cache)
+    folder.mkdir(parents=True)
+    (folder / ".x.png.0123abcd.tmp").write_bytes(b"half a png")
+    imaging.measure_photos(specs, cache=cache, preview_dir=tmp_path / "a", max_workers=1)
+    assert [p.name for p in folder.iterdir() if p.name.startswith(".")] == []

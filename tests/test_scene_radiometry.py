@@ -160,7 +160,7 @@ def test_a_dark_frame_that_is_a_device_is_refused_before_reading(
     (folder / "dark.dng").symlink_to("/dev/zero")
     _write(folder, GOOD)
     err = _fit(folder, capsys)
-    assert "calibration.dark_frames[0]: 'dark.dng' is a character device" in err
+    assert "dark_frames[0]: 'dark.dng' is a link to /dev/zero, a character device" in err
 
 
 def test_missing_bracket_member_is_named(folder: Path, capsys: pytest.CaptureFixture) -> None:

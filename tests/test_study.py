@@ -231,9 +231,11 @@ def test_unreachable_scheduler_is_a_one_line_user_error(
 
 
 @pytest.mark.slow  # a fresh process, a cluster and a compilation: about a minute
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
 def test_ctrl_c_keeps_finished_folders_and_leaves_no_partial_ones(
-    simulated: Path, jax_cache: Path, tmp_path: Path
+    simulated: Path, jax_cache: Path, tmp_path: Path, sig: int
 ) -> None:
+    # SIGTERM (issue 42 case 11) left a .partial with chain.npz and a lock, and no study.csv
     folders = [specimen(simulated, tmp_path / "root" / f"s{k}") for k in range(4)]
     out = tmp_path / "out"
     argv = [sys.executable, "-m", "stairfit.cli", "study", str(tmp_path / "root"), "-o"]
@@ -244,14 +246,19 @@ def test_ctrl_c_keeps_finished_folders_and_leaves_no_partial_ones(
         while not list((out / ".stairfit-study").glob("*.json")):  # a first folder finished
             assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
             time.sleep(0.2)
-        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole group
+        if sig == signal.SIGINT:
+            os.killpg(proc.pid, sig)  # what Ctrl-C in a terminal does: the whole group
+        else:
+            proc.send_signal(sig)  # what `kill PID`, `timeout` or a batch system does
         _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == 130, err
-    assert "stairfit study: interrupted" in err
-    assert not list(out.glob(".*.partial"))
+    assert proc.returncode == (130 if sig == signal.SIGINT else 143), err
+    expected = "interrupted" if sig == signal.SIGINT else "terminated by SIGTERM"
+    assert f"stairfit study: {expected}" in err
+    assert not list(out.glob(".*.partial")) and not list(out.glob(".*.lock"))
+    assert not list(tmp_path.glob(".*.lock"))
     ledgers = list((out / ".stairfit-study").glob("*.json"))
     assert ledgers
     for ledger in ledgers:  # every folder the workers finished is complete
@@ -283,3 +290,56 @@ def test_a_study_folder_holds_what_stairfit_fit_writes(
             assert row.pop("elapsed_s") > 0
     for key in ("parameters", "fixed_parameters", "model_selection", "inputs", "settings"):
         assert a[key] == b[key], key
+
+
+@pytest.mark.slow  # a cluster, a worker killed while it fits: about a minute
+def test_a_study_ends_when_the_only_worker_of_its_cluster_dies(
+    simulated: Path, jax_cache: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    # issue 42 case 8: a worker started without a nanny died mid-task; the study waited forever
+    import threading
+
+    from stairfit.commands import study
+
+    monkeypatch.setattr(study, "WORKER_LOSS_S", 5.0)
+    bin_dir = Path(sys.executable).parent
+    env = {**os.environ, "DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD": "spawn"}
+    scheduler_file = tmp_path / "scheduler.json"
+    scheduler = subprocess.Popen(
+        [str(bin_dir / "dask"), "scheduler", "--host", "127.0.0.1", "--port", "0",
+         "--scheduler-file", str(scheduler_file), "--no-dashboard"],
+        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    worker = None
+    try:
+        address = _wait_for_address(scheduler_file, scheduler)
+        worker = subprocess.Popen(
+            [str(bin_dir / "dask"), "worker", address, "--host", "127.0.0.1", "--no-nanny",
+             "--nthreads", "1", "--no-dashboard"],
+            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        folder = specimen(simulated, tmp_path / "a")
+        out = tmp_path / "out"
+
+        def kill_when_fitting() -> None:
+            deadline = time.monotonic() + 300
+            while not list(out.glob(".*.partial")) and time.monotonic() < deadline:
+                time.sleep(0.1)
+            worker.kill()
+
+        killer = threading.Thread(target=kill_when_fitting, daemon=True)
+        killer.start()
+        argv = ["study", str(folder), "-o", str(out), "--scheduler", address]
+        status = main([*argv, "--jax-cache", str(jax_cache), *FAST])
+        killer.join(timeout=60)
+    finally:
+        for proc in (worker, scheduler):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait(timeout=30)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 1, err
+    assert err[-1].startswith("stairfit study: error: the scheduler tcp://127.0.0.1:"), err
+    assert "has had no worker for 5 s with 1 folder(s) still to fit" in err[-1]
+    assert read_table(out)[str(folder.resolve())]["status"] == "interrupted"

@@ -184,3 +184,101 @@ def test_the_table_gives_every_parameter_with_its_interval(tmp_path: Path) -> No
     assert header[:4] == ["folder", "output", "status", "error"]
     assert {"sigma_deg", "sigma_deg_lo95", "sigma_deg_hi95", "meta.printer"} <= set(header)
     assert text[2].startswith("/data/a,,failed,x: y: z,")
+
+
+# --- issue 42: a study's cluster options and a cluster that lost its workers ------------------
+
+
+def _study(capsys: pytest.CaptureFixture[str], tmp_path: Path, *options: str) -> tuple[int, str]:
+    import time
+
+    from stairfit.cli import main
+
+    folder = tmp_path / "a"
+    if not folder.exists():
+        _photo_folder(folder)
+    t0 = time.monotonic()
+    status = main(["study", str(folder), "-o", str(tmp_path / "out"), "--quiet", *options])
+    assert time.monotonic() - t0 < 10  # refused at once, not after a connection timeout
+    return status, capsys.readouterr().err.strip()
+
+
+@pytest.mark.parametrize(
+    ("options", "fragments"),
+    [
+        (["--scheduler", ""], ["--scheduler: '' is empty", "leave --scheduler out"]),
+        (["--scheduler", "tcp://127.0.0.1:99999"], ["--scheduler:", "port '99999'", "65535"]),
+        (["--scheduler", "tcp://host:http"], ["port 'http'"]),
+        (["--local-workers", "100000000"], ["--local-workers: 100000000 is outside 1 to"]),
+        (["--local-workers", "0"], ["--local-workers: 0 is outside 1 to"]),
+    ],
+    ids=["empty-address", "port-99999", "port-not-a-number", "workers-huge", "workers-0"],
+)
+def test_cluster_options_are_checked_before_any_wait(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], options: list[str], fragments: list[str]
+) -> None:
+    status, err = _study(capsys, tmp_path, *options)
+    assert status == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith("stairfit study: error: "), err
+    for fragment in fragments:
+        assert fragment in err, err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("content", "fragment"),
+    [
+        ('{"address": "tcp://127.0.0.1:87', "is not valid JSON"),  # truncated
+        ('{"type": "Scheduler"}', "names no scheduler 'address'"),
+        ('{"address": "tcp://127.0.0.1:0"}', "port '0'"),
+        ("[" * 100_000, "is not valid JSON"),
+    ],
+    ids=["truncated", "no-address", "port-0", "deep"],
+)
+def test_a_broken_scheduler_file_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], content: str, fragment: str
+) -> None:
+    path = tmp_path / "scheduler.json"
+    path.write_text(content)
+    status, err = _study(capsys, tmp_path, "--scheduler-file", str(path))
+    assert status == 2 and len(err.splitlines()) == 1, err
+    assert err.startswith("stairfit study: error: --scheduler-file: ") and fragment in err, err
+
+
+def test_a_cluster_that_lost_its_last_worker_ends_the_wait() -> None:
+    # issue 42 case 8: a study on a cluster whose only worker (no nanny) died waited forever
+    import logging
+    import time
+
+    from distributed import Client, LocalCluster
+
+    from stairfit.commands import study
+
+    with (
+        LocalCluster(n_workers=1, processes=False, threads_per_worker=1, dashboard_address=None,
+                     silence_logs=logging.CRITICAL) as cluster,
+        Client(cluster) as client,
+    ):  # fmt: skip
+        future = client.submit(time.sleep, 2, pure=False)
+        time.sleep(0.3)
+        cluster.scale(0)  # the only worker is gone, the task is not finished
+        t0 = time.monotonic()
+        with pytest.raises(study.WorkersLostError, match="no worker for 1 s with 1 folder"):
+            for _ in study.completed(client, {future: None}, "the cluster", worker_loss_s=1.0):
+                pass
+        assert time.monotonic() - t0 < 30
+
+
+def test_an_internal_error_keeps_its_traceback_in_a_file(tmp_path: Path) -> None:
+    # issue 42: `study --quiet` printed thousands of lines of worker tracebacks
+    from stairfit.commands._study_task import LEDGER_DIR, describe_error
+
+    task = FolderTask(tmp_path / "a", tmp_path / "out", "a-12345678", OPTIONS, False, None, "0")
+    (tmp_path / "out" / LEDGER_DIR).mkdir(parents=True)
+    try:
+        raise RuntimeError("something broke\nacross lines")
+    except RuntimeError as err:
+        line = describe_error(err, task)
+    trace = tmp_path / "out" / LEDGER_DIR / "a-12345678.error.txt"
+    assert "\n" not in line and str(trace) in line and "please report it" in line
+    assert "Traceback (most recent call last)" in trace.read_text()

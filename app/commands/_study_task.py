@@ -25,6 +25,7 @@ import resource
 import socket
 import sys
 import time
+import traceback
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -126,12 +127,10 @@ def fit_or_skip(task: FolderTask) -> FolderReport:
     note = replaced_note(dest, ledger, fingerprint, task.refit)
     check_photos(scene)
     ledger.unlink(missing_ok=True)  # the old fingerprint no longer describes dest
-    # a worker goes on to further folders: it neither freezes what it imported (what is
-    # frozen is never collected) nor starts a drawing process (it is one of one per core)
-    options = dataclasses.replace(
-        task.options, progress=False, figure_process=False, freeze_imports=False
-    )
-    with staged_folder(dest, force=True) as tmp:
+    # a worker goes on to further folders: it does not freeze what it imported (what is
+    # frozen is never collected)
+    options = dataclasses.replace(task.options, progress=False, freeze_imports=False)
+    with staged_folder(dest, force=True, command="fit") as tmp:
         fit_scene(scene, tmp, options)
     write_ledger(ledger, task, fingerprint)
     return {"status": FITTED, "scene": summary, "results": read_results(dest), "note": note}
@@ -234,20 +233,27 @@ def read_results(dest: Path) -> dict[str, Any] | None:
 
 
 def describe_error(err: BaseException, task: FolderTask) -> str:
-    """The one-line error of a failed folder, as `stairfit fit` would print it."""
+    """The one-line error of a failed folder, as `stairfit fit` would print it; the traceback
+    of an internal error goes to a file beside the ledger (never to the study's terminal)."""
     from ..cli import one_line
 
     imaging = sys.modules.get("stairfit.imaging")
     if isinstance(err, UserError) or (imaging and isinstance(err, imaging.ImagingError)):
         return one_line(str(err))
     if isinstance(err, OSError):
-        where = f"{err.filename}: " if err.filename else ""
+        where = f"{os.fsdecode(err.filename)}: " if err.filename else ""
         return one_line(where + (err.strerror or str(err)))
-    log.exception("stairfit study: internal error while fitting %s", task.folder)
-    return one_line(
-        f"internal error ({type(err).__name__}: {err}); the traceback is in the log of the "
-        f"worker on {socket.gethostname()}; please report it"
-    )
+    trace = task.out / LEDGER_DIR / f"{task.name}.error.txt"
+    try:
+        from ..fileio import atomic_text
+
+        with atomic_text(trace) as fh:
+            fh.write("".join(traceback.format_exception(err)))
+        kept = f"the traceback is in {trace}"
+    except OSError:
+        log.debug("stairfit study: internal error while fitting %s", task.folder, exc_info=err)
+        kept = f"the traceback is in the debug log of the worker on {socket.gethostname()}"
+    return one_line(f"internal error ({type(err).__name__}: {err}); {kept}; please report it")
 
 
 def run_info(started: float) -> dict[str, Any]:

@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     settings = simulate.settings_from_args(args)
     options = fit.options_from_args(args)
     t0 = time.perf_counter()
-    with staged_folder(out, args.force, option="OUT") as tmp:
+    with staged_folder(out, args.force, command="demo", option="OUT") as tmp:
         photos = tmp / "photos"
         photos.mkdir()
         print(

@@ -18,8 +18,8 @@ import numpy as np
 from .. import _ranges
 from .._compile_watch import watching_compilation
 from .._prefetch import FIT_MODULES, REPORT_MODULES, prefetch
-from ..errors import StairfitWarning, UserError
-from ..imaging_specs import CACHE_DIR, MEASUREMENT_CACHE, extraction_settings, photo_specs
+from ..errors import UserError
+from ..imaging_specs import CACHE_DIR, extraction_settings, measurement_cache, photo_specs
 from ..outcome import FitOptions, FitOutcome
 from ..presets import PRESETS, Preset, get_preset
 from ..scene import Scene, load_scene
@@ -27,7 +27,6 @@ from . import _exclusions
 from ._failed_previews import FAILED_PREVIEWS, forget_previews, keep_previews
 
 if TYPE_CHECKING:
-    from .._drawing import Drawer
     from ..figures import SaveFigure
 
 DEG = np.pi / 180
@@ -121,7 +120,9 @@ def check_model_name(name: str) -> None:
 
 def default_output(folder: Path) -> Path:
     """`DIR-fit` next to the photo folder."""
-    folder = Path(folder).resolve()
+    from ..fileio import resolved
+
+    folder = resolved(folder)
     return folder.with_name(f"{folder.name}-fit")
 
 
@@ -133,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.folder)
     out = args.output or default_output(args.folder)
     inputs = (scene.folder, *scene.input_files())
-    with staged_folder(out, args.force, inputs=inputs, reserved=(scene.folder / CACHE_DIR,)) as tmp:
+    reserved = (scene.folder / CACHE_DIR,)
+    with staged_folder(out, args.force, command="fit", inputs=inputs, reserved=reserved) as tmp:
         check_photos(scene)
         outcome = fit_scene(scene, tmp, options)
     from ..report import print_summary
@@ -155,29 +157,25 @@ def check_photos(scene: Scene) -> None:
 def photo_file_problem(
     path: Path, folder: Path, remove: str = "the [[photos]] entry"
 ) -> str | None:
-    """Why `path` cannot be read as a photo (missing, a folder, a device, a broken link), or None.
+    """Why `path` cannot be read as a photo (missing, a folder, a pipe, a device, a broken link,
+    a loop of links), or None.
 
     Checked before decoding: reading a link to /dev/zero would never end. `remove` names what
     to remove in the advice for a missing file.
     """
-    import os
-    import stat
+    from ..fileio import describe
 
-    if not path.exists():
-        if path.is_symlink():
-            return f"is a link to {os.readlink(path)}, which does not exist; fix the link"
+    problem = describe(path)
+    if problem is None:
+        return None
+    if problem == "does not exist":
         spaces = " (mind the spaces around the name)" if path.name != path.name.strip() else ""
         return f"is not in {folder}{spaces}; fix the name or remove {remove}"
-    link = f" (a link to {path.resolve()})" if path.is_symlink() else ""
-    mode = path.stat().st_mode
-    if stat.S_ISDIR(mode):
-        return f"is a folder{link}, not a RAW file; name the photo file itself"
-    if not stat.S_ISREG(mode):
-        kinds = {stat.S_ISCHR: "a character device", stat.S_ISBLK: "a block device",
-                 stat.S_ISFIFO: "a pipe", stat.S_ISSOCK: "a socket"}  # fmt: skip
-        kind = next((v for f, v in kinds.items() if f(mode)), "not a regular file")
-        return f"is {kind}{link}, not a RAW file; give the photo's RAW file"
-    return None
+    if problem.endswith("which does not exist") or "loop" in problem:
+        return f"{problem}; fix the link"
+    if problem.endswith("a folder"):
+        return f"{problem}, not a RAW file; name the photo file itself"
+    return f"{problem}, not a RAW file; give the photo's RAW file"
 
 
 def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
@@ -190,12 +188,7 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     # the posterior's and the report's imports, in a thread while the model is compiled and
     # fitted (not while the photos are decoded, which keeps both cores busy)
     prefetch(FIT_MODULES if options.posterior else REPORT_MODULES, options.freeze_imports)
-    from .._drawing import drawing
-
-    # the figures drawn by a second process while the posterior is sampled (without a
-    # posterior there is nothing to draw beside: starting the process would cost more)
-    with drawing(options.figure_process and options.posterior) as draw:
-        return _fit_measured(scene, out, options, table, timings, notes, draw)
+    return _fit_measured(scene, out, options, table, timings, notes)
 
 
 def _fit_measured(
@@ -205,10 +198,10 @@ def _fit_measured(
     table: Any,
     timings: dict[str, float],
     notes: list[str],
-    draw: Drawer,
 ) -> FitOutcome:
-    """`fit_scene` once the photos are measured: fit, posterior, outputs; the figures are
-    drawn and written by `draw` (every one written when this returns)."""
+    """`fit_scene` once the photos are measured: fit, posterior, outputs (the figures drawn
+    in a thread beside the posterior, in this process: nothing is left running if it is
+    killed)."""
     t0 = time.perf_counter()
     try:
         observations, row_info, excluded_notes = to_observations(scene, table)
@@ -218,6 +211,7 @@ def _fit_measured(
         where = keep_previews(kept, out / "previews", photo_specs(scene), table.photos(), shown)
         raise UserError(f"{err}{where}") from None
     notes.extend(excluded_notes)
+    notes.extend(cache_notes(scene, table))
     spectral, aperture = fit_setup(scene, options.preset)
     notes.extend(index_notes(scene, spectral))
     lab, reason, warning = lab_setup(scene, table)
@@ -236,14 +230,13 @@ def _fit_measured(
         drawn = None
         if options.posterior:
             t0 = time.perf_counter()
-            outcome.posterior, drawn = sample_while_drawing(outcome, out, draw)
+            outcome.posterior, drawn = sample_while_drawing(outcome, out)
             timings["posterior_s"] = time.perf_counter() - t0
     timings.update(compiled.as_timings())
     from ..report import write_outputs
 
     t0 = time.perf_counter()
-    write_outputs(outcome, out, drawn, draw)
-    draw.finish()
+    write_outputs(outcome, out, drawn)
     timings["outputs_s"] = time.perf_counter() - t0
     return outcome
 
@@ -252,10 +245,9 @@ def sample_while_drawing(
     outcome: FitOutcome, out: Path, draw: SaveFigure | None = None
 ) -> tuple[Any, dict[str, str]]:
     """The posterior of the chosen fit, and meanwhile, in a second thread, the report's figures
-    that need the least-squares fit only (`report.fit_figures`), built there and drawn by
-    `draw` (default `figures.save`; `fit_scene` gives a `_drawing.Drawer`, which draws them in
-    a second process): the sampler's model evaluations release the interpreter most of the
-    time. Whatever ends the sampling (an error, Ctrl-C), the figures are handed over first."""
+    that need the least-squares fit only (`report.fit_figures`), drawn by `draw` (default
+    `figures.save`): the sampler's model evaluations release the interpreter most of the time.
+    Whatever ends the sampling (an error, Ctrl-C), the figures are handed over first."""
     from concurrent.futures import ThreadPoolExecutor
 
     from ..figures import save
@@ -275,18 +267,7 @@ def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
     from stairfit import imaging
 
     settings = extraction_settings(scene)
-    cache = scene.folder / CACHE_DIR / MEASUREMENT_CACHE if options.cache else None
-    try:
-        if cache is not None:
-            cache.parent.mkdir(exist_ok=True)
-    except OSError as e:  # a read-only photo folder, or a file in the way: measure without
-        warnings.warn(
-            f"{cache.parent}: cannot keep the measurement cache there ({e.strerror or e}); "
-            "measuring without it",
-            StairfitWarning,
-            stacklevel=2,
-        )
-        cache = None
+    cache, secret = measurement_cache(scene, options.cache)
     specs = photo_specs(scene)
     kept = scene.folder / CACHE_DIR / FAILED_PREVIEWS
     try:
@@ -297,6 +278,7 @@ def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
             preview_dir=out / "previews",
             progress=options.progress,
             max_workers=options.workers,
+            cache_secret=secret,
         )
     except imaging.ImagingError as err:
         failed = getattr(err, "failed_photos", ())
@@ -304,6 +286,20 @@ def measure(scene: Scene, out: Path, options: FitOptions) -> Any:
         raise UserError(f"{scene.path}: {err}{where}") from None
     forget_previews(kept)
     return table
+
+
+def cache_notes(scene: Scene, table: Any) -> list[str]:
+    """A note (printed, and in results.json) saying which photos' values came from the
+    measurement cache rather than from decoding the photos now."""
+    reused = tuple(getattr(table, "from_cache", ()))
+    if not reused:
+        return []
+    shown = ", ".join(reused[:5]) + (f" and {len(reused) - 5} more" if len(reused) > 5 else "")
+    return [
+        f"the measurements of {len(reused)} of {len(table.photos())} photos ({shown}) came from "
+        f"the measurement cache in {scene.folder / CACHE_DIR} (checked against each photo's "
+        "SHA-256 and this user's cache key); --no-cache measures them again"
+    ]
 
 
 def _spread(row: Any, extent_deg: float, to_deg: float) -> float:

@@ -17,12 +17,14 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from .. import _ranges
 from ..errors import UserError
+from ..fileio import write_file
 from ..imaging_specs import (
     CACHE_DIR,
-    MEASUREMENT_CACHE,
     calibration_spec,
     extraction_settings,
+    measurement_cache,
     photo_specs,
     radiometry_fields,
 )
@@ -63,7 +65,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def default_output(folder: Path) -> Path:
     """`DIR-measure` next to the photo folder."""
-    folder = Path(folder).resolve()
+    from ..fileio import resolved
+
+    folder = resolved(folder)
     return folder.with_name(f"{folder.name}-measure")
 
 
@@ -72,14 +76,14 @@ def run(args: argparse.Namespace) -> int:
     from ..outputs import staged_folder
     from .fit import check_photos
 
-    if args.workers < 1:
-        raise UserError("--workers: must be >= 1")
+    _ranges.check_workers(args.workers)
     scene = load_scene(args.folder, measure_only=True)
     out = args.output or default_output(args.folder)
     check_photos(scene)
     specs = measure_specs(scene)
     inputs = (scene.folder, *scene.input_files())
-    with staged_folder(out, args.force, inputs=inputs, reserved=(scene.folder / CACHE_DIR,)) as tmp:
+    reserved = (scene.folder / CACHE_DIR,)
+    with staged_folder(out, args.force, command="measure", inputs=inputs, reserved=reserved) as tmp:
         table = measure_table(scene, specs, tmp, args)
         reports = photo_reports(scene, specs, table)
         write_outputs(scene, table, reports, tmp)
@@ -133,17 +137,13 @@ def measure_table(scene: Scene, specs: Sequence[Any], out: Path, args: argparse.
     """The measurement table of every photo that could be measured (failures in `.failed`)."""
     from stairfit import imaging
 
-    cache = None if args.no_cache else scene.folder / CACHE_DIR / MEASUREMENT_CACHE
-    try:
-        if cache is not None:
-            cache.parent.mkdir(exist_ok=True)
-    except OSError:
-        cache = None  # a read-only photo folder: measure without a cache
+    cache, secret = measurement_cache(scene, not args.no_cache)
     try:
         return imaging.measure_photos(
             specs,
             extraction_settings(scene),
             cache=cache,
+            cache_secret=secret,
             preview_dir=out / "previews",
             progress=not args.quiet,
             max_workers=args.workers,
@@ -158,7 +158,7 @@ def write_outputs(scene: Scene, table: Any, reports: Sequence[PhotoReport], out:
     table.write_csv(out / "measurements.csv")
     write_table(out / "photos.csv", reports, PHOTO_COLUMNS)
     write_table(out / "markers.csv", reports, MARKER_COLUMNS)
-    (out / "report.html").write_text(report_html(scene, reports, out), encoding="utf-8")
+    write_file(out / "report.html", report_html(scene, reports, out))
 
 
 def report_html(scene: Scene, reports: Sequence[PhotoReport], out: Path) -> str:

@@ -21,6 +21,9 @@ from ..errors import UserError
 from ..outputs import staged_file
 from ._predict_checks import Given, check_combination, check_scalars, check_size, parse_index
 
+CSV_START = b"wedge_deg,wavelength_nm,n,"
+"""How every CSV `predict` writes begins (its header); `--force` replaces only such a file."""
+
 
 class _RowWriter(Protocol):
     """What `csv.writer` returns, as far as this module uses it."""
@@ -101,6 +104,10 @@ def run(args: argparse.Namespace) -> int:
     operation separately (about 40 small programs for one `--lobes` case, most of its
     start-up; issue 14).
     """
+    if args.output is None and getattr(args, "stdout_closed", False):
+        raise UserError(
+            "standard output is closed (>&-), so the table has nowhere to go; give -o FILE"
+        )
     check_combination(args)
     check_scalars(args)
     wedges, lam, theta_i, theta_o = _grids(args)
@@ -511,5 +518,5 @@ def _open_output(path: Path | None, force: bool) -> Iterator[TextIO]:
     if path is None:
         yield sys.stdout
         return
-    with staged_file(path, force) as fh:
+    with staged_file(path, force, signature=CSV_START, command="predict") as fh:
         yield fh

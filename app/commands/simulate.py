@@ -25,6 +25,7 @@ import numpy as np
 
 from .. import __version__, _ranges
 from ..errors import UserError
+from ..fileio import write_file
 from ..outputs import staged_folder as staged_folder
 from ..scene import SCENE_FILE, SCENE_VERSION
 from ._layout import SpecimenLayout, camera_for
@@ -317,7 +318,7 @@ def _check_fillet_radius(s: SimulationSettings) -> None:
 def run(args: argparse.Namespace) -> int:
     """`stairfit simulate OUT`."""
     settings = settings_from_args(args)
-    with staged_folder(args.out, args.force, option="OUT") as tmp:
+    with staged_folder(args.out, args.force, command="simulate", option="OUT") as tmp:
         simulate(tmp, settings, progress=not args.quiet)
     print(f"wrote {len(settings.views_deg)} photos, {SCENE_FILE} and {TRUTH_FILE} to {args.out}")
     return 0
@@ -453,7 +454,7 @@ def simulate(folder: Path, settings: SimulationSettings, progress: bool = False)
     calibration = write_calibration_frames(folder, settings, size, exposures[0][0])
     scene = _scene_dict(settings, layout, photos, calibration)
     text = _compact_arrays(tomli_w.dumps(scene))
-    (folder / SCENE_FILE).write_text(_SCENE_HEADER + text, encoding="utf-8")
+    write_file(folder / SCENE_FILE, _SCENE_HEADER + text)
     truth = {
         "stairfit_version": __version__,
         "parameters": {
@@ -472,7 +473,7 @@ def simulate(folder: Path, settings: SimulationSettings, progress: bool = False)
             "values": np.round(radiance, 6).tolist(),
         },
     }
-    (folder / TRUTH_FILE).write_text(json.dumps(truth, indent=2), encoding="utf-8")
+    write_file(folder / TRUTH_FILE, json.dumps(truth, indent=2))
     return truth
 
 

@@ -15,7 +15,7 @@ import hashlib
 import logging
 import os
 import re
-import shutil
+import time
 import uuid
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -24,12 +24,27 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__
+from .._signals import Terminated
 from ..errors import UserError
+from ..fileio import resolved
 from ..scene import SCENE_FILE
 from ._study_task import FAILED, FITTED, INTERRUPTED, LEDGER_DIR, SKIPPED, FolderReport, FolderTask
 
 CONNECT_TIMEOUT_S = 20
 """How long to wait for an existing scheduler to answer."""
+WORKER_LOSS_S = 120.0
+"""How long a study waits, with folders still to fit, while the cluster has no worker at all,
+before it stops: a worker started without a nanny that died does not come back."""
+POLL_S = 0.5
+"""How often a study looks at the cluster while it waits for results."""
+MEMORY_PER_WORKER_GIB = 1.0
+"""Memory a local worker needs for a fit; with the cores it bounds --local-workers."""
+
+
+class WorkersLostError(ConnectionError):
+    """The cluster has had no worker for `WORKER_LOSS_S` with tasks still to run."""
+
+
 SKIP_DIRS = frozenset({".stairfit-cache", LEDGER_DIR})
 
 
@@ -111,17 +126,24 @@ def run(args: argparse.Namespace) -> int:
     from ..outputs import output_lock
 
     reports: list[FolderReport] = []
+    lost = None
     try:
         with output_lock(plan.out), connect(plan) as client:
             prepare_output(plan.out)  # only once a cluster is there: a failed start leaves none
-            run_tasks(client, plan, reports)
-    except KeyboardInterrupt:
+            try:
+                run_tasks(client, plan, reports)
+            except WorkersLostError as err:  # report what finished, then say it in one line
+                lost = err
+                reports = with_interrupted(plan, reports)
+    except (KeyboardInterrupt, Terminated):  # Ctrl-C, SIGTERM, SIGHUP: the same clean-up
         sweep_partial_folders(plan)
         write_study(plan.out, with_interrupted(plan, reports))
         raise
     sweep_partial_folders(plan)
     write_study(plan.out, reports)
     print_summary(plan.out, reports)
+    if lost is not None:
+        raise lost
     return 1 if any(r["status"] == FAILED for r in reports) else 0
 
 
@@ -137,15 +159,12 @@ def plan_study(args: argparse.Namespace) -> StudyPlan:
         )
     if args.output is None:
         raise UserError("-o/--output: missing; give the study folder, e.g. -o study-results")
-    local = args.local_workers if args.local_workers is not None else cpu_cores()
-    if local < 1:
-        raise UserError(f"--local-workers: {local} is below 1; give at least 1")
-    if args.scheduler_file is not None and not args.scheduler_file.is_file():
-        raise UserError(
-            f"--scheduler-file: {args.scheduler_file} does not exist; start "
-            f"'dask scheduler --scheduler-file {args.scheduler_file}' first or fix the path"
-        )
-    out = args.output.expanduser().resolve()
+    local = check_local_workers(args.local_workers)
+    if args.scheduler is not None:
+        check_scheduler_address(args.scheduler)
+    if args.scheduler_file is not None:
+        check_scheduler_file(args.scheduler_file)
+    out = resolved(args.output.expanduser())
     check_output(out)
     folders = find_folders(args.paths, exclude=out)
     check_output(out, folders)  # OUT must not be, or hold, a photo folder
@@ -156,6 +175,76 @@ def plan_study(args: argparse.Namespace) -> StudyPlan:
         for folder in folders
     )
     return StudyPlan(out, tasks, args.scheduler, args.scheduler_file, local, not args.quiet)
+
+
+def check_local_workers(n: int | None) -> int:
+    """`--local-workers` (default: the cores), at least 1 and at most what this machine runs:
+    4 per core, and one per `MEMORY_PER_WORKER_GIB` of memory."""
+    cores = cpu_cores()
+    if n is None:
+        return cores
+    memory_gib = _memory_gib()
+    most = max(1, min(4 * cores, int(memory_gib / MEMORY_PER_WORKER_GIB)))
+    if not 1 <= n <= most:
+        raise UserError(
+            f"--local-workers: {n} is outside 1 to {most} (this machine has {cores} cores and "
+            f"{memory_gib:.0f} GiB of memory; each worker fits one folder at a time); give at "
+            f"most {most}, or add workers of a cluster (--scheduler)"
+        )
+    return n
+
+
+def _memory_gib() -> float:
+    """This machine's memory (GiB; 1024 where it cannot be read)."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") / 2**30
+    except (ValueError, OSError, AttributeError):
+        return 1024.0
+
+
+def check_scheduler_address(address: str, option: str = "--scheduler") -> None:
+    """`--scheduler`: `[PROTOCOL://]HOST[:PORT]` with a port in 1-65535 (refused at once, not
+    after `CONNECT_TIMEOUT_S` of waiting); `option` names where it came from."""
+    shown = _short(address)
+    rest = address.split("://", 1)[1] if "://" in address else address
+    host, _, port = rest.rpartition(":") if ":" in rest else (rest, "", "")
+    if not address.strip() or not (host or rest).strip():
+        raise UserError(
+            f"{option}: {shown!r} is empty; give the scheduler's address, e.g. "
+            "tcp://192.168.1.10:8786, or leave --scheduler out for a local cluster"
+        )
+    if port and not (port.isdigit() and 1 <= int(port) <= 65535):
+        raise UserError(
+            f"{option}: {shown!r} has port {_short(port, 20)!r}; a port is a number from 1 "
+            "to 65535 (dask's default is 8786)"
+        )
+
+
+def check_scheduler_file(path: Path) -> None:
+    """`--scheduler-file`: a JSON file with the scheduler's `address` (as `dask scheduler
+    --scheduler-file` writes it)."""
+    import json
+
+    from ..fileio import describe, read_bytes
+
+    start = f"start 'dask scheduler --scheduler-file {path}' first, or give the file it wrote"
+    problem = describe(path)
+    if problem is not None:
+        raise UserError(f"--scheduler-file: {path} {problem}; {start}")
+    try:
+        info = json.loads(read_bytes(path, max_bytes=1 << 20))
+    except (OSError, ValueError, RecursionError) as e:
+        what = e.strerror if isinstance(e, OSError) and e.strerror else "is not valid JSON"
+        raise UserError(f"--scheduler-file: {path} {what}; {start}") from None
+    address = info.get("address") if isinstance(info, dict) else None
+    if not isinstance(address, str):
+        raise UserError(f"--scheduler-file: {path} names no scheduler 'address'; {start}")
+    check_scheduler_address(address, f"--scheduler-file: {path}: address")
+
+
+def _short(text: str, limit: int = 100) -> str:
+    """`text` cut to `limit` characters for a message."""
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
 
 
 def cpu_cores() -> int:
@@ -190,7 +279,7 @@ def find_folders(paths: Sequence[Path], exclude: Path | None = None) -> tuple[Pa
         path = Path(path).expanduser()
         if not path.exists():
             raise UserError(f"{path}: no such folder; give photo folders or a folder of them")
-        path = path.resolve()
+        path = resolved(path)
         if path.is_file():
             if path.name != SCENE_FILE:
                 raise UserError(f"{path}: not a folder; give photo folders (with {SCENE_FILE})")
@@ -269,10 +358,10 @@ def connect(plan: StudyPlan) -> Iterator[Any]:
     from distributed import Client
 
     if plan.scheduler is None and plan.scheduler_file is None:
-        with local_cluster(plan.local_workers) as cluster, Client(cluster) as client:
+        quiet = not plan.progress
+        with local_cluster(plan.local_workers, quiet) as cluster, Client(cluster) as client:
             yield client
         return
-    where = plan.scheduler or f"the scheduler in {plan.scheduler_file}"
     try:
         client = Client(
             plan.scheduler,
@@ -280,18 +369,19 @@ def connect(plan: StudyPlan) -> Iterator[Any]:
             timeout=CONNECT_TIMEOUT_S,
         )
     except (OSError, TimeoutError, ValueError) as err:
-        option = "--scheduler" if plan.scheduler else "--scheduler-file"
+        option = "--scheduler" if plan.scheduler is not None else "--scheduler-file"
         raise UserError(
-            f"{option}: cannot reach {where} ({err}); start 'dask scheduler' and 'dask "
-            "worker', or fix the address"
+            f"{option}: cannot reach {where(plan)} ({_short(str(err), 300)}); start 'dask "
+            "scheduler' and 'dask worker', or fix the address"
         ) from None
     with client:
         yield client
 
 
 @contextmanager
-def local_cluster(n_workers: int) -> Iterator[Any]:
-    """`n_workers` spawned worker processes of one thread each, no dashboard, quiet logs."""
+def local_cluster(n_workers: int, quiet: bool = False) -> Iterator[Any]:
+    """`n_workers` spawned worker processes of one thread each, no dashboard, quiet logs (only
+    errors; with `quiet` only critical ones)."""
     import dask
     from distributed import LocalCluster
 
@@ -301,7 +391,7 @@ def local_cluster(n_workers: int) -> Iterator[Any]:
             threads_per_worker=1,
             processes=True,
             dashboard_address=None,
-            silence_logs=logging.ERROR,
+            silence_logs=logging.CRITICAL if quiet else logging.ERROR,
         )
     try:
         yield cluster
@@ -315,7 +405,6 @@ def run_tasks(client: Any, plan: StudyPlan, reports: list[FolderReport]) -> None
     The caller owns `reports`, so that on Ctrl-C (`KeyboardInterrupt` carries on up) it still
     has every report received; closing the client then releases the tasks not yet run.
     """
-    from distributed import as_completed
     from tqdm import tqdm
 
     from ._study_task import run_task
@@ -326,13 +415,58 @@ def run_tasks(client: Any, plan: StudyPlan, reports: list[FolderReport]) -> None
         for task in plan.tasks
     }
     with tqdm(total=len(futures), desc="folders", unit="folder", disable=not plan.progress) as bar:
-        for future in as_completed(futures):
+        for future in completed(client, futures, where(plan)):
             report = collect(future, futures[future])
             reports.append(report)
             bar.update()
             bar.set_postfix(counts(reports), refresh=False)
             if report["status"] == FAILED and plan.progress:
                 bar.write(f"failed: {report['folder']}: {report['error']}")
+
+
+def where(plan: StudyPlan) -> str:
+    """The cluster in words, for messages."""
+    if plan.scheduler is not None:
+        return f"the scheduler {_short(plan.scheduler)}"
+    if plan.scheduler_file is not None:
+        return f"the scheduler in {plan.scheduler_file}"
+    return "the local cluster"
+
+
+def completed(
+    client: Any, futures: dict[Any, FolderTask], cluster: str, worker_loss_s: float | None = None
+) -> Iterator[Any]:
+    """The futures as they finish; `WorkersLostError` once the cluster has had no worker for
+    `worker_loss_s` (default `WORKER_LOSS_S`) while some are still pending."""
+    from distributed import as_completed
+
+    limit = WORKER_LOSS_S if worker_loss_s is None else worker_loss_s
+    pending = as_completed(futures)
+    alone_since = None
+    while not pending.is_empty():
+        batch = pending.next_batch(block=False)
+        yield from batch
+        if batch or _worker_count(client) > 0:
+            alone_since = None
+        elif alone_since is None:
+            alone_since = time.monotonic()
+        elif time.monotonic() - alone_since > limit:
+            left = sum(not f.done() for f in futures)
+            raise WorkersLostError(
+                f"{cluster} has had no worker for {limit:g} s with {left} folder(s) still to "
+                "fit (a worker died, e.g. out of memory); start 'dask worker' (with its "
+                "nanny, which restarts it) and run the study again: finished folders are kept"
+            )
+        if not batch:
+            time.sleep(POLL_S)
+
+
+def _worker_count(client: Any) -> int:
+    """How many workers the scheduler knows now (0 when it cannot be asked)."""
+    try:
+        return len(client.scheduler_info().get("workers", {}))
+    except Exception:  # a scheduler that went away has no workers either
+        return 0
 
 
 def collect(future: Any, task: FolderTask) -> FolderReport:
@@ -391,18 +525,22 @@ def with_interrupted(plan: StudyPlan, reports: Sequence[FolderReport]) -> list[F
 
 
 def sweep_partial_folders(plan: StudyPlan) -> None:
-    """Remove the staging folders a killed local worker left in OUT (`.NAME.*.partial`).
+    """Clean what killed local workers left in OUT, as the next run into each folder would
+    (`outputs.remove_stale_leftovers`: a complete result left aside is put back, incomplete
+    staging folders are removed).
 
     Only for the local cluster, which is closed by now: on an existing cluster a task that was
-    running when the study stopped goes on and finishes or removes its own staging folder.
+    running when the study stopped goes on and finishes or removes its own staging folder (and
+    holds its folder's lock meanwhile).
     """
+    from ..outputs import output_lock, remove_stale_leftovers
+
     if plan.scheduler is not None or plan.scheduler_file is not None:
         return
     for task in plan.tasks:
-        for partial in plan.out.glob(f".{glob_escape(task.name)}.*.partial"):
-            shutil.rmtree(partial, ignore_errors=True)
-
-
-def glob_escape(name: str) -> str:
-    """`name` with glob metacharacters escaped (output names hold none, but be exact)."""
-    return re.sub(r"([*?\[])", r"[\1]", name)
+        dest = plan.out / task.name
+        try:
+            with output_lock(dest):
+                remove_stale_leftovers(dest)
+        except (UserError, OSError):  # still locked by a live task, or not ours to clean
+            continue

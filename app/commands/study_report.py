@@ -161,7 +161,7 @@ def write_study(out: Path, reports: Sequence[FolderReport]) -> None:
     rows = sort_rows(reports)
     with atomic_text(out / "study.csv") as fh:
         fh.write(csv_text(rows))
-    with staged_folder(out / FIGURES, force=True) as tmp:
+    with staged_folder(out / FIGURES, force=True, command="study") as tmp:
         figures = write_figures(rows, tmp)
     with atomic_text(out / "study.html") as fh:
         fh.write(study_html(rows, figures))
