@@ -30,7 +30,7 @@ from ._cell import facet_projections
 from ._fresnel import fresnel_sp, fresnel_unpolarised
 from ._lobes import lobe_directions, lobe_weights
 from ._microfacet import DISTRIBUTIONS, ndf, smith_g1
-from ._shapes import same_rank
+from ._shapes import same_rank, with_rank
 
 LAB_KERNELS: tuple[str, ...] = ("gaussian", *DISTRIBUTIONS)
 """How the facets spread their reflections: "gaussian" (the paper's broadening, lifted to 3-D)
@@ -308,7 +308,11 @@ def rough_retro(
     As `alpha -> 0` the total is the sharp retro weight `2 min(p_r, p_t) / cos theta_i`.
     """
     theta_i, beta2, alpha = same_rank(theta_i, beta2, alpha)
-    x, w = (jnp.asarray(a, jnp.result_type(theta_i, float)) for a in _deflection_rule(kind))
+    # the rule's nodes on the last axis, with the batch axes and the facet axis explicit (unit)
+    x, w = (
+        with_rank(jnp.asarray(a, jnp.result_type(theta_i, float)), theta_i.ndim + 2)
+        for a in _deflection_rule(kind)
+    )
     lit = lit_fractions(theta_i, beta2)  # (..., 2)
     mirror = lobe_directions(theta_i, beta2)[..., :2]  # tread, riser lobe directions
     delta = alpha[..., None, None] * x  # (..., 1, N)
