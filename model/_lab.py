@@ -98,6 +98,15 @@ def _split(w: ArrayLike, sign: float) -> InPlane:
     return InPlane(theta=theta, t=t, c=c)
 
 
+def _length(t: Array) -> Array:
+    """`c = sqrt(1 - t^2)`, the projection's length, with finite derivatives at `t = +-1`
+    (double where: the square root's infinite slope at 0 would otherwise turn every zero
+    tangent into NaN there)."""
+    c2 = jnp.clip(1.0 - t * t, 0.0, 1.0)
+    pos = c2 > 0.0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, c2, 1.0)), 0.0)
+
+
 def projected_incidence(w_i: ArrayLike) -> InPlane:
     """The direction towards the light as (`theta_i'`, `t_i`, `c_i`): `theta_i'` the in-plane
     angle of incidence of its projection, signed as [conventions §1] (`w_i = (-c sin theta_i',
@@ -116,7 +125,7 @@ def face_direction(theta: ArrayLike, t: ArrayLike, sign: float = 1.0) -> Float[A
     `projected_view` (`sign = 1`) and `projected_incidence` (`sign = -1`) [conventions §11]."""
     theta, t = same_rank(theta, t)
     theta, t = jnp.broadcast_arrays(theta, t)
-    c = jnp.sqrt(jnp.clip(1.0 - t * t, 0.0, 1.0))
+    c = _length(t)
     return jnp.stack([sign * c * jnp.sin(theta), t, c * jnp.cos(theta)], axis=-1)
 
 
@@ -142,7 +151,7 @@ def lobe_fresnel_3d(
     """
     theta_i, t_i, beta2, n = same_rank(theta_i, t_i, beta2, n)
     u = beta2 + theta_i
-    c = jnp.sqrt(jnp.clip(1.0 - t_i * t_i, 0.0, 1.0))
+    c = _length(t_i)
     a, b = c * jnp.cos(u), c * jnp.sin(u)
     tread, riser = fresnel_sp(a, n), fresnel_sp(b, n)
     retro = _two_bounce(tread, riser, a, b, t_i)
