@@ -67,6 +67,8 @@ class Preset:
       `posterior_max_steps`: the step limit (then a warning); `posterior_chunk_steps`: how
       often (in steps) the stopping rule is checked (a chain stops at a multiple of it).
     * `float32_figures`: evaluate figures in float32 (fits are always float64).
+    * `ladder_budget_s`: no further variant of the ladder is started after this many seconds
+      of model selection (the summary lists those not tried); None: every variant is fitted.
     """
 
     name: str
@@ -82,6 +84,7 @@ class Preset:
     posterior_max_steps: int
     posterior_chunk_steps: int
     float32_figures: bool
+    ladder_budget_s: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """For results.json."""
@@ -103,6 +106,7 @@ PRESETS: dict[str, Preset] = {
         posterior_max_steps=1_500,
         posterior_chunk_steps=100,
         float32_figures=True,
+        ladder_budget_s=60.0,
     ),
     "balanced": Preset(
         name="balanced",
@@ -118,6 +122,7 @@ PRESETS: dict[str, Preset] = {
         posterior_max_steps=20_000,
         posterior_chunk_steps=100,
         float32_figures=False,
+        ladder_budget_s=120.0,
     ),
     "accurate": Preset(
         name="accurate",

@@ -45,6 +45,10 @@ class Status(enum.StrEnum):
     """No start met the solver's tolerance within `max_steps`."""
     NOT_FITTED = "not fitted"
     """Skipped on purpose (e.g. rounded rungs that the data did not need)."""
+    ADDS_NOTHING = "adds nothing"
+    """Converged, but what it adds over its parent ended on a bound, was unidentified or
+    changed `-2 log L` by less than `GAIN_MIN`: it is its parent again, so it is not scored
+    and the ladder does not escalate from it."""
 
 
 def chi2_p_value(chi2: float, dof: int) -> float:

@@ -28,6 +28,10 @@ from ._result import FitResult
 CRITERIA: tuple[str, ...] = ("bic", "laplace")
 """`bic`: `-2 log L + k ln N`. `laplace`: `-2 x` the Laplace-approximated log evidence."""
 
+GAIN_MIN = 1.0
+"""A rung whose added parameters lower `-2 log L` by less than this (one standard deviation of
+one parameter's likelihood-ratio statistic) adds nothing over its parent (`Status.ADDS_NOTHING`)."""
+
 DEFAULT_THRESHOLD = 2.0
 """Kass & Raftery (1995): a difference below 2 in `2 ln B` (or in BIC) is "not worth more than
 a bare mention"; a richer variant must beat the simpler one by more than this."""
@@ -198,6 +202,7 @@ def select_model(
     options: LeastSquaresOptions | None = None,
     on_variant: Callable[[str], None] | None = None,
     kernels: tuple[str, ...] = ("gaussian",),
+    time_budget_s: float | None = None,
     **option_overrides: Any,
 ) -> Selection:
     """Fit every variant of `ladder` and choose the simplest the data support (module doc).
@@ -215,7 +220,9 @@ def select_model(
     `solver`, `max_steps`, `sigma_starts_rad`) set each least-squares fit; failures are
     recorded in the table with their `Status`, and warnings of the chosen fit are emitted while
     those of the others are only recorded in their results. `on_variant(name)` is called after
-    each variant's fit (for progress bars).
+    each variant's fit (for progress bars). `time_budget_s`: no further variant is started once
+    the selection has run this long (those left are listed as not tried); a variant that adds
+    nothing over its parent (`Status.ADDS_NOTHING`) is not scored and its children are not tried.
     """
     if criterion not in CRITERIA:
         raise FitInputError(f"criterion = {criterion!r}; choose one of {', '.join(CRITERIA)}")
@@ -231,9 +238,13 @@ def select_model(
     opts = opts._replace(on_failure="flag", emit_warnings=False)
     if len(ladder) == 0:
         raise FitInputError("the ladder is empty; give at least one variant")
+    if time_budget_s is not None and not time_budget_s > 0:
+        raise FitInputError(f"time_budget_s = {time_budget_s!r}; give a positive number of seconds")
+    deadline = None if time_budget_s is None else time.perf_counter() + time_budget_s
     facets = None
     if len(kernels) > 1:
-        settings = _Settings(opts, model_error, on_variant or (lambda name: None))
+        settings = _Settings(opts, model_error, on_variant or (lambda name: None), deadline,
+                             time_budget_s)  # fmt: skip
         facets = choose_kernel(problem, ladder, kernels, criterion, threshold, settings)
     kernel = facets.kernel if facets is not None else kernels[0]
     ladder = tuple(v._replace(kernel=kernel) for v in ladder)
@@ -242,7 +253,7 @@ def select_model(
         sel = _forced(problem, forced._replace(kernel=kernel), model_error, criterion, threshold,
                       opts)  # fmt: skip
         return _with_facets(sel, facets)
-    opts = _Settings(opts, model_error, on_variant or (lambda name: None))
+    opts = _Settings(opts, model_error, on_variant or (lambda name: None), deadline, time_budget_s)
     sel = _select_ladder(problem, ladder, rounded_rungs, criterion, threshold, opts)
     return _with_facets(sel, facets)
 
@@ -284,9 +295,8 @@ def choose_kernel(
     chosen = next(k for k in kernels if k in scored and scored[k] <= best + threshold)
     crit = "BIC" if criterion == "bic" else "-2 ln Z"
     others = ", ".join(f"{k} {scored[k] - scored[chosen]:+.3g}" for k in scored if k != chosen)
-    reason = (
-        f"{chosen} facets: {crit} of '{probe.name}' relative to it: {others}"
-        + ("" if scored[chosen] == best else f" (within {threshold:g} of the best; the simpler)")
+    reason = f"{chosen} facets: {crit} of '{probe.name}' relative to it: {others}" + (
+        "" if scored[chosen] == best else f" (within {threshold:g} of the best; the simpler)"
     )
     rows = [dataclasses.replace(r, delta=scored.get(k, math.nan) - scored[chosen])
             for r, k in zip(rows, kernels, strict=True)]  # fmt: skip
@@ -301,11 +311,14 @@ def _with_facets(sel: Selection, facets: Facets | None) -> Selection:
 
 
 class _Settings(NamedTuple):
-    """How every variant of a ladder is fitted."""
+    """How every variant of a ladder is fitted; `deadline` (a `time.perf_counter` value) and
+    `budget_s`: no further variant is started after the deadline (None: no limit)."""
 
     options: LeastSquaresOptions
     model_error: bool
     on_variant: Callable[[str], None]
+    deadline: float | None = None
+    budget_s: float | None = None
 
 
 def _select_ladder(
@@ -515,6 +528,10 @@ def _fit_ladder(
         _ladder_variant(f) for n, f in fits.items() if n not in {v.name for v in ladder}
     )
     for v in sorted(ladder, key=lambda u: len(u.features)):
+        skip = _skip_reason(v, known, rows, settings, bool(fits))
+        if skip is not None:
+            rows[v.name] = not_fitted_row(v, Status.NOT_FITTED, skip)
+            continue
         parents = tuple(fits[u.name] for u in parents_of(v, known) if u.name in fits)
         t0 = time.perf_counter()
         try:
@@ -526,7 +543,10 @@ def _fit_ladder(
             rows[v.name] = not_fitted_row(v, Status.UNIDENTIFIABLE, str(err))
             continue
         row = _row(fit, v, math.nan, time.perf_counter() - t0)
-        if fit.success:
+        nothing = _adds_nothing(fit, v, parents) if fit.success else None
+        if nothing is not None:
+            rows[v.name] = dataclasses.replace(row, status=Status.ADDS_NOTHING, detail=nothing)
+        elif fit.success:
             fits[v.name] = fit
             rows[v.name] = row
         else:  # its best start's numbers are kept: an upper bound of what the variant reaches
@@ -535,6 +555,47 @@ def _fit_ladder(
                                                bic=math.nan, aic=math.nan,
                                                laplace_log_evidence=None)  # fmt: skip
     return _Runs(fits, rows)
+
+
+def _skip_reason(
+    v: Variant,
+    known: tuple[Variant, ...],
+    rows: dict[str, ComparisonRow],
+    settings: _Settings,
+    any_fitted: bool,
+) -> str | None:
+    """Why `v` is not tried (None: it is): every parent added nothing (the escalation stops
+    where each route to a rung passes through one that changed nothing), or the ladder's time
+    budget is spent and some variant has already converged."""
+    parents = [rows.get(u.name) for u in parents_of(v, known)]
+    if parents and all(r is not None and r.status == Status.ADDS_NOTHING for r in parents):
+        names = " and ".join(repr(r.name) for r in parents if r is not None)
+        return f"not tried: {names} added nothing"
+    if any_fitted and settings.deadline is not None and time.perf_counter() > settings.deadline:
+        return f"not tried: the ladder's time budget ({settings.budget_s:g} s) was spent"
+    return None
+
+
+def _adds_nothing(fit: FitResult, v: Variant, parents: tuple[FitResult, ...]) -> str | None:
+    """Why the converged `fit` of `v` is its parent again (None when it adds something): each
+    parameter it adds over a parent was fixed on a bound or as unidentified, or `-2 log L`
+    falls by less than `GAIN_MIN` below the best parent's."""
+    if not parents:
+        return None
+    best = max(parents, key=lambda f: f.log_likelihood)
+    added = set(v.free) - set(best.requested.free)
+    removed = {w.parameter: w.code.replace("_", " ") for w in fit.warnings
+               if w.code in ("unidentified", "at_bound")}  # fmt: skip
+    if added and added <= set(removed):
+        what = ", ".join(f"{p} {removed[p]}" for p in sorted(added))
+        return f"{what}: the fit is {best.requested.name!r} again"
+    gain = 2.0 * (fit.log_likelihood - best.log_likelihood)
+    if gain < GAIN_MIN:
+        return (
+            f"-2 log L only {gain:.3g} below {best.requested.name!r} (< {GAIN_MIN:g}): "
+            "the added parameters change nothing the data show"
+        )
+    return None
 
 
 def _fit_variant(

@@ -71,7 +71,9 @@ def test_sigterm_during_the_imports_is_one_line() -> None:
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 143, err
     assert err.strip() == "stairfit predict: terminated by SIGTERM", err
-    assert out == ""
+    # a signal held back until an import ends is sent again a moment later, by when a loaded
+    # machine may have written the table's header: never a partial line
+    assert out == "" or (out.endswith("\n") and out.count("\n") == 1), out
 
 
 @POSIX

@@ -18,7 +18,7 @@ import numpy as np
 from .. import _ranges
 from .._compile_watch import watching_compilation
 from .._prefetch import FIT_MODULES, REPORT_MODULES, prefetch
-from ..errors import UserError
+from ..errors import StairfitWarning, UserError
 from ..imaging_specs import CACHE_DIR, extraction_settings, measurement_cache, photo_specs
 from ..outcome import FitOptions, FitOutcome
 from ..presets import PRESETS, Preset, get_preset
@@ -506,6 +506,7 @@ def select(
                 sigma_starts_rad=tuple(s * DEG for s in options.preset.sigma_starts_deg),
                 on_variant=lambda name: tick(),
                 kernels=kernels,
+                time_budget_s=options.preset.ladder_budget_s,
             )
         except (fitting.FitError, fitting.FitInputError) as err:
             raise UserError(f"the fit failed: {err}") from None

@@ -1,0 +1,51 @@
+"""The ladder on data a rung cannot improve (issue 40): a rung that adds nothing over its parent
+is reported as such, not scored (no tie on rounding noise) and not escalated from; a time
+budget ends the selection with the rungs it did not try listed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zoo
+
+from stairfit import fitting
+
+DEG = np.pi / 180
+TRUTH = fitting.Params(sigma_rad=6 * DEG, scale=1.0)
+LADDER = tuple(v for v in zoo.SHARP_LADDER if not v.per_wedge_sigma)
+
+
+def _exact_observations() -> tuple[fitting.Observations, fitting.Spectral]:
+    """The standard scene with the noisy values replaced by the truth's own (errors kept): no
+    parameter beyond `sharp`'s can lower chi^2, which is then 0 up to rounding."""
+    obs, spec, _ = zoo.standard(TRUTH, seed=0, noise=0.02)
+    exact, _, _ = zoo.scene(TRUTH, fitting.standard_design(channels=(0, 1, 2)), spec,
+                            fitting.Noise(1e-9), 0)  # fmt: skip
+    return obs._replace(value=exact.value), spec
+
+
+def test_a_rung_that_changes_nothing_is_reported_and_not_escalated_from():
+    obs, spec = _exact_observations()
+    sel = fitting.select_model(obs, spec, ladder=LADDER)
+    rows = {r.name: r for r in sel.table}
+    assert sel.chosen == "sharp", sel.report()
+    for name in ("sharp+delta_n", "sharp+floor"):
+        assert rows[name].status == fitting.Status.ADDS_NOTHING, sel.report()
+        assert "'sharp'" in rows[name].detail
+        assert name not in sel.fits  # not scored: no tie on rounding noise
+    both = rows["sharp+delta_n+floor"]
+    assert both.status == fitting.Status.NOT_FITTED and "added nothing" in both.detail
+    assert "adds nothing" in sel.report()
+
+
+def test_a_spent_time_budget_leaves_the_other_rungs_untried():
+    obs, spec = zoo.standard(fitting.Params(sigma_rad=6 * DEG, delta_n=0.05, scale=1.0), 3,
+                             0.02)[:2]  # fmt: skip
+    sel = fitting.select_model(obs, spec, ladder=LADDER, time_budget_s=1e-6)
+    rows = {r.name: r for r in sel.table}
+    assert rows["sharp"].status in (fitting.Status.OK, fitting.Status.MISFITS)  # always fitted
+    untried = [r for r in sel.table if r.name != "sharp"]
+    assert all(r.status == fitting.Status.NOT_FITTED for r in untried), sel.report()
+    assert all("time budget (1e-06 s)" in r.detail for r in untried)
+    with pytest.raises(fitting.FitInputError, match="time_budget_s"):
+        fitting.select_model(obs, spec, ladder=LADDER, time_budget_s=0.0)
