@@ -1,6 +1,6 @@
 """The lab geometry of a scene: each measured face's 3-D light and view directions, from the
 lamp's position, the camera poses the markers gave and the faces' points (docs/fitting.md
-§Lab model; conventions §11).
+§10; conventions §11).
 
 `lab_reason` says whether a scene needs the lab model (a near lamp, or faces seen out of the
 plane of incidence); `lab_geometry` builds the fit's `fitting.LabGeometry` for the rows of its
@@ -24,7 +24,7 @@ from .scene import Photo, Scene, Wedge
 OUT_OF_PLANE_LIMIT_DEG = 1.0
 """A scene whose light or view directions leave the plane of incidence of some face by more
 than this (or that has a near lamp) is fitted with the lab model; below it the in-plane model
-is exact to well under a per cent of the signal (docs/fitting.md §Lab model)."""
+is exact to well under a per cent of the signal (docs/fitting.md §10)."""
 
 LAMP_DISK: tuple[tuple[float, float, float], ...] = (
     (0.0, 0.0, 0.25),

@@ -406,7 +406,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
 
 
 def directions_record(outcome: FitOutcome) -> dict[str, Any]:
-    """How the fit modelled the directions (docs/fitting.md §Lab model): `model` ("lab" or
+    """How the fit modelled the directions (docs/fitting.md §10): `model` ("lab" or
     "in_plane"), why, the facets' kernel and how it was chosen, the roughness `alpha` of
     microfacet facets (`tan` of the fitted width, with its delta-method error), and each
     measured face's largest out-of-plane angles of light and view (deg; faces placed in 3-D

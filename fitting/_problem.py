@@ -179,7 +179,7 @@ def prepare(
     lab: LabGeometry | None = None,
 ) -> Problem:
     """Validate the combination and build the traced arrays (see `Problem`). `lab`: the rows'
-    3-D geometry, to fit the lab model (docs/fitting.md §Lab model)."""
+    3-D geometry, to fit the lab model (docs/fitting.md §10)."""
     check_float64()
     if not isinstance(obs, Observations):
         raise FitInputError(

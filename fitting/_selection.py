@@ -255,7 +255,71 @@ def select_model(
         return _with_facets(sel, facets)
     opts = _Settings(opts, model_error, on_variant or (lambda name: None), deadline, time_budget_s)
     sel = _select_ladder(problem, ladder, rounded_rungs, criterion, threshold, opts)
+    if facets is not None:
+        sel, facets = _recheck_kernel(problem, sel, facets, kernels, criterion, threshold, opts)
     return _with_facets(sel, facets)
+
+
+def _recheck_kernel(
+    problem: Problem,
+    sel: Selection,
+    facets: Facets,
+    kernels: tuple[str, ...],
+    criterion: str,
+    threshold: float,
+    settings: _Settings,
+) -> tuple[Selection, Facets]:
+    """When the kernel probe misfits and the ladder chose another variant, the kernels are
+    compared again at the chosen variant (each started from the chosen optimum): a misfitting
+    probe ranks kernels by how they hide a missing feature, not by the facets' shape (a
+    sharp-edged probe of rounded GGX facets preferred Gaussian facets). The better kernel
+    (beyond `threshold`) replaces the chosen fit."""
+    probe_misfits = any(r.status == Status.MISFITS for r in facets.rows)
+    if sel.chosen == facets.probe or not probe_misfits:
+        return sel, facets
+    chosen = sel.fit.requested
+    scored = {facets.kernel: _criterion(sel.fit, criterion)}
+    fits, rows = {facets.kernel: sel.fit}, []
+    for kernel in (k for k in kernels if k != facets.kernel):
+        v = _ladder_variant(sel.fit)._replace(kernel=kernel)
+        t0 = time.perf_counter()
+        try:
+            fit = _fit_variant(problem, v, settings, (sel.fit,))
+        except FitError as err:
+            rows.append(not_fitted_row(v._replace(name=f"{chosen.name} ({kernel} facets)"),
+                                       Status.NOT_FITTED, str(err)))  # fmt: skip
+            continue
+        named = v._replace(name=f"{chosen.name} ({kernel} facets)")
+        rows.append(_row(fit, named, math.nan, time.perf_counter() - t0))
+        c = _criterion(fit, criterion) if fit.success else None
+        if c is not None and math.isfinite(c):
+            scored[kernel], fits[kernel] = c, fit
+    best = min(scored, key=lambda k: scored[k])
+    keep = scored[facets.kernel] is not None and scored[best] >= scored[facets.kernel] - threshold
+    kernel = facets.kernel if keep else best
+    crit = "BIC" if criterion == "bic" else "-2 ln Z"
+    others = ", ".join(f"{k} {scored[k] - scored[kernel]:+.3g}" for k in scored if k != kernel)
+    reason = (
+        f"{facets.reason}; compared again at {chosen.name!r} because the probe misfits: "
+        f"{kernel} facets, {crit} relative to it: {others}"
+    )
+    facets = facets._replace(kernel=kernel, rows=facets.rows + tuple(rows), reason=reason)
+    if keep:
+        return sel, facets
+    fit = fits[kernel]
+    new_fits = {**sel.fits, sel.chosen: fit}
+    old_chosen = next(r for r in sel.table if r.name == sel.chosen)
+    old_best = scored[facets.kernel] - old_chosen.delta  # the ladder's lowest criterion
+    shift = min(old_best, scored[kernel]) - old_best  # <= 0: the deltas' new origin
+    table = tuple(
+        dataclasses.replace(_row(fit, _ladder_variant(fit), 0.0, fit.elapsed_s), name=r.name,
+                            delta=scored[kernel] - old_best - shift)
+        if r.name == sel.chosen
+        else dataclasses.replace(r, delta=r.delta - shift)
+        for r in sel.table
+    )  # fmt: skip
+    return dataclasses.replace(sel, fit=fit, fits=new_fits, table=table,
+                               assessment=describe_fit(fit)), facets  # fmt: skip
 
 
 KERNEL_PROBE = "sharp+floor"

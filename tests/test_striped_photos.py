@@ -205,6 +205,7 @@ def _split(rows: list, flagged: bool = False) -> tuple[np.ndarray, np.ndarray]:
     return np.array(split), np.array(pull)
 
 
+@pytest.mark.slow  # a statistical check over 8 rendered photos (CI budget)
 def test_grey_face_channels_agree() -> None:
     """Grey faces with stripes along the pixel rows or columns, periods near 2-4 px, where red
     and blue sites see different phases: (R/G)/(B/G) within 0.5% of the truth on every face
@@ -227,6 +228,7 @@ def test_grey_face_channels_agree() -> None:
     assert np.abs(old).max() > 0.01 and np.sum(np.abs(old) > 0.005) >= 5
 
 
+@pytest.mark.slow  # a statistical check over 8 rendered photos (CI budget)
 def test_noise_part_is_what_changes_between_photos() -> None:
     """The same textured striped surface photographed twice (new sensor noise): the values
     differ by sqrt(stderr_noise_1^2 + stderr_noise_2^2), pulls sd in [0.8, 1.25] over 32
