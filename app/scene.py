@@ -514,7 +514,7 @@ class _Reader:
         `MAX_NAME` characters (it names columns, files and lines of a report)."""
         v = self.get(d, "name", str, where, default=default)
         if not v.strip():
-            self.fail(_join(where, "name"), f"{v!r} is empty; give a name such as \"w30\"")
+            self.fail(_join(where, "name"), f'{v!r} is empty; give a name such as "w30"')
         if len(v) > MAX_NAME:
             self.fail(_join(where, "name"), f"has {len(v)} characters; keep it to {MAX_NAME}")
         return v
@@ -861,7 +861,7 @@ def _dictionary_size(r: _Reader, name: str, where: str) -> int:
         from stairfit.imaging import ARUCO_DICTIONARIES
 
         near = difflib.get_close_matches(name, ARUCO_DICTIONARIES, n=1)
-        hint = f"did you mean {near[0]!r}?" if near else "e.g. \"DICT_4X4_50\""
+        hint = f"did you mean {near[0]!r}?" if near else 'e.g. "DICT_4X4_50"'
         r.fail(where, f"{name!r} is not an OpenCV ArUco dictionary; {hint}")
     return int(cv2.aruco.getPredefinedDictionary(code).bytesList.shape[0])
 
