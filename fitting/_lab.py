@@ -247,7 +247,8 @@ def _lab_impl(
         p = model.lab_density_gaussian(w_i, w_o, b2, n, width, spectral_weight=weights)
     else:
         p = model.lab_density_microfacet(w_i, w_o, b2, n, width, kernel, weights)
-    body = model.lab_body(w_i, w_o, b2, n, weights)
+    body = (model.lab_body_rounded(w_i, w_o, b2, n, lab.layer[:, None, None], radius, weights)
+            if rounded else model.lab_body(w_i, w_o, b2, n, weights))  # fmt: skip
     spec = jnp.einsum("gk,gkc->gc", lab.conv, p)[:, lab.channel]
     diffuse = jnp.einsum("gk,gkc->gc", lab.conv, body)[:, lab.channel]
     return spec, diffuse

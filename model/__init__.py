@@ -94,11 +94,15 @@ from ._lab import projected_incidence as projected_incidence
 from ._lab import projected_view as projected_view
 from ._lab import retro_weight_rough as retro_weight_rough
 from ._lab import rough_retro as rough_retro
+from ._lab_rounded import ARC_BODY_NODES as ARC_BODY_NODES
 from ._lab_rounded import ARC_SIGMA_PER_ALPHA as ARC_SIGMA_PER_ALPHA
+from ._lab_rounded import arc_deflection as arc_deflection
+from ._lab_rounded import lab_body_rounded as lab_body_rounded
 from ._lab_rounded import lab_density_rounded as lab_density_rounded
 from ._lab_rounded import rounded_arcs as rounded_arcs
 from ._lab_rounded import rounded_flats as rounded_flats
 from ._microfacet import DISTRIBUTIONS as DISTRIBUTIONS
 from ._microfacet import ndf as ndf
+from ._microfacet import slope_marginal as slope_marginal
 from ._microfacet import smith_g1 as smith_g1
 from ._microfacet import smith_lambda as smith_lambda

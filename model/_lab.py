@@ -490,8 +490,9 @@ def lab_density_microfacet(
     `l`), `(L_k / l) V_k D F G / (4 w_i . z)` with `V_k` the share of the facet both lit and seen
     (`lit_fractions` at `theta_i'` and `-theta_o'`): the microfacet BRDF of each facet, weighted
     by its visible lit area, exact for single scattering and reciprocal (docs/model.md §7.3).
-    The two-bounce retroreflection follows `_retro_one_way`, averaged with its reverse (light
-    and viewer swapped) so that it is reciprocal.
+    The two-bounce retroreflection follows `_retro_one_way`, the path from the light (not
+    reciprocal in its far tails; averaging it with its reverse was further from the tracer and
+    let the reflected power exceed 1 near grazing: `RETRO_RECIPROCAL`, docs/model.md §7.4).
     """
     w_i, w_o, (beta2, alpha) = _broadcast(w_i, w_o, beta2, alpha)
     single, retro = microfacet_parts(w_i, w_o, beta2, _band(n, spectral_weight), alpha, kind)
@@ -518,7 +519,7 @@ def microfacet_parts(
     )
     cos_i_safe = jnp.where(up, cos_i, 1.0)
     single = length * visible * lobes / cos_i_safe[..., None]
-    # the two-bounce path, made reciprocal: the mean of the path from the light and the
+    # the two-bounce path from the light; with RETRO_RECIPROCAL, the mean of it and the
     # reversed path from the viewer (p(w_o -> w_i) cos_o / cos_i)
     retro = _retro_one_way(w_i, w_o, beta2, band, alpha, kind)
     if RETRO_RECIPROCAL:
@@ -549,19 +550,27 @@ def lab_body(
     band = _band(n, spectral_weight)
     inc, view = projected_incidence(w_i), projected_view(w_o)
     visible = jnp.minimum(lit_fractions(inc.theta, beta2), lit_fractions(-view.theta, beta2))
-    normals = facet_normals(beta2)
+    length = jnp.stack([jnp.cos(beta2), jnp.sin(beta2)], axis=-1)
+    terms = body_terms(w_i, w_o, facet_normals(beta2), band)  # (..., 2)
+    return body_per_incidence(w_i, w_o, jnp.sum(length * visible * terms, axis=-1))
+
+
+def body_terms(w_i: Array, w_o: Array, normals: Array, band: _Band) -> Array:
+    """Each surface normal's diffuse term `(w_i . m)(w_o . m) T_i T_o` (both cosines clipped to
+    [0, 1], `T = 1 - F` band-averaged over `band`'s samples), `(..., K)` for normals
+    `(..., K, 3)` [conventions §11]."""
     cos_i = jnp.clip(jnp.einsum("...j,...kj->...k", w_i, normals), 0.0, 1.0)
     cos_o = jnp.clip(jnp.einsum("...j,...kj->...k", w_o, normals), 0.0, 1.0)
-    ci, co, bn, bw = same_rank(  # (..., 2, L): the facet axis before the samples
+    ci, co, bn, bw = same_rank(  # (..., K, L): the normal axis before the samples
         cos_i[..., None], cos_o[..., None], band.n[..., None, :], band.weight[..., None, :]
     )
     trans = (1.0 - fresnel_unpolarised(ci, bn)) * (1.0 - fresnel_unpolarised(co, bn))
-    trans = jnp.sum(trans * bw, axis=-1)  # (..., 2)
-    length = jnp.stack([jnp.cos(beta2), jnp.sin(beta2)], axis=-1)
-    geometry = length * visible * cos_i * cos_o  # (..., 2)
-    geometry, trans = same_rank(geometry, trans)
-    lead = jnp.broadcast_shapes(geometry.shape, trans.shape)[:-1]
+    return cos_i * cos_o * jnp.sum(trans * bw, axis=-1)
+
+
+def body_per_incidence(w_i: Array, w_o: Array, summed: Array) -> Array:
+    """A body's summed terms (per unit period length) over `w_i . z`, 0 below the horizon."""
+    lead = jnp.broadcast_shapes(summed.shape, w_i.shape[:-1], w_o.shape[:-1])
     up = jnp.broadcast_to((w_i[..., 2] > 0.0) & (w_o[..., 2] > 0.0), lead)
     cos_z = jnp.where(up, jnp.broadcast_to(w_i[..., 2], lead), 1.0)
-    body = jnp.sum(geometry * trans, axis=-1) / cos_z
-    return jnp.where(up, body, 0.0)
+    return jnp.where(up, summed / cos_z, 0.0)

@@ -86,3 +86,16 @@ def smith_g1(
     seen = (cos_v > 0.0) & (cos_vm > 0.0)
     g = 1.0 / (1.0 + smith_lambda(jnp.where(seen, cos_v, 1.0), alpha, kind))
     return jnp.where(seen, g, 0.0)
+
+
+def slope_marginal(x: ArrayLike, alpha: ArrayLike, kind: str = "ggx") -> Float[Array, "..."]:
+    """Density of one component of a micro-normal's slope (`tan` of its tilt along one axis):
+    GGX `(1 + x^2 / alpha^2)^(-3/2) / (2 alpha)` (Student's t with two degrees of freedom),
+    Beckmann `exp(-x^2 / alpha^2) / (alpha sqrt(pi))`; each integrates to 1 over the real line
+    [conventions §12]."""
+    _check(kind)
+    x, alpha = same_rank(x, alpha)
+    u = x / alpha
+    if kind == "ggx":
+        return (1.0 + u * u) ** -1.5 / (2.0 * alpha)
+    return jnp.exp(-u * u) / (alpha * jnp.sqrt(jnp.pi))

@@ -1,0 +1,162 @@
+"""The rounded staircase out of the plane (model/_lab_rounded.py, docs/model.md §7.6): its
+limits, the arcs' heavy-tailed spread along the layer lines against the independent 3-D tracer
+(tests/raytrace3d.py), and the rounded body (flats seen past a lowered tip, the arcs' own
+body) against Mitsuba 3 on a real stepped mesh (tests/pbr_photos.py)."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from raytrace import Staircase
+from raytrace3d import Rough, trace3d
+
+from stairfit import model
+
+B60 = math.radians(60.0)
+N = 1.46
+
+
+def _unit(v: tuple[float, ...]) -> np.ndarray:
+    a = np.asarray(v, float)
+    return a / np.linalg.norm(a)
+
+
+def _dir(theta_deg: float, t: float, light: bool = False) -> np.ndarray:
+    """Unit direction with projected angle `theta_deg` and layer component `t` (§11)."""
+    c, th = math.sqrt(1.0 - t * t), math.radians(theta_deg)
+    return np.array([(-1.0 if light else 1.0) * c * math.sin(th), t, c * math.cos(th)])
+
+
+# --- limits ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", ["ggx", "beckmann"])
+def test_vanishing_radius_is_the_sharp_model(kind: str) -> None:
+    rng = np.random.default_rng(0)
+    w_i = np.stack(
+        [_dir(a, t, light=True) for a, t in rng.uniform([-70, -0.4], [70, 0.4], (64, 2))]
+    )
+    w_o = np.stack([_dir(a, t) for a, t in rng.uniform([-80, -0.4], [80, 0.4], (64, 2))])
+    b2 = np.deg2rad(rng.uniform(10, 70, 64))
+    sharp = model.lab_density_microfacet(w_i, w_o, b2, N, 0.08, kind)
+    tiny = model.lab_density_rounded(w_i, w_o, b2, N, 0.08, 150.0, 1e-9, kind)
+    np.testing.assert_allclose(tiny, sharp, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(model.lab_body_rounded(w_i, w_o, b2, N, 150.0, 0.0),
+                               model.lab_body(w_i, w_o, b2, N), rtol=1e-12, atol=1e-15)  # fmt: skip
+
+
+@pytest.mark.parametrize("kind", ["ggx", "beckmann"])
+def test_slope_marginal_and_arc_deflection_are_densities(kind: str) -> None:
+    x = np.linspace(-60.0, 60.0, 600_001)
+    dens = np.asarray(model.slope_marginal(x, 0.07, kind))
+    tail = 0.07**2 / (2 * 60.0**2) if kind == "ggx" else 0.0  # GGX's mass beyond |x| = 60
+    assert abs(np.trapezoid(dens, x) - (1.0 - 2 * tail)) < 1e-6
+    w_i = _dir(-35.0, 0.2, light=True)
+    t = np.linspace(-0.999, 0.999, 40_001)
+    c = np.sqrt(1 - t**2)
+    w_o = np.stack([c * math.sin(math.radians(30.0)), t, c * math.cos(math.radians(30.0))], -1)
+    along = np.asarray(model.arc_deflection(w_i[None, :], w_o, 0.05, kind))
+    assert 0.97 < np.trapezoid(along, t) < 1.001  # in t_o, near 1 (the kernel is narrow)
+    assert t[np.argmax(along)] == pytest.approx(-0.2, abs=2e-3)  # centred on t_o = -t_i
+
+
+def test_finite_values_and_gradients_at_the_extremes() -> None:
+    def total(x: jax.Array) -> jax.Array:
+        b2, r, alpha, th = x
+        w_i = jnp.stack([-jnp.sin(th), 0.0, jnp.cos(th)])
+        w_o = jnp.stack([jnp.sin(1.2 * th), 0.1, jnp.cos(1.2 * th)])
+        w_o = w_o / jnp.linalg.norm(w_o)
+        p = model.lab_density_rounded(w_i, w_o, b2, N, alpha, 150.0, r, "ggx")
+        return p + model.lab_body_rounded(w_i, w_o, b2, N, 150.0, r)
+
+    both = jax.jit(jax.value_and_grad(total))
+    points = [
+        (1e-4, 25.0, 0.06, 0.3),
+        (B60, 0.0, 0.06, 0.3),
+        (1.5707, 25.0, 0.06, 0.3),
+        (B60, 25.0, 1e-5, 0.3),
+        (B60, 25.0, 0.06, 1.5706),
+        (B60, 149.0, 0.2, -1.2),
+    ]
+    for point in points:
+        value, grad = both(jnp.asarray(point))
+        assert np.isfinite(float(value)) and np.all(np.isfinite(np.asarray(grad))), point
+
+
+# --- the arcs' spread along the layer lines against the 3-D tracer -----------------------------
+
+
+def _traced_density(
+    beta2_deg: float, r_um: float, w_i: np.ndarray, views: list[tuple[float, float]], rays: int
+) -> list[tuple[float, float, int]]:
+    """The tracer's reflected power per steradian (1/sr) in a 4 deg x 0.04 bin about each view
+    `(theta_o', t_o)`, with the number of rays in the bin."""
+    st = Staircase(beta2_deg, 150.0, tip_radius_um=r_um)
+    tr = trace3d(st, w_i, N, rough=Rough(0.06, "ggx"), n_rays=rays, seed=3)
+    th = np.degrees(np.arctan2(tr.w_o[:, 0], tr.w_o[:, 2]))
+    out = []
+    for theta, t in views:
+        sel = (np.abs(th - theta) < 2.0) & (np.abs(tr.w_o[:, 1] - t) < 0.02)
+        out.append((tr.power[sel].sum() / (math.radians(4.0) * 0.04), t, int(sel.sum())))
+    return out
+
+
+@pytest.mark.parametrize(
+    ("beta2_deg", "w_i", "views"),
+    [
+        # the physically based set's 60-deg face lit from above, seen from downhill: the lamp's
+        # reflection leaves at t = +0.143, the camera sits at t = -0.078 (issue 40)
+        (60.0, (0.857, -0.143, 0.495), [(-1.0, -0.078), (-1.0, 0.0), (-1.0, 0.143),
+                                        (20.0, -0.078), (29.4, -0.079)]),
+        (40.0, (0.4, 0.2, 0.9), [(0.0, -0.2), (0.0, -0.1), (10.0, 0.0), (-20.0, -0.25)]),
+    ],
+)  # fmt: skip
+def test_rounded_microfacet_density_matches_the_tracer_in_the_layer_tails(
+    beta2_deg: float, w_i: tuple[float, ...], views: list[tuple[float, float]]
+) -> None:
+    """Rounded tips (25 um on 150 um layers) with GGX facets (alpha 0.06): the model's density
+    within 25% of the tracer's at points up to 0.22 in t from the mirror direction, where a
+    Gaussian spread of the arcs' light gave 0.42-0.6 of it. Each bin holds >= 40 rays (the
+    tracer's own error up to about 16%)."""
+    wi = _unit(w_i)
+    traced = _traced_density(beta2_deg, 25.0, wi, views, rays=400_000)
+    for (theta, t), (dens, _, count) in zip(views, traced, strict=True):
+        w_o = _dir(theta, t)
+        got = float(model.lab_density_rounded(wi, w_o, math.radians(beta2_deg), N, 0.06, 150.0,
+                                               25.0, "ggx"))  # fmt: skip
+        assert count >= 40, (theta, t, count)
+        assert 0.75 < got / dens < 1.25, (theta, t, got, dens, count)
+
+
+# --- the rounded body and flats against Mitsuba ---------------------------------------------
+
+
+def test_rounded_body_and_flats_match_mitsuba_on_a_stepped_mesh() -> None:
+    """Mitsuba 3 (`pplastic`, GGX alpha 0.06, body 0.02, 25-um tips as 16-segment arcs) on the
+    60- and 40-deg faces of the physically based set: the model's radiance per unit irradiance
+    within 8% (the views include a face 85 deg from its normal, where the sharp-tipped body
+    model was 2.3 times too dark and the flats 1.7 times too bright)."""
+    pytest.importorskip("mitsuba", reason="mitsuba (a dev dependency) is not installed")
+    from dataclasses import replace
+
+    import pbr_photos as pb
+
+    setup = replace(pb.PbrSetup(), variant="scalar_rgb")
+    for beta2_deg, w_i, w_o in [
+        (60.0, (0.857, -0.144, 0.495), (-0.359, -0.078, 0.93)),
+        (60.0, (0.857, -0.143, 0.495), (-0.017, -0.078, 0.997)),
+        (60.0, (0.626, -0.143, 0.767), (0.983, -0.079, 0.167)),
+        (40.0, (0.643, -0.028, 0.766), (0.997, -0.016, 0.081)),
+    ]:
+        wi, wo = _unit(w_i), _unit(w_o)
+        b2 = math.radians(beta2_deg)
+        spec = float(model.lab_density_rounded(wi, wo, b2, N, 0.06, 150.0, 25.0, "ggx"))
+        body = float(model.lab_body_rounded(wi, wo, b2, N, 150.0, 25.0)) * 0.02 / math.pi
+        want = (spec + body) * wi[2] / wo[2]  # radiance per unit irradiance, conventions §11
+        got = pb.patch_radiance(setup, beta2_deg, wi, wo, frame="face", spp=64, repeats=2,
+                                threads=1)  # fmt: skip
+        assert abs(want / float(np.mean(got.value)) - 1.0) < 0.08, (beta2_deg, w_i, w_o)
