@@ -4,7 +4,9 @@ Two sets: `default`, the issue's lab (six wedges of 10-60 deg, 150 um layers, 25
 facets of alpha 0.06 and index 1.46, a 6 mm lamp 500 mm away at 0 and 20 deg, a 135 mm lens
 900 mm away, 28 photos of 1800 x 1200 px), and `variant`, the same lab with other parameters
 (`pbr_photos.variant_setup`: other wedges, layers, edges, Beckmann roughness, index, lamp and
-camera; 24 photos), for a held-back-style check. Each folder holds the DNGs, the flat fields,
+camera; 24 photos), for a held-back-style check; `dev`, the default lab rendered unpolarised
+(`scalar_rgb`) at 1200 x 800 px and 48 samples per pixel on the faces (about a minute a photo),
+the development set of benchmarks/bench_lab_fit.py. Each folder holds the DNGs, the flat fields,
 scene.toml (what `stairfit measure` / `stairfit fit` read) and truth.json (what they never read).
 
 The folder is outside the repository (default `~/.cache/stairfit/pbr/<set>`). The run is
@@ -35,7 +37,7 @@ TESTS = Path(__file__).resolve().parents[1] / "tests"
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--set", choices=("default", "variant"), default="default")
+    parser.add_argument("--set", choices=("default", "variant", "dev"), default="default")
     parser.add_argument("--out", type=Path, help="folder (default ~/.cache/stairfit/pbr/<set>)")
     parser.add_argument("--threads", type=int, default=1, help="Mitsuba's threads (default 1)")
     parser.add_argument("--nice", type=int, default=0, help="add this to the process's niceness")
@@ -54,7 +56,12 @@ def main(argv: list[str] | None = None) -> int:
     sys.path.insert(0, str(TESTS))
     import pbr_photos as pb
 
-    setup = pb.PbrSetup() if args.set == "default" else pb.variant_setup()
+    setup = pb.variant_setup() if args.set == "variant" else pb.PbrSetup()
+    if args.set == "dev":
+        setup = replace(
+            setup, variant="scalar_rgb", width=1200, height=800, pixel_pitch_um=30.0, spp=48,
+            spp_markers=16, spp_background=4, max_depth=4, flat_photos=1,
+        )  # fmt: skip
     if args.quick:
         setup = replace(
             setup,
