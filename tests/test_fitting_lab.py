@@ -167,11 +167,11 @@ def test_a_lab_fit_recovers_a_microfacet_truth_and_chooses_its_kernel(lab_arrays
 
 
 @pytest.mark.slow  # three rounded lab fits compile (about a minute each on a loaded machine)
-def test_kernels_are_compared_again_at_the_chosen_variant_when_the_probe_misfits(lab_arrays):
+def test_kernels_are_probed_again_rounded_when_the_sharp_probe_misfits(lab_arrays):
     """Rounded GGX facets (r = 25 um on 150 um layers, as the physically based set): the sharp
     probe misfits, so it ranks the kernels by how they hide the missing arcs; the kernels are
-    compared again at the variant the ladder chose, where GGX must win (issue 40: Mitsuba's
-    rounded GGX staircase was fitted with Gaussian facets by the probe alone)."""
+    probed again at `rounded+floor`, where GGX must win (issue 40: Mitsuba's rounded GGX
+    staircase was fitted with Gaussian facets by the sharp probe alone)."""
     geo, spec, ld = lab_arrays
     truth = np.deg2rad(3.4)
     sp, body = lab_grid(jnp.full(ld.b2.shape, truth), 0.0, ld, "ggx", radius_um=25.0)
@@ -191,7 +191,8 @@ def test_kernels_are_compared_again_at_the_chosen_variant_when_the_probe_misfits
     assert sel.facets.kernel == "ggx" and sel.fit.requested.kernel == "ggx", sel.facets.reason
     probe = [r for r in sel.facets.rows if r.name.startswith("sharp+floor")]
     assert all(r.status == fitting.Status.MISFITS for r in probe), sel.facets.rows
-    assert "compared again at 'rounded+floor'" in sel.facets.reason, sel.facets.reason
+    assert sel.facets.probe == "rounded+floor", sel.facets.reason  # the second, rounded probe
+    assert "every kernel misfits at 'sharp+floor'" in sel.facets.reason, sel.facets.reason
     est = {e.param: e for e in sel.fit.estimates}
     assert abs(est["edge_radius_um"].value - 25.0) < 4 * est["edge_radius_um"].stderr
     assert abs(est["sigma_rad"].value - truth) < 4 * est["sigma_rad"].stderr

@@ -491,8 +491,9 @@ def select(
         check_model_name(options.model)
         ladder = fitting.DEFAULT_LADDER
     forced = options.model is not None  # select_model reports each ladder fit, not a forced one
-    # the kernel probes, and the kernels compared again at the chosen variant when they misfit
-    total = (1 if forced else len(ladder)) + (2 * len(kernels) - 1 if len(kernels) > 1 else 0)
+    # the kernel probes (a second, rounded one when the first misfits), and the kernels
+    # compared again at the chosen variant
+    total = (1 if forced else len(ladder)) + (3 * len(kernels) - 1 if len(kernels) > 1 else 0)
     bar = _Progress(options.progress, "fitting models", total=total)
     with bar as tick, warnings.catch_warnings():
         warnings.simplefilter("ignore", fitting.FitWarningCategory)
