@@ -68,7 +68,8 @@ class Preset:
       often (in steps) the stopping rule is checked (a chain stops at a multiple of it).
     * `float32_figures`: evaluate figures in float32 (fits are always float64).
     * `ladder_budget_s`: no further variant of the ladder is started after this many seconds
-      of model selection (the summary lists those not tried); None: every variant is fitted.
+      of its fits (after the lab model's kernel probes; the summary lists those not tried);
+      None: every variant is fitted.
     """
 
     name: str

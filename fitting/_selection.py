@@ -220,8 +220,9 @@ def select_model(
     `solver`, `max_steps`, `sigma_starts_rad`) set each least-squares fit; failures are
     recorded in the table with their `Status`, and warnings of the chosen fit are emitted while
     those of the others are only recorded in their results. `on_variant(name)` is called after
-    each variant's fit (for progress bars). `time_budget_s`: no further variant is started once
-    the selection has run this long (those left are listed as not tried); a variant that adds
+    each variant's fit (for progress bars). `time_budget_s`: no further variant of the ladder is
+    started once it has run this long, counted after the kernel probes (those left are listed
+    as not tried); a variant that adds
     nothing over its parent (`Status.ADDS_NOTHING`) is not scored and its children are not tried.
     """
     if criterion not in CRITERIA:
@@ -240,12 +241,12 @@ def select_model(
         raise FitInputError("the ladder is empty; give at least one variant")
     if time_budget_s is not None and not time_budget_s > 0:
         raise FitInputError(f"time_budget_s = {time_budget_s!r}; give a positive number of seconds")
-    deadline = None if time_budget_s is None else time.perf_counter() + time_budget_s
     facets = None
     if len(kernels) > 1:
-        settings = _Settings(opts, model_error, on_variant or (lambda name: None), deadline,
-                             time_budget_s)  # fmt: skip
+        settings = _Settings(opts, model_error, on_variant or (lambda name: None))
         facets = choose_kernel(problem, ladder, kernels, criterion, threshold, settings)
+    # the budget is the ladder's: the kernel probes decide what the ladder fits, so they run whole
+    deadline = None if time_budget_s is None else time.perf_counter() + time_budget_s
     kernel = facets.kernel if facets is not None else kernels[0]
     ladder = tuple(v._replace(kernel=kernel) for v in ladder)
     if force is not None:
