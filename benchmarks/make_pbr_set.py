@@ -17,7 +17,7 @@ lowers this process's priority.
 
     nice -n 15 python benchmarks/make_pbr_set.py                     # the issue's set
     python benchmarks/make_pbr_set.py --set variant --out /data/pbr/variant --threads 2
-    python benchmarks/make_pbr_set.py --quick --out /tmp/pbr_quick   # 3 photos, few samples
+    python benchmarks/make_pbr_set.py --quick --out QUICK_DIR      # 3 photos, few samples
 
 Render times: benchmarks/results/pbr_set.md.
 """
