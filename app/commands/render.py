@@ -42,6 +42,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--downscale", type=int, default=2,
                    help="render at the photos' colour-pixel size divided by this")
     p.add_argument("--spp", type=int, default=16, help="samples per pixel")
+    p.add_argument("--quality", default="default", choices=("draft", "default", "fine"),
+                   help="the material tables' resolution (docs/render.md, 'Resolution')")
     p.add_argument("--plate-albedo", type=float, default=0.03,
                    help="the plate's albedo (the fit does not measure it)")
     p.add_argument("--threads", type=int, default=None, help="Mitsuba's threads (default: all)")
@@ -77,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     options = render.RenderOptions(
         downscale=args.downscale, spp=args.spp, plate_albedo=args.plate_albedo,
         threads=args.threads, views=tuple(args.view), size=args.size, step_deg=args.step_deg,
+        resolution=render.QUALITIES[args.quality],
     )  # fmt: skip
 
     def say(line: str) -> None:

@@ -25,6 +25,7 @@ from ._render import render_mesh as render_mesh
 from ._render import render_specimen as render_specimen
 from ._render import update_report as update_report
 from ._rgl import DEFAULT_RESOLUTION as DEFAULT_RESOLUTION
+from ._rgl import QUALITIES as QUALITIES
 from ._rgl import Resolution as Resolution
 from ._rgl import mitsuba_value as mitsuba_value
 from ._rgl import tabulate as tabulate

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from stairfit.errors import UserError
 
-from ._material import face_frame
+from ._material import BETA2_LIMITS_DEG, face_frame
 
 MAX_OBJ_BYTES = 200 * 2**20
 """A larger OBJ file is refused (a render of it would not finish in minutes anyway)."""
@@ -27,12 +27,14 @@ MAX_OBJ_BYTES = 200 * 2**20
 
 class Mesh(NamedTuple):
     """Triangles: `vertices` (V, 3), `faces` (F, 3) vertex indices (counter-clockwise seen from
-    outside), unit vertex `normals` (V, 3) and optional `uvs` (V, 2)."""
+    outside), unit vertex `normals` (V, 3), optional `uvs` (V, 2) and `weights` (V,) (a
+    per-vertex blend between two materials)."""
 
     vertices: NDArray
     faces: NDArray
     normals: NDArray
     uvs: NDArray | None = None
+    weights: NDArray | None = None
 
 
 def read_obj(path: str | Path) -> Mesh:
@@ -108,23 +110,32 @@ def vertex_normals(vertices: NDArray, faces: NDArray) -> NDArray:
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
 
 
-def wedge_bins(step_deg: float) -> NDArray:
-    """Bin centres of wedge angles over [0, 90] deg in steps of `step_deg`."""
-    count = max(1, math.ceil(90.0 / step_deg - 1e-9))
-    return (np.arange(count) + 0.5) * (90.0 / count)
+def wedge_nodes(step_deg: float) -> NDArray:
+    """Wedge angles (deg) at which the material is tabulated, evenly spaced over
+    `BETA2_LIMITS_DEG` at most `step_deg` apart."""
+    lo, hi = BETA2_LIMITS_DEG
+    count = max(2, math.ceil((hi - lo) / step_deg - 1e-9) + 1)
+    return np.linspace(lo, hi, count)
 
 
-def printed_parts(mesh: Mesh, build_axis: NDArray, step_deg: float) -> list[tuple[float, Mesh]]:
-    """The mesh split by each triangle's wedge angle (`face_frame` of its geometric normal and
-    `build_axis`) into bins (`wedge_bins`): `(bin centre, part)`, each part with its own
-    vertices and texture coordinates `u = p . s`, `v = p . t` (`s = -y` of the triangle's face
-    frame, along the layer lines, `t = n x s` its uphill x), in mm."""
+def printed_parts(
+    mesh: Mesh, build_axis: NDArray, step_deg: float
+) -> tuple[NDArray, list[tuple[int, Mesh]]]:
+    """The wedge-angle nodes (`wedge_nodes`) and the mesh split by the interval between two
+    nodes that each triangle's wedge angle (`face_frame` of its geometric normal and
+    `build_axis`) falls in: `(k, part)` for the interval `[nodes[k], nodes[k + 1]]`. Each part
+    has its own vertices, texture coordinates `u = p . s`, `v = p . t` (`s = -y` of the
+    triangle's face frame, along the layer lines; `t = n x s` its uphill x; mm) and per-vertex
+    `weights`, the position of the vertex normal's wedge angle in the interval (0 at
+    `nodes[k]`, 1 at `nodes[k + 1]`): the renderer blends the two nodes' tables by it, so that
+    the staircase changes smoothly over a curved surface."""
     normals = face_normals(mesh.vertices, mesh.faces)
     beta2, rot = face_frame(normals, build_axis)
-    centres = wedge_bins(step_deg)
-    which = np.clip(np.floor(beta2 / (90.0 / len(centres))).astype(int), 0, len(centres) - 1)
+    nodes = wedge_nodes(step_deg)
+    which = np.clip(np.searchsorted(nodes, beta2) - 1, 0, len(nodes) - 2)
+    vertex_beta2, _ = face_frame(mesh.normals, build_axis)
     parts = []
-    for k, centre in enumerate(centres):
+    for k in range(len(nodes) - 1):
         sel = np.nonzero(which == k)[0]
         if sel.size == 0:
             continue
@@ -134,11 +145,13 @@ def printed_parts(mesh: Mesh, build_axis: NDArray, step_deg: float) -> list[tupl
         t_dir = rot[sel, 0, :]
         uv = np.stack([np.einsum("mkj,mj->mk", pts, s_dir),
                        np.einsum("mkj,mj->mk", pts, t_dir)], axis=-1)  # fmt: skip
-        parts.append((float(centre), Mesh(
+        w = (vertex_beta2[corners] - nodes[k]) / (nodes[k + 1] - nodes[k])
+        parts.append((k, Mesh(
             vertices=pts.reshape(-1, 3), faces=np.arange(3 * sel.size).reshape(-1, 3),
             normals=mesh.normals[corners].reshape(-1, 3), uvs=uv.reshape(-1, 2),
+            weights=np.clip(w, 0.0, 1.0).reshape(-1),
         )))  # fmt: skip
-    return parts
+    return nodes, parts
 
 
 def bounding_sphere(mesh: Mesh) -> tuple[NDArray, float]:

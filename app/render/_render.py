@@ -226,6 +226,11 @@ def render_specimen(
 
     scene, material = fit.scene, fit.material
     check_specimen(scene)
+    photos = {p.file: p for p in scene.photos}
+    specs = [s for s in photo_specs(scene) if not options.views or s.name in options.views]
+    missing = set(options.views) - {s.name for s in specs}
+    if missing:
+        raise UserError(f"--view: no photo {sorted(missing)[0]!r} in {scene.path}")
     mi = sc.mitsuba("scalar_rgb", options.threads)
     t_start = time.perf_counter()
     angles = sorted({w.angle_deg for w in scene.specimen.wedges if w.face_mm is not None})
@@ -233,11 +238,6 @@ def render_specimen(
                              reuse)  # fmt: skip
     t_tables = time.perf_counter() - t_start
     shapes = specimen_shapes(mi, scene, tables, material, options.plate_albedo)
-    photos = {p.file: p for p in scene.photos}
-    specs = [s for s in photo_specs(scene) if not options.views or s.name in options.views]
-    missing = set(options.views) - {s.name for s in specs}
-    if missing:
-        raise UserError(f"--view: no photo {sorted(missing)[0]!r} in {scene.path}")
     scale = material.photo_scale or 1.0
     views = []
     for i, spec in enumerate(specs):
@@ -335,20 +335,27 @@ def render_mesh(
     options: RenderOptions = DEFAULT_OPTIONS, progress: Progress = lambda _: None,
     reuse: Path | None = None,
 ) -> dict[str, Any]:  # fmt: skip
-    """Render a printed object: the mesh `obj` (mm), each triangle with the staircase of its
-    wedge angle from the build axis (`printed_parts`), seen from 30 deg above the layer plane
-    and lit by a small lamp from the other side plus a dim uniform sky; write
+    """Render a printed object: the mesh `obj` (mm), each point with the staircase of its wedge
+    angle from the build axis (`printed_parts`: tables every `step_deg` at most, blended
+    between the two nearest by each vertex's angle), seen from 30 deg above the layer plane
+    and lit by a small lamp from the other side plus a dim uniform sky (not seen directly);
+    write
     `NAME_render.exr`/`.png`, the tables and `renders.json` into `out`."""
     mi = sc.mitsuba("scalar_rgb", options.threads)
     t_start = time.perf_counter()
     mesh = read_obj(obj)
-    parts = printed_parts(mesh, build_axis, options.step_deg)
-    progress(f"{obj.name}: {len(mesh.faces)} triangles in {len(parts)} wedge-angle bins")
-    tables = material_tables(material, [a for a, _ in parts], out / "materials",
+    nodes, parts = printed_parts(mesh, build_axis, options.step_deg)
+    used = sorted({k for k, _ in parts} | {k + 1 for k, _ in parts})
+    progress(f"{obj.name}: {len(mesh.faces)} triangles, wedge angles {nodes[used[0]]:.3g}-"
+             f"{nodes[used[-1]]:.3g} deg in {len(used)} tables")  # fmt: skip
+    tables = material_tables(material, [float(nodes[k]) for k in used], out / "materials",
                              options.resolution, progress, reuse)  # fmt: skip
     t_tables = time.perf_counter() - t_start
-    shapes = {f"part_{a:g}": sc.mitsuba_mesh(mi, f"part_{a:g}", part, sc.measured(tables[a]))
-              for a, part in parts}  # fmt: skip
+    shapes = {}
+    for k, part in parts:
+        bsdf = sc.blend(sc.measured(tables[float(nodes[k])]),
+                        sc.measured(tables[float(nodes[k + 1])]))  # fmt: skip
+        shapes[f"part_{k}"] = sc.mitsuba_mesh(mi, f"part_{k}", part, bsdf)
     centre, radius = bounding_sphere(mesh)
     cam, lamp_pos = _mesh_view(centre, radius, build_axis, options.size)
     lamp = sc.Lamp(lamp_pos, (lamp_pos - centre) / np.linalg.norm(lamp_pos - centre),
@@ -356,7 +363,8 @@ def render_mesh(
     shapes |= sc.lamp_shapes(lamp)
     shapes["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": [SKY] * 3}}
     t0 = time.perf_counter()
-    img = sc.render(mi, shapes, cam, options.spp, options.max_depth, options.seed)
+    img = sc.render(mi, shapes, cam, options.spp, options.max_depth, options.seed,
+                    hide_emitters=True)  # fmt: skip
     stem = obj.stem
     to_exr(mi, img, out / f"{stem}_render.exr")
     to_png(img, white_point(img), out / f"{stem}_render.png")

@@ -53,7 +53,7 @@ LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 class Resolution(NamedTuple):
     """The tables' sizes (docs/render.md, "Resolution"; the tabulation error each gives is
-    measured in tests/test_render_bsdf.py).
+    measured by benchmarks/bench_render_tables.py).
 
     Attributes:
         theta_i, phi_i: nodes of the camera direction's elevation (0 to `theta_max_deg`) and
@@ -64,19 +64,31 @@ class Resolution(NamedTuple):
         ndf: (elevation, azimuth) nodes of the NDF table (and of the quadrature of `sigma`).
         sigma: (elevation, azimuth) nodes of the projected-area table.
         theta_max_deg: the last elevation node (beyond it the last table is used).
+        arcs: the rounded edges' `ArcGrid` (projected angles, values of `|t|`).
     """
 
-    theta_i: int = 12
+    theta_i: int = 24
     phi_i: int = 25
     samples: int = 48
     vndf: tuple[int, int] = (64, 128)
     ndf: tuple[int, int] = (128, 256)
     sigma: tuple[int, int] = (32, 64)
     theta_max_deg: float = 87.0
+    arcs: tuple[int, int] = (73, 13)
 
 
 DEFAULT_RESOLUTION = Resolution()
-"""The tables' sizes `stairfit render` writes."""
+"""The tables' sizes `stairfit render` writes: the camera's elevation every 3.8 deg, its azimuth
+every 15 deg, 48 x 48 light directions per camera direction (31 MB per table)."""
+
+QUALITIES: dict[str, Resolution] = {
+    "draft": Resolution(theta_i=8, phi_i=13, samples=24, vndf=(32, 64), ndf=(64, 128),
+                        sigma=(16, 32), arcs=(37, 7)),
+    "default": DEFAULT_RESOLUTION,
+    "fine": Resolution(theta_i=48, phi_i=49, samples=64),
+}  # fmt: skip
+"""`stairfit render --quality`: a quick look, the default, and finer tables (about 8 times the
+time and size of the default)."""
 
 
 # --- the unit square of Mitsuba's measured.cpp -------------------------------------------------
@@ -233,7 +245,7 @@ def tabulate(
     res = resolution
     beta2 = float(clamp_beta2_deg(beta2_deg))
     say = progress or (lambda _: None)
-    arcs = arc_grid(material, beta2) if material.edge_radius_um > 0.0 else None
+    arcs = arc_grid(material, beta2, res.arcs) if material.edge_radius_um > 0.0 else None
     ndf = backscatter_ndf(material, beta2, res.ndf, arcs).astype(np.float32)
     sigma = projected_area(ndf.astype(float), res.sigma).astype(np.float32)
     say("NDF and projected area")

@@ -202,8 +202,16 @@ def mitsuba_mesh(mi: Any, name: str, mesh: Mesh, bsdf: dict[str, Any]) -> Any:
     params["vertex_normals"] = np.asarray(mesh.normals, np.float32).ravel()
     if has_uv:
         params["vertex_texcoords"] = np.asarray(mesh.uvs, np.float32).ravel()
+    if mesh.weights is not None:
+        out.add_attribute("vertex_weight", 1, np.asarray(mesh.weights, np.float32).ravel())
     params.update()
     return out
+
+
+def blend(first: dict[str, Any], second: dict[str, Any]) -> dict[str, Any]:
+    """Two BSDFs blended by the mesh's per-vertex `weight` (0: the first, 1: the second)."""
+    return {"type": "blendbsdf", "weight": {"type": "mesh_attribute", "name": "vertex_weight"},
+            "bsdf_0": first, "bsdf_1": second}  # fmt: skip
 
 
 def diffuse(albedo: float | NDArray, mi: Any | None = None) -> dict[str, Any]:
@@ -272,10 +280,11 @@ def sensor(mi: Any, cam: Camera, spp: int, seed: int = 0) -> Any:
 
 
 def render(mi: Any, shapes: dict[str, Any], cam: Camera, spp: int, max_depth: int,
-           seed: int = 0) -> NDArray:  # fmt: skip
-    """`(H, W, 3)` float64: the path tracer's image of `shapes` through `cam`."""
-    scene = mi.load_dict({"type": "scene", "integrator": {"type": "path",
-                          "max_depth": max_depth}, **shapes})  # fmt: skip
+           seed: int = 0, hide_emitters: bool = False) -> NDArray:  # fmt: skip
+    """`(H, W, 3)` float64: the path tracer's image of `shapes` through `cam` (with
+    `hide_emitters`, the emitters themselves, a sky, are black where seen directly)."""
+    integrator = {"type": "path", "max_depth": max_depth, "hide_emitters": hide_emitters}
+    scene = mi.load_dict({"type": "scene", "integrator": integrator, **shapes})
     img = mi.render(scene, sensor=sensor(mi, cam, spp, seed), spp=spp, seed=seed)
     return np.array(img, dtype=np.float64)
 

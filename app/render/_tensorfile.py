@@ -76,5 +76,5 @@ def read_tensor_file(path: str | Path) -> dict[str, NDArray]:
         pos += 8 * ndim
         dtype = codes[code].newbyteorder("<")
         count = int(np.prod(shape)) if shape else 1
-        out[name] = np.frombuffer(data, dtype, count, offset).reshape(shape)
+        out[name] = np.frombuffer(data, dtype, count, offset).reshape(shape).copy()
     return out
