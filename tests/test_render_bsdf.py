@@ -39,15 +39,19 @@ def test_tensor_file_round_trip(tmp_path: Path) -> None:
             np.testing.assert_array_equal(back[name], value)
 
 
-mi = pytest.importorskip("mitsuba", reason="mitsuba (the render extra) is not installed")
-
 MATERIAL = render.Material("ggx", ((0.0, math.atan(0.07)),), 20.0, 150.0, (1.50, 1.46, 1.44),
                            0.03)  # fmt: skip
 SHARP = MATERIAL._replace(edge_radius_um=0.0)
 
 
 @pytest.fixture(scope="module")
-def draft_table(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, render.Resolution]:
+def mi() -> object:
+    """Mitsuba, or the test is skipped (the render extra)."""
+    return pytest.importorskip("mitsuba", reason="mitsuba (the render extra) is not installed")
+
+
+@pytest.fixture(scope="module")
+def draft_table(mi, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, render.Resolution]:
     """Draft tables of the sharp staircase (the rounded one's arcs are interpolated from
     `arc_grid` when tabulated, checked on their own below)."""
     res = render.QUALITIES["draft"]
@@ -58,6 +62,8 @@ def draft_table(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, render.
 
 def measured_eval(path: Path, cameras: np.ndarray, lights: np.ndarray) -> np.ndarray:
     """Mitsuba's `measured` plugin (scalar_rgb) at each pair (local frame), (n, 3)."""
+    import mitsuba as mi
+
     mi.set_variant("scalar_rgb")
     bsdf = mi.load_dict({"type": "measured", "filename": str(path)})
     ctx = mi.BSDFContext()
@@ -70,7 +76,7 @@ def measured_eval(path: Path, cameras: np.ndarray, lights: np.ndarray) -> np.nda
     return np.array(out)
 
 
-def test_measured_plugin_returns_the_model_at_the_table_nodes(draft_table) -> None:
+def test_measured_plugin_returns_the_model_at_the_table_nodes(mi, draft_table) -> None:
     """At a camera direction on the tables' parameter nodes and a light direction on the node of
     the sample square that Mitsuba's own warp sends there, Mitsuba's `measured` reads back the
     model's value (float32 tables: 1e-4), in all three channels (three indices)."""
@@ -129,7 +135,7 @@ def lobe_pairs(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.mark.slow
-def test_tabulation_error_shrinks_as_the_tables_grow(tmp_path: Path) -> None:
+def test_tabulation_error_shrinks_as_the_tables_grow(mi, tmp_path: Path) -> None:
     """Between the nodes the reconstruction interpolates: over light directions near the lobes
     (sharp GGX staircase, 35-deg wedge), the summed absolute error relative to the summed value
     falls from the draft tables to the default ones, and is below 10% there

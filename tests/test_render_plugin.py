@@ -122,15 +122,15 @@ def hemisphere_grid(n_theta: int, n_t: int) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("kernel,radius", [("ggx", 0.0), ("beckmann", 25.0), ("gaussian", 25.0)])
 def test_reflected_power_at_most_one(scalar, kernel: str, radius: float) -> None:
-    """The power the staircase (body included, albedo 0.3) reflects from each of several light
-    directions, integrated over the hemisphere of views, is below 1 and well above 0; the
-    plugin's value at sampled pairs is the same density."""
+    """The power the staircase (body included, albedo 0.3) reflects from three light directions
+    (downhill, near grazing uphill, nearly along the layer lines), integrated over the
+    hemisphere of views (midpoint rule, 0.75 deg x 0.017), is below 1 and well above 0; the
+    plugin's value at random pairs is the same density."""
     width = {"alpha": 0.1} if kernel != "gaussian" else {"width_deg": 6.0}
     angle = math.atan(0.1) if kernel != "gaussian" else math.radians(6.0)
     mat = render.Material(kernel, ((0.0, angle),), radius, 150.0, (N_INDEX,) * 3, 0.3)
-    views, d_omega = hemisphere_grid(360, 200)
-    for light in [(0.0, 0.0, 1.0), (-0.7, 0.1, 0.714), (0.6, -0.5, 0.624), (0.95, 0.0, 0.312),
-                  (-0.2, 0.97, 0.14)]:  # fmt: skip
+    views, d_omega = hemisphere_grid(240, 120)
+    for light in [(-0.7, 0.1, 0.714), (0.95, 0.0, 0.312), (-0.2, 0.97, 0.14)]:
         lt = np.asarray(light) / np.linalg.norm(light)
         total = render.density(mat, 35.0, lt, views)[:, 1] @ d_omega
         assert 0.05 < total < 1.0, (light, total)
@@ -143,8 +143,8 @@ def test_reflected_power_at_most_one(scalar, kernel: str, radius: float) -> None
 
 
 def test_sampled_directions_follow_the_pdf_chi_square(scalar) -> None:
-    """Pearson's chi-square of 20 000 light directions drawn by the plugin (rounded GGX
-    staircase, camera out of the plane) against its pdf integrated over 24 x 24 cells of
+    """Pearson's chi-square of 10 000 light directions drawn by the plugin (rounded GGX
+    staircase, camera out of the plane) against its pdf integrated over 20 x 20 cells of
     (theta', t) (cells expecting fewer than 5 pooled), at the 1% level, as Mitsuba's
     ChiSquareTest does; every sample's weight times its pdf is the plugin's value."""
     from scipy import stats
@@ -157,7 +157,7 @@ def test_sampled_directions_follow_the_pdf_chi_square(scalar) -> None:
     si.wi = mi.Vector3f(*camera)
     si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
     rng = np.random.default_rng(7)
-    n = 20000
+    n = 10000
     drawn = []
     for k in range(n):
         bs, weight = bsdf.sample(ctx, si, rng.random(), mi.Point2f(rng.random(), rng.random()))
@@ -167,7 +167,7 @@ def test_sampled_directions_follow_the_pdf_chi_square(scalar) -> None:
             np.testing.assert_allclose(np.array(weight) * bs.pdf, value, rtol=1e-5)
     face = _rgl.to_face(np.array(drawn))
     theta = np.arctan2(-face[:, 0], face[:, 2])  # the light's projected angle
-    cells = 24
+    cells = 20
     edges_th = np.linspace(-np.pi / 2, np.pi / 2, cells + 1)
     edges_t = np.linspace(-1.0, 1.0, cells + 1)
     observed, _, _ = np.histogram2d(theta, face[:, 1], [edges_th, edges_t])

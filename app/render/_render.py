@@ -223,6 +223,7 @@ def render_specimen(
     return the record written to `out/renders.json`."""
     from stairfit import imaging
     from stairfit.imaging_specs import photo_specs
+    from stairfit.scene import visible
 
     scene, material = fit.scene, fit.material
     check_specimen(scene)
@@ -262,7 +263,7 @@ def render_specimen(
         to_exr(mi, img, out / f"{stem}_render.exr")
         faces = []
         for w in scene.specimen.wedges:
-            if w.face_mm is None:
+            if w.face_mm is None or not visible(scene, photos[spec.name], w):
                 continue
             face, _ = sc.wedge_solid(w.face_mm, w.angle_deg)
             poly = cam.project(face.vertices)
