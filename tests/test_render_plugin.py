@@ -246,3 +246,28 @@ def test_face_frame_of_a_sphere_folds_overhangs() -> None:
     assert rot[1, 0] @ [0, 0, 1] > 0  # up the slope of a surface facing up
     assert rot[3, 0] @ [0, 0, 1] < 0  # towards the plate on an overhang
     np.testing.assert_allclose(rot[:, 2], normals / np.linalg.norm(normals, axis=1)[:, None])
+
+
+def test_build_axis_orientation_matches_the_tangent_frame(scalar) -> None:
+    """A 35-deg face printed along z, given once by its build axis (the plugin finds the wedge
+    angle and the layer lines from the shading normal) and once as `wedge_deg` with the layer
+    lines along the tangent u (s = -y, so that t = n x s points uphill): the same values."""
+    b = math.radians(35.0)
+    normal = mi.Vector3f(-math.sin(b), 0.0, math.cos(b))
+    frame = mi.Frame3f(mi.Vector3f(0.0, -1.0, 0.0), mi.Vector3f(math.cos(b), 0.0, math.sin(b)),
+                       normal)  # fmt: skip
+    common = {"kernel": "ggx", "alpha": 0.08, "index": N_INDEX, "edge_radius_um": 15.0}
+    by_axis = plugin(build_axis="0 0 1", **common)
+    by_tangent = plugin(wedge_deg=35.0, **common)
+    ctx = mi.BSDFContext()
+    cams, lights = random_pairs(12, 4)
+    values = []
+    for c, lt in zip(cams, lights, strict=True):
+        si = mi.SurfaceInteraction3f()
+        si.sh_frame = frame
+        si.wi = mi.Vector3f(*c)
+        a = np.array(by_axis.eval(ctx, si, mi.Vector3f(*lt)))
+        t = np.array(by_tangent.eval(ctx, si, mi.Vector3f(*lt)))
+        np.testing.assert_allclose(a, t, rtol=1e-6, atol=1e-12)
+        values.append(t[1])
+    assert np.count_nonzero(values) >= 8
