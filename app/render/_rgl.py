@@ -239,8 +239,11 @@ def tabulate(
     """The `.bsdf` tables of the staircase at wedge angle `beta2_deg` (see the module's
     docstring). Needs Mitsuba (its sample-warping class, so that the nodes are where its
     `measured` plugin will look)."""
-    import mitsuba
-
+    try:
+        import mitsuba
+    except ImportError:
+        raise ImportError("the RGL tables need Mitsuba 3's sample warping: install the render "
+                          'extra (pip install -e ".[render]")') from None  # fmt: skip
     warp_class = mitsuba.scalar_rgb.MarginalContinuous2D0
     res = resolution
     beta2 = float(clamp_beta2_deg(beta2_deg))
