@@ -229,19 +229,30 @@ def survey_folder(folder: Path, progress: bool = False) -> tuple[survey.RawFile,
 
 
 def sort_files(
-    files: Sequence[survey.RawFile],
+    files: Sequence[survey.RawFile], folder: Path
 ) -> tuple[
     tuple[survey.View, ...], list[tuple[survey.RawFile, str]], list[tuple[survey.RawFile, str]]
 ]:
-    """(views, flat fields, dark frames) of the surveyed files, each frame with why it is one."""
+    """(views, flat fields, dark frames) of the surveyed files, each frame with why it is one.
+    One image size for all: one camera's photo set per folder."""
+    sizes: dict[tuple[int, int], list[str]] = {}
+    for f in files:
+        sizes.setdefault((f.width, f.height), []).append(f.name)
+    if len(sizes) > 1:
+        listed = "; ".join(f"{w} x {h} px: {', '.join(n[:3])}{', ...' * (len(n) > 3)}"
+                           for (w, h), n in sizes.items())  # fmt: skip
+        raise UserError(
+            f"{folder}: the RAW files differ in size ({listed}); keep one camera's photo set "
+            "(photos, flat fields, dark frames at one image size) per folder"
+        )
     kinds = [(f, *survey.kind(f)) for f in files]
     photos = [f for f, k, _ in kinds if k == "photo"]
     flats = [(f, why) for f, k, why in kinds if k == "flat"]
     darks = [(f, why) for f, k, why in kinds if k == "dark"]
     if not photos:
         raise UserError(
-            f"no photograph among the {len(files)} RAW files ({len(flats)} look like flat "
-            f"fields, {len(darks)} like dark frames); init needs photos of the wedges"
+            f"{folder}: no photograph among the {len(files)} RAW files ({len(flats)} look like "
+            f"flat fields, {len(darks)} like dark frames); init needs photos of the wedges"
         )
     return survey.group_views(photos), flats, darks
 
@@ -622,11 +633,15 @@ def draft_scene(
     raw, layout = read_layout(layout_path) if layout_path else ({}, None)
     rows = read_angles(angles_path) if angles_path else ()
     files = survey_folder(folder, progress)
-    views, flats, darks = sort_files(files)
+    views, flats, darks = sort_files(files, folder)
     frames = {f.name for f, _ in (*flats, *darks)}
     angles = _angles_per_view(views, light_deg, rows, angles_path, frames)
     focal, estimates = None, [(None, "")] * len(views)
-    no_markers = "no layout with [markers] to estimate it from (--layout)"
+    no_markers = (
+        "no layout (--layout) with [markers] to estimate it from"
+        if layout is None
+        else "the layout has no [markers] to estimate it from"
+    )
     if layout is not None and layout.markers is not None:
         focal, estimates = estimate_views(folder, views, layout, progress)
     tables = [
