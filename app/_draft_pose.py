@@ -37,6 +37,7 @@ if TYPE_CHECKING:
     from stairfit.imaging import (
         CameraPose,
         CameraTags,
+        Exposure,
         MarkerDetection,
         MarkerLayout,
         PinholeCamera,
@@ -121,19 +122,19 @@ class ViewEstimate:
 def markers_centre(layout: MarkerLayout) -> np.ndarray:
     """The centre of the layout's marker corners on the base (x, y, 0), mm: where a view angle
     is seen from (docs/scene.md)."""
-    corners = np.array([c for _, c in layout.markers], float).reshape(-1, 2)  # type: ignore[attr-defined]
+    corners = np.array([c for _, c in layout.markers], float).reshape(-1, 2)
     return np.append(corners.mean(axis=0), 0.0)
 
 
 def view_of(pose: CameraPose, layout: MarkerLayout) -> float:
     """The view angle (deg, about y) of a pinhole's centre seen from the markers' centre."""
-    d = pose.camera_centre_mm() - markers_centre(layout)  # type: ignore[attr-defined]
+    d = pose.camera_centre_mm() - markers_centre(layout)
     return math.degrees(math.atan2(d[0], d[2]))
 
 
 def _relaxed(layout: MarkerLayout) -> MarkerLayout:
     """The layout with the view-angle check off (init finds the angle, there is none to check)."""
-    return dataclasses.replace(layout, max_view_error_deg=90.0)  # type: ignore[type-var]
+    return dataclasses.replace(layout, max_view_error_deg=90.0)
 
 
 def _pose(
@@ -162,17 +163,17 @@ def _pose(
 def focal_from_tags(tags: Sequence[CameraTags]) -> Focal | None:
     """The focal length from every photo's FocalLength and FocalPlaneXResolution tags, when
     all have them and they agree within `TAGS_AGREE`; else None."""
-    values = [t.focal_length_px() for t in tags]  # type: ignore[attr-defined]
-    if not values or any(v is None for v in values):
+    found = [t.focal_length_px() for t in tags]
+    values = [v for v in found if v is not None]
+    if not values or len(values) < len(found):
         return None
-    lo, hi = min(values), max(values)  # type: ignore[type-var]
-    if hi > lo * (1 + TAGS_AGREE):
+    if max(values) > min(values) * (1 + TAGS_AGREE):
         return None
     t = tags[0]
     return Focal(
-        float(np.median(values)),  # type: ignore[arg-type]
-        f"the tags: FocalLength {t.focal_length_mm:g} mm x FocalPlaneXResolution "  # type: ignore[attr-defined]
-        f"{t.pixels_per_mm:.6g} px/mm",  # type: ignore[attr-defined]
+        float(np.median(values)),
+        f"the tags: FocalLength {t.focal_length_mm:g} mm x FocalPlaneXResolution "
+        f"{t.pixels_per_mm:.6g} px/mm",
     )
 
 
@@ -181,11 +182,11 @@ def _corner_sets(
 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """(base-frame points (n, 3), image points (n, 2)) of the layout's markers per detection
     with at least `min_markers` of them."""
-    known = layout.corners_mm()  # type: ignore[attr-defined]
+    known = layout.corners_mm()
     obj, img = [], []
     for det in detections:
-        pairs = [(i, c) for i, c in zip(det.ids, det.corners_px, strict=True) if i in known]  # type: ignore[attr-defined]
-        if len(pairs) < layout.min_markers:  # type: ignore[attr-defined]
+        pairs = [(i, c) for i, c in zip(det.ids, det.corners_px, strict=True) if i in known]
+        if len(pairs) < layout.min_markers:
             continue
         xy = np.concatenate([known[i] for i, _ in pairs])
         obj.append(np.column_stack([xy, np.zeros(len(xy))]).astype(np.float32))
@@ -245,7 +246,7 @@ def _affine_rms(
     """RMS corner misfit of the affine camera over every view it fits (inf for none)."""
     from stairfit import imaging
 
-    loose = dataclasses.replace(_relaxed(layout), max_reprojection_error_px=1e9)  # type: ignore[type-var]
+    loose = dataclasses.replace(_relaxed(layout), max_reprojection_error_px=1e9)
     squares, count = 0.0, 0
     for det in detections:
         try:
@@ -263,8 +264,8 @@ def _affine_rms(
 
 def _perturbed(det: MarkerDetection, sd_px: float, rng: np.random.Generator) -> MarkerDetection:
     """The detection with its corners moved by Gaussian noise of `sd_px` per coordinate."""
-    noise = rng.normal(0.0, sd_px, np.shape(det.corners_px))  # type: ignore[attr-defined]
-    return dataclasses.replace(det, corners_px=det.corners_px + noise)  # type: ignore[attr-defined,type-var]
+    noise = rng.normal(0.0, sd_px, np.shape(det.corners_px))
+    return dataclasses.replace(det, corners_px=det.corners_px + noise)
 
 
 def _spread(values: Sequence[float]) -> float:
@@ -278,8 +279,8 @@ def _bootstrap(
     coordinate: RMS / sqrt(2), for the 6 or so parameters fitted)."""
     from stairfit import imaging
 
-    n = 4 * len(pose.ids)  # type: ignore[attr-defined]
-    sd = pose.rms_error_px / math.sqrt(2) * math.sqrt(n / max(n - 3, 1))  # type: ignore[attr-defined]
+    n = 4 * len(pose.ids)
+    sd = pose.rms_error_px / math.sqrt(2) * math.sqrt(n / max(n - 3, 1))
     rng = np.random.default_rng(0)
     values = []
     for _ in range(BOOTSTRAP_DRAWS):
@@ -478,7 +479,9 @@ def _edge_search(
 # --- the faces' edges ----------------------------------------------------------------------
 
 
-def edge_images(frames: Sequence[RawFrame], exposures: Sequence[object | None]) -> list[EdgeImage]:
+def edge_images(
+    frames: Sequence[RawFrame], exposures: Sequence[Exposure | None]
+) -> list[EdgeImage]:
     """The gradients (x, y) of a view's linear image, binned 2 x 2 (`imaging.binned_linear`)
     and lightly smoothed, with the binning factor: [(gx, gy, factor)]. An HDR bracket's
     exposures are merged first (`imaging.prepare_radiometry`), so that neither clipped nor
@@ -495,10 +498,10 @@ def edge_images(frames: Sequence[RawFrame], exposures: Sequence[object | None]) 
             exposures,
             None,
             imaging.ExtractionSettings(),
-            frame.name,  # type: ignore[attr-defined]
+            frame.name,
         ).frame
         top = float(np.nanmax(merged.data)) if np.isfinite(merged.data).any() else 0.0
-        frame = dataclasses.replace(merged, data=np.nan_to_num(merged.data, nan=top))  # type: ignore[type-var]
+        frame = dataclasses.replace(merged, data=np.nan_to_num(merged.data, nan=top))
     linear, factor = imaging.binned_linear(frame)
     image = cv2.GaussianBlur(linear, (0, 0), 0.7)
     gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3) / np.float32(8.0)
@@ -513,7 +516,7 @@ def _outline_samples(
     and the unit normal of their edge."""
     from stairfit import imaging
 
-    poly = pose.project(imaging.face_outline_3d(outline, angle))  # type: ignore[attr-defined]
+    poly = pose.project(imaging.face_outline_3d(outline, angle))
     points, normals = [np.zeros((0, 2))], [np.zeros((0, 2))]
     for a, b in zip(poly, np.roll(poly, -1, axis=0), strict=True):
         length = float(np.hypot(*(b - a)))

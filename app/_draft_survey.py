@@ -15,8 +15,12 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from stairfit.imaging import CameraTags, Exposure
 
 RAW_EXTENSIONS: frozenset[str] = frozenset(
     {
@@ -109,10 +113,10 @@ class RawFile:
     height: int
     cfa: str
     camera: str
-    exposure: object | None
+    exposure: Exposure | None
     exposure_problem: str
     tag_exposure: tuple[float | None, float | None, float | None]
-    tags: object
+    tags: CameraTags
     level: float
     peak: float
     spread: float
@@ -256,7 +260,7 @@ def same_view(a: RawFile, b: RawFile) -> tuple[bool, str]:
         return False, "no exposure tags to compare"
     if not _other_exposure(a, b):
         return False, "the same exposure"
-    ratio = a.exposure.scale / b.exposure.scale  # type: ignore[attr-defined]
+    ratio = a.exposure.scale / b.exposure.scale
     lo, hi = BRACKET_LEVELS
     ok = (a.blocks > lo) & (a.blocks < hi) & (b.blocks > lo) & (b.blocks < hi)
     if ok.sum() < BRACKET_MIN_BLOCKS:
@@ -273,7 +277,7 @@ def _other_exposure(a: RawFile, b: RawFile) -> bool:
     """Whether the two files' exposures differ (`EXPOSURE_STEP`)."""
     if a.exposure is None or b.exposure is None:
         return False
-    ratio = a.exposure.scale / b.exposure.scale  # type: ignore[attr-defined]
+    ratio = a.exposure.scale / b.exposure.scale
     return max(ratio, 1 / ratio) >= EXPOSURE_STEP
 
 
@@ -303,6 +307,6 @@ def group_views(photos: Sequence[RawFile]) -> tuple[View, ...]:
         else:
             runs.append([f])
     return tuple(
-        View(tuple(sorted(run, key=lambda g: -g.exposure.scale if g.exposure else 0.0)))  # type: ignore[attr-defined]
+        View(tuple(sorted(run, key=lambda g: -g.exposure.scale if g.exposure else 0.0)))
         for run in runs
     )

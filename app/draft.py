@@ -554,7 +554,7 @@ def _photo_table(
     names = list(view.names)
     bracket = f": one view at {len(names)} exposures (an HDR bracket, the shortest first)"
     notes = [", ".join(names) + (bracket if len(names) > 1 else "")]
-    taken = [f.tags.taken for f in view.files if f.tags.taken]  # type: ignore[attr-defined]
+    taken = [f.tags.taken for f in view.files if f.tags.taken]
     notes += [f"taken {taken[0]}"] if taken else []
     if est is not None and est.ids:
         notes.append(f"markers {' '.join(map(str, est.ids))} of {member} used")

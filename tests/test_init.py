@@ -370,6 +370,83 @@ def test_hostile_input_is_one_line_naming_the_fix(
     assert not (tmp_path / "photos" / "scene.toml").exists()
 
 
+# --- the fit with the drafted scene --------------------------------------------------------
+
+FIT_TOLERANCE_SE = 0.2
+"""The issue's bound: every parameter of the drafted scene's fit within this many standard errors
+(of the original scene's fit) of the original's."""
+
+
+def fit(folder: Path, out: Path) -> dict:
+    """results.json of `stairfit fit FOLDER --no-posterior` (no posterior: the least-squares
+    values and standard errors are compared)."""
+    assert main(["fit", str(folder), "-o", str(out), "--no-posterior", "--quiet"]) == 0
+    return json.loads((out / "results.json").read_text())
+
+
+def differences_in_se(original: dict, other: dict) -> dict[str, float]:
+    """Each parameter's difference from the original's fit in the original's standard errors."""
+    values = {(p["name"], p.get("wedge")): p["least_squares"] for p in other["parameters"]}
+    out = {}
+    for p in original["parameters"]:
+        mine, theirs = p["least_squares"], values[(p["name"], p.get("wedge"))]
+        out[p["name"]] = (theirs["value"] - mine["value"]) / mine["stderr"]
+    return out
+
+
+def with_view_angles(scene: Path, views: dict[tuple[str, ...], float]) -> None:
+    """Write the given view angles into a drafted scene (in place), photo by photo."""
+    text = scene.read_text()
+    parts = text.split("[[photos]]")
+    for k, view in enumerate(views.values(), start=1):
+        parts[k] = re.sub(r"^view_deg = .*$", f"view_deg = {view!r}", parts[k], flags=re.M)
+    scene.write_text("[[photos]]".join(parts))
+
+
+@pytest.fixture(scope="module")
+def original_fit(simulated, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    original, _, _ = simulated
+    return fit(original, tmp_path_factory.mktemp("fits") / "original")
+
+
+def test_the_drafted_scene_with_the_true_view_angles_fits_as_the_original(
+    simulated, original_fit: dict, tmp_path: Path
+) -> None:
+    """Everything init drafts but the view angles (brackets and their reference, calibration
+    frames, the layout, faces placed from the markers instead of the original's pixel
+    polygons) gives the original's fit: same model, parameters within 0.2 standard errors."""
+    original, photos, _ = simulated
+    draft = tmp_path / "photos"
+    shutil.copytree(photos, draft, ignore=shutil.ignore_patterns(".stairfit-cache"))
+    truth = views_of(original)
+    assert list(views_of(draft)) == list(truth)
+    with_view_angles(draft / "scene.toml", truth)
+    results = fit(draft, tmp_path / "fit")
+    chosen = results["model_selection"]["chosen"]
+    assert chosen == original_fit["model_selection"]["chosen"]
+    diffs = differences_in_se(original_fit, results)
+    assert max(abs(d) for d in diffs.values()) < FIT_TOLERANCE_SE, diffs
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="the markers give the view angles within 0.02 deg (0.17 deg at 0 deg, where a "
+    "parallel projection's foreshortening hardly changes); this set's fit moves by about one "
+    "standard error per 0.02 deg (sigma +5.9, floor -10 se measured): "
+    "benchmarks/results/init.md",
+)
+def test_the_drafted_scene_fits_as_the_original_within_0_2_standard_errors(
+    simulated, original_fit: dict, tmp_path: Path
+) -> None:
+    """The issue's criterion on simulate's folder, with the view angles init estimated."""
+    _, photos, _ = simulated
+    results = fit(photos, tmp_path / "fit")
+    assert results["model_selection"]["chosen"] == original_fit["model_selection"]["chosen"]
+    diffs = differences_in_se(original_fit, results)
+    assert max(abs(d) for d in diffs.values()) < FIT_TOLERANCE_SE, diffs
+
+
 # --- data made another way --------------------------------------------------------------------
 
 
@@ -434,3 +511,72 @@ def test_on_the_physically_based_dev_set(tmp_path: Path) -> None:
     truth_views, drafted = views_of(dev), views_of(photos)
     errors = {f[0]: drafted[f] - truth_views[f] for f in truth_views}
     assert max(abs(e) for e in errors.values()) < VIEW_TOLERANCE_DEG, errors
+
+
+@pytest.mark.slow  # two fits of 28 photos with the lab model: several minutes each
+def test_on_the_physically_based_dev_set_the_draft_fits_as_the_original(tmp_path: Path) -> None:
+    """The issue's criterion on the dev set: the lab model takes each face's view from the
+    markers' pinhole pose, so init's focal length and view angles give the original's fit. The
+    dev set's `[extraction] erode_px = 3` is not a layout table: it is copied into the draft, as
+    a user keeps their extraction settings (with the default 8 the steep faces lose their
+    pixels and the fit differs)."""
+    dev, photos = _pbr_draft(tmp_path, ("focal_length_px", "principal_point_px"))
+    raw = tomllib.loads((dev / "scene.toml").read_text())
+    extraction = tomli_w.dumps({"extraction": raw["extraction"]}) if "extraction" in raw else ""
+    with open(photos / "scene.toml", "a") as fh:
+        fh.write("\n" + extraction)
+    original = copy_raws(dev, tmp_path / "original")
+    shutil.copy2(dev / "scene.toml", original / "scene.toml")
+    base = fit(original, tmp_path / "original-fit")
+    results = fit(photos, tmp_path / "draft-fit")
+    assert results["model_selection"]["chosen"] == base["model_selection"]["chosen"]
+    diffs = differences_in_se(base, results)
+    assert max(abs(d) for d in diffs.values()) < FIT_TOLERANCE_SE, diffs
+
+
+def test_the_focal_length_is_read_from_the_tags(tmp_path: Path) -> None:
+    """FocalLength x FocalPlaneXResolution (in its unit) gives the focal length in pixels; tags
+    of photos that disagree give none (init then asks the markers)."""
+    import numpy as np
+    import tifffile
+
+    from stairfit._draft_pose import focal_from_tags
+    from stairfit.imaging import CameraTags, read_camera_tags
+
+    path = tmp_path / "tagged.tif"
+    tags = [(37386, 5, 1, (135, 1), True), (41486, 5, 1, (100, 3), True),
+            (41488, 3, 1, 4, True), (306, 2, 20, "2024:05:01 12:00:00", True)]  # fmt: skip
+    tifffile.imwrite(path, np.zeros((8, 8), np.uint16), extratags=tags)
+    read = read_camera_tags(path)
+    assert read.focal_length_mm == 135.0 and abs(read.pixels_per_mm - 100 / 3) < 1e-9
+    assert abs(read.focal_length_px() - 4500.0) < 1e-6
+    assert read.taken == "2024:05:01 12:00:00"
+    assert read_camera_tags(tmp_path / "missing.dng") == CameraTags()
+    focal = focal_from_tags([read, read])
+    assert focal is not None and abs(focal.focal_length_px - 4500.0) < 1e-6
+    other = CameraTags(focal_length_mm=50.0, pixels_per_mm=100 / 3)
+    assert focal_from_tags([read, other]) is None
+    assert focal_from_tags([read, CameraTags()]) is None
+
+
+def test_the_drafted_document_reads_back_as_written() -> None:
+    """A layout's tables written into the draft read back unchanged: quoted keys, escapes,
+    non-ASCII text, nested and arrays of tables, and a TODO as a string."""
+    from stairfit._draft_toml import Entry, Table, Todo, from_raw, render
+
+    raw = {
+        "specimen": {
+            "layer_um": 150.0,
+            "material": "pla",
+            "metadata": {"printer": 'Prusa "MK4" \\ tab\tend', "nozzle temp (C)": 215,
+                         "note": "Schöne Grüße ✓ 𝛽"},
+            "index": {"model": "tabulated", "wavelength_nm": [400, 550.5], "n": [1.48, 1.46]},
+            "wedges": [{"name": "w10", "angle_deg": 10.0, "roi_px": [[0, 0], [9, 0], [9, 9]]},
+                       {"name": "w20", "angle_deg": 20.0, "roi_px": [[1.5, 2], [9, 0], [9, 9]]}],
+        },
+        "light": {"illuminant": "D65", "angular_diameter_deg": 1e-3},
+    }  # fmt: skip
+    text = render([from_raw(k, v) for k, v in raw.items()], ["a header"])
+    assert tomllib.loads(text) == raw
+    todo = Table("photos", (Entry("light_deg", Todo('angle "in" deg', 0.0), "a comment"),), True)
+    assert tomllib.loads(render([todo]))["photos"] == [{"light_deg": 'TODO: angle "in" deg'}]
