@@ -12,9 +12,11 @@ draft with the original's view angles written in (what the rest of the draft doe
 The sets: `simulate` (tests/test_init.py's folder: 1.5 MP, 6 views, HDR brackets of 2, a flat
 field and a dark frame; a parallel projection), `independent` (tests/independent_photos.py's
 standing wedges, a pinhole at 900 mm) and, given `--pbr DIR`, the physically based dev set
-(benchmarks/make_pbr_set.py --set dev; its folder is only read).
+(benchmarks/make_pbr_set.py --set dev; its folder is only read, and its `[extraction]`, not a
+layout table, is copied into the draft as a user keeps their extraction settings).
 
     python benchmarks/bench_init.py [--fit] [--true-views] [--pbr DIR] [--keep DIR]
+        [--fit-args "--model rounded+floor"] [--sets simulate,independent,pbr-dev]
 
 Results: benchmarks/results/init.md (newest run first; say whether the machine was loaded: the
 view angles do not depend on it, the fits' model choice can, through the ladder's time budget).
@@ -72,6 +74,9 @@ def _draft(original: Path, work: Path, name: str) -> tuple[Path, float]:
     layout = _layout(original / "scene.toml", work / f"{name}-layout.toml")
     seconds = _stairfit("init", str(photos), "--angles", str(table), "--layout", str(layout),
                         "--quiet")  # fmt: skip
+    if "extraction" in raw:  # not a layout table: the user keeps their extraction settings
+        with open(photos / "scene.toml", "a") as fh:
+            fh.write("\n" + tomli_w.dumps({"extraction": raw["extraction"]}))
     return photos, seconds
 
 
@@ -94,8 +99,8 @@ def _with_views(draft: Path, views: dict[str, float], out: Path) -> Path:
     return out
 
 
-def _fit(folder: Path, out: Path) -> tuple[dict, float]:
-    seconds = _stairfit("fit", str(folder), "-o", str(out), "--no-posterior", "--quiet")
+def _fit(folder: Path, out: Path, extra: list[str]) -> tuple[dict, float]:
+    seconds = _stairfit("fit", str(folder), "-o", str(out), "--no-posterior", "--quiet", *extra)
     return json.loads((out / "results.json").read_text()), seconds
 
 
@@ -133,15 +138,16 @@ def _report_set(name: str, original: Path, work: Path, args: argparse.Namespace)
             copy.mkdir()
             for f in (*original.glob("*.dng"), original / "scene.toml"):
                 shutil.copy2(f, copy / f.name)
-        base, t0 = _fit(copy, work / f"{name}-original-fit")
-        other, t1 = _fit(draft, work / f"{name}-draft-fit")
+        extra = args.fit_args.split()
+        base, t0 = _fit(copy, work / f"{name}-original-fit", extra)
+        other, t1 = _fit(draft, work / f"{name}-draft-fit", extra)
         chosen = (base["model_selection"]["chosen"], other["model_selection"]["chosen"])
         lines += [f"Fits ({t0:.0f} s, {t1:.0f} s): chosen {chosen[0]} (original), {chosen[1]} "
                   "(draft).", "", "| parameter | original | draft | difference (se) |",
                   "|---|---|---|---|", *_differences(base, other), ""]  # fmt: skip
         if args.true_views:
             fixed = _with_views(draft, truth, work / f"{name}-draft-true-views")
-            third, t2 = _fit(fixed, work / f"{name}-true-views-fit")
+            third, t2 = _fit(fixed, work / f"{name}-true-views-fit", extra)
             lines += [f"The draft with the scene's view angles ({t2:.0f} s): chosen "
                       f"{third['model_selection']['chosen']}.", "",
                       "| parameter | original | draft, true views | difference (se) |",
@@ -155,18 +161,23 @@ def main() -> None:
     parser.add_argument("--true-views", action="store_true", help="also the draft, true views")
     parser.add_argument("--pbr", type=Path, default=None, help="the physically based dev set")
     parser.add_argument("--keep", type=Path, default=None, help="work here (kept) instead")
+    parser.add_argument("--fit-args", default="", help="more options of the fits, e.g. --model X")
+    parser.add_argument("--sets", default="simulate,independent,pbr-dev", help="which sets")
     args = parser.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="bench-init-"))
     work.mkdir(parents=True, exist_ok=True)
     sys.path.insert(0, str(TESTS))
     import independent_photos as ip
 
+    wanted = set(args.sets.split(","))
     sets = {}
-    _stairfit("simulate", str(work / "simulate"), *SIMULATED, "--quiet")
-    sets["simulate"] = work / "simulate"
-    ip.render_folder(work / "independent", setup=ip.standing_setup(), seed=1)
-    sets["independent"] = work / "independent"
-    if args.pbr is not None:
+    if "simulate" in wanted:
+        _stairfit("simulate", str(work / "simulate"), *SIMULATED, "--quiet")
+        sets["simulate"] = work / "simulate"
+    if "independent" in wanted:
+        ip.render_folder(work / "independent", setup=ip.standing_setup(), seed=1)
+        sets["independent"] = work / "independent"
+    if args.pbr is not None and "pbr-dev" in wanted:
         sets["pbr-dev"] = args.pbr
     lines = []
     for name, folder in sets.items():

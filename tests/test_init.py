@@ -194,7 +194,8 @@ def test_without_the_lamp_angles_fit_and_measure_refuse_with_one_line(
 
 def test_a_filled_todo_is_accepted(small: Path, tmp_path: Path) -> None:
     photos = _copy(small, tmp_path / "photos")
-    assert main(["init", str(photos), "--light-deg", "-10", "--quiet"]) == 0
+    # one lamp angle per view, in file-name order (negative values in a comma list)
+    assert main(["init", str(photos), "--light-deg", "-10,-20,-30", "--quiet"]) == 0
     text = (photos / "scene.toml").read_text()
     fills = {
         "layer_um": "150.0",
@@ -211,7 +212,7 @@ def test_a_filled_todo_is_accepted(small: Path, tmp_path: Path) -> None:
     assert todo_fields(tomllib.loads(text)) == []
     (photos / "scene.toml").write_text(text)
     scene = load_scene(photos)
-    assert len(scene.photos) == 3 and scene.photos[0].light_deg == -10.0
+    assert [p.light_deg for p in scene.photos] == [-10.0, -20.0, -30.0]
 
 
 def test_files_without_exposure_tags_get_todos_per_file(tmp_path: Path) -> None:
@@ -283,10 +284,10 @@ def _hostile(tmp_path: Path, small: Path, case: str) -> tuple[list[str], str]:
         return [str(photos)], "the RAW files differ in size (632 x 474 px: DARK_01.dng"
     if case == "lamp angles for another number of views":
         _copy(small, photos)
-        return [str(photos), "--light-deg", "1", "2"], "--light-deg: 2 values for 3 views"
+        return [str(photos), "--light-deg", "1,2"], "--light-deg: 2 values for 3 views"
     if case == "a lamp angle out of range":
         _copy(small, photos)
-        return [str(photos), "--light-deg", "120"], "--light-deg: 120 is outside [-90, 90]"
+        return [str(photos), "--light-deg", "120"], "--light-deg: 120 deg is outside [-90, 90] deg"
     _copy(small, photos)
     table = tmp_path / "angles.csv"
     texts = {

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .. import _ranges
 from ..draft import DRAFT_FILE, Draft, draft_scene, write_draft
 
 
@@ -33,12 +34,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     angles = p.add_mutually_exclusive_group()
     angles.add_argument(
         "--light-deg",
-        type=float,
-        nargs="+",
-        metavar="DEG",
-        default=(),
+        metavar="DEG[,DEG...]",
+        default=None,
         help="the lamp's angle from the base normal (deg, positive on the downhill side): one "
-        "value for every photo, or one per view in the order init lists them",
+        "value for every photo, or a comma list with one per view in file-name order",
     )
     angles.add_argument(
         "--angles",
@@ -62,10 +61,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """`stairfit init DIR`."""
+    light_deg: tuple[float, ...] = ()
+    if args.light_deg is not None:
+        values = _ranges.parse_values(args.light_deg, "--light-deg")
+        light_deg = tuple(
+            float(v) for v in _ranges.check_range(values, -90, 90, "--light-deg", "deg")
+        )
     draft = draft_scene(
         args.folder,
         layout_path=args.layout,
-        light_deg=tuple(args.light_deg),
+        light_deg=light_deg,
         angles_path=args.angles,
         progress=not args.quiet,
     )
