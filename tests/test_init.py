@@ -581,3 +581,21 @@ def test_the_drafted_document_reads_back_as_written() -> None:
     assert tomllib.loads(text) == raw
     todo = Table("photos", (Entry("light_deg", Todo('angle "in" deg', 0.0), "a comment"),), True)
     assert tomllib.loads(render([todo]))["photos"] == [{"light_deg": 'TODO: angle "in" deg'}]
+
+
+def test_a_view_angle_in_the_angles_file_wins_over_the_estimate(
+    small: Path, tmp_path: Path
+) -> None:
+    """`--angles` rows: a lamp angle per view (any file of a bracket names it), a view angle
+    where given; a view the file does not list keeps a TODO lamp angle."""
+    photos = _copy(small, tmp_path / "photos")
+    table = tmp_path / "angles.csv"
+    table.write_text("file,light_deg,view_deg\nIMG_0001_1.dng,-10,-80\nIMG_0002.dng,5,\n")
+    assert main(["init", str(photos), "--angles", str(table), "--quiet"]) == 0
+    text = (photos / "scene.toml").read_text()
+    raw = tomllib.loads(text)
+    first, second, third = raw["photos"]
+    assert (first["light_deg"], first["view_deg"]) == (-10.0, -80.0)
+    assert "view_deg = -80.0  # given by angles.csv line 2" in text
+    assert second["light_deg"] == 5.0 and second["view_deg"].startswith(TODO_PREFIX)
+    assert third["light_deg"].startswith(TODO_PREFIX)
