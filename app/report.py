@@ -23,6 +23,7 @@ from matplotlib.figure import Figure
 from stairfit.fitting import ESS_MIN, RHAT_MAX
 
 from . import __version__
+from ._gloss_report import gloss_html, gloss_record
 from ._misfit_report import (
     assessment_record,
     misfit_html,
@@ -211,6 +212,7 @@ def write_outputs(
     write_observations(outcome, out / "observations.csv")
     figures = write_figures(outcome, out / "figures", drawn, draw)
     results = results_dict(outcome, figures)
+    results["gloss"] = _jsonable(gloss_record(results, out))  # reads out/chain.npz
     write_file(out / "results.json", json.dumps(results, indent=2, allow_nan=False))
     write_file(out / "report.html", report_html(outcome, results, figures, out))
     if outcome.posterior is not None:  # the chain for ArviZ (docs/fitting.md §5)
@@ -383,6 +385,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         "assessment": assessment_record(outcome),
         "directions": directions_record(outcome),
         "accuracy": None if outcome.accuracy is None else outcome.accuracy.record(),
+        "specimen": specimen_record(outcome),
         "parameters": records,
         "fixed_parameters": fixed_parameters(outcome),
         "truth": truth_records(outcome, records),
@@ -403,6 +406,16 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         },
     }
     return _jsonable(result)
+
+
+def specimen_record(outcome: FitOutcome) -> dict[str, Any]:
+    """results.json's `specimen`: the layer thickness and each wedge's name and angle (deg),
+    in the order of the fit's wedge indices (what `stairfit predict --gloss --fit` reads)."""
+    spec = outcome.scene.specimen
+    return {
+        "layer_um": spec.layer_um,
+        "wedges": [{"name": w.name, "angle_deg": w.angle_deg} for w in spec.wedges],
+    }
 
 
 def directions_record(outcome: FitOutcome) -> dict[str, Any]:
@@ -854,6 +867,7 @@ sizes (ArviZ). In red: outside R-hat &lt; {RHAT_MAX:g}, ESS &ge; {ESS_MIN:g}.</p
 <th>status / notes</th></tr>{table}</table>
 <p>Rounded edges: {e(rounding_sentence(outcome))}.</p>
 {_directions_html(results["directions"])}
+{gloss_html(results["gloss"]) if "gloss" in results else ""}
 <h2>Diagnostics</h2><p>least squares: {e(ls["message"])}, {ls["num_steps"]} steps; chi2 =
 {ls["chi2"]:.5g} for {ls["dof"]} degrees of freedom (reduced {ls["reduced_chi2"]:.3g});
 {ls["n_used"]} of {ls["n_rows"]} measurements fitted.<br>{e(_accuracy_line(outcome))}
