@@ -632,10 +632,30 @@ def _rel(path: Path, folder: Path) -> str:
     return f"figures/{path.relative_to(folder)}"
 
 
-def fit_per_wedge(outcome: FitOutcome) -> Figure:
+LINE_STYLES = ("-", "--", ":", "-.")
+"""The model curves' styles, one per light angle of a wedge (in the order of the angles)."""
+
+
+def model_curves_of(outcome: FitOutcome) -> list[Any] | None:
+    """The chosen fit's dense model curves (`fitting.model_curves`), or None when the fit
+    carries no prepared problem (a result assembled by hand)."""
+    from stairfit import fitting
+
+    fit = outcome.selection.fit
+    if getattr(fit, "problem", None) is None or getattr(fit, "spec", None) is None:
+        return None
+    return fitting.model_curves(fit)
+
+
+def fit_per_wedge(outcome: FitOutcome, curves: list[Any] | None = None) -> Figure:
     """Measured (error bars) and fitted radiance against the face-frame viewing angle, one
-    panel per wedge and one colour per channel (like the paper's Fig. 9)."""
+    panel per wedge and one colour per channel (like the paper's Fig. 9). The model is drawn as
+    a dense curve over the viewing angle (`curves`: `fitting.model_curves`, computed here when
+    None), one line style per light angle, so that the lobes between the measured views show;
+    without a prepared fit, as lines through the model at the measured views."""
     fit, obs = outcome.selection.fit, outcome.observations
+    if curves is None:
+        curves = model_curves_of(outcome)
     wedges = outcome.scene.specimen.wedges
     ncol = min(3, len(wedges))
     nrow = int(np.ceil(len(wedges) / ncol))
@@ -645,6 +665,7 @@ def fit_per_wedge(outcome: FitOutcome) -> Figure:
     theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
     for k, wedge in enumerate(wedges):
         ax = axes.flat[k]
+        lights = sorted({round(c.theta_i_rad / DEG, 6) for c in curves or () if c.wedge == k})
         for c, col in enumerate(colours):
             sel = (obs.wedge_index == k) & (obs.channel_index == c)
             if not np.any(sel):
@@ -665,7 +686,16 @@ def fit_per_wedge(outcome: FitOutcome) -> Figure:
             )
             if np.any(~used):
                 ax.plot(x[~used], y[~used], "x", color=col, alpha=0.6)
-            ax.plot(x, fit.model[sel][order], "-", color=col, lw=1)
+            if curves is None:
+                ax.plot(x, fit.model[sel][order], "-", color=col, lw=1)
+        for cv in curves or ():
+            if cv.wedge == k and cv.channel < len(colours):
+                style = LINE_STYLES[lights.index(round(cv.theta_i_rad / DEG, 6)) % 4]
+                ax.plot(cv.theta_o_rad / DEG, cv.value, style, color=colours[cv.channel], lw=1)
+        if len(lights) > 1:  # which line is which light angle
+            for j, t in enumerate(lights):
+                ax.plot([], [], LINE_STYLES[j % 4], color="0.3", label=f"theta_i {t:.3g} deg")
+            ax.legend(fontsize="x-small")
         ax.set(
             title=f"{wedge.name} ({wedge.angle_deg:g} deg)",
             xlabel="theta_o (deg, face)",
@@ -675,8 +705,12 @@ def fit_per_wedge(outcome: FitOutcome) -> Figure:
     for ax in axes.flat[len(wedges) :]:
         ax.axis("off")
     axes.flat[0].legend(fontsize="small", title="channel")
+    how = ("lines through the model at the measured views" if curves is None else
+           "curves: the model at every 0.5 deg of the viewing angle")  # fmt: skip
+    if curves and curves[0].mean_geometry:
+        how += " at each wedge's mean geometry, through the fitted values"
     fig.suptitle(
-        f"measured (points, x = not fitted) and model '{outcome.selection.chosen}' (lines)"
+        f"measured (points, x = not fitted) and model '{outcome.selection.chosen}' ({how})"
     )
     fixed_layout(fig, nrow, ncol, top=0.75, wspace=0.85, hspace=0.85)
     return fig
