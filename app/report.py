@@ -909,6 +909,7 @@ sizes (ArviZ). In red: outside R-hat &lt; {RHAT_MAX:g}, ESS &ge; {ESS_MIN:g}.</p
 <ul>{warn}{notes}</ul>
 <h2>Figures</h2>{imgs}
 <h2>Regions of interest</h2>{prev}<h3>Markers per photo</h3>{_markers_html(outcome)}
+{renders_html(out)}
 <p style="color:#777">stairfit {e(__version__)}; conventions: docs/conventions.md; all numbers
 also in results.json.</p></body></html>
 """
@@ -1064,3 +1065,76 @@ def print_summary(outcome: FitOutcome, out: Path, source: Path | None = None) ->
     for note in outcome.notes:
         print(f"  note: {note}")
     print(f"  results: {out / 'results.json'}; report: {out / 'report.html'}")
+
+
+# --- renders (`stairfit render`, docs/render.md) ---------------------------------------------
+
+RENDERS_START = "<!-- stairfit render: start -->"
+RENDERS_END = "<!-- stairfit render: end -->"
+"""The marks around the renders' section, so that `stairfit render` replaces it in place."""
+
+
+def renders_html(folder: Path) -> str:
+    """The report's section of `stairfit render`'s output (`folder/renders/renders.json`):
+    for every photographed view the photo and the render of the fitted material side by side
+    (the same display scale: the photo's white), with each face's mean relative radiance in
+    both; for a mesh, its render. The marks alone when there are no renders."""
+    path = folder / "renders" / "renders.json"
+    if not path.is_file():
+        return f"{RENDERS_START}{RENDERS_END}"
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return f"{RENDERS_START}{RENDERS_END}"
+    e = html.escape
+    parts = [RENDERS_START, "<h2>Renders of the fitted material</h2>"]
+    if record.get("kind") == "specimen":
+        parts.append(
+            "<p>Each photo beside a path-traced render (Mitsuba 3) of the fitted material on the "
+            "specimen, from the camera pose the markers gave and under the scene's lamp; both in "
+            "the photos' relative radiance, shown with the photo's white. The plate and the "
+            "wedges' walls are diffuse stand-ins; the faces carry the fitted staircase (RGL "
+            "tables in renders/materials/). docs/render.md.</p>"
+        )
+    for v in record.get("views", []):
+        title = v.get("photo") or v.get("mesh", "")
+        if "view_deg" in v:
+            title = f"{title}: light {v.get('light_deg')} deg, view {v.get('view_deg')} deg"
+        imgs = "".join(
+            f"<figure style='display:inline-block;width:49%;margin:0'><img "
+            f"src='renders/{e(v[key])}' style='width:100%'><figcaption>{label}</figcaption>"
+            "</figure>"
+            for key, label in (("photo_png", "photo"), ("render_png", "render"))
+            if key in v
+        )
+        rows = "".join(
+            f"<tr><td>{e(f['wedge'])}</td><td>{_fmt(_green(f['photo']), '.4g')}</td>"
+            f"<td>{_fmt(_green(f['render']), '.4g')}</td><td>{_ratio(f)}</td></tr>"
+            for f in v.get("faces", [])
+        )
+        table = ("<table><tr><th>face</th><th>photo (G)</th><th>render (G)</th>"
+                 f"<th>render / photo</th></tr>{rows}</table>") if rows else ""  # fmt: skip
+        parts.append(f"<h3>{e(str(title))}</h3><div>{imgs}</div>{table}")
+    parts.append(RENDERS_END)
+    return "".join(parts)
+
+
+def _green(values: Any) -> float | None:
+    return None if not values else float(values[1])
+
+
+def _ratio(face: dict[str, Any]) -> str:
+    p, r = _green(face.get("photo")), _green(face.get("render"))
+    return "" if not p or r is None else f"{r / p:.3f}"
+
+
+def with_renders(report: str, section: str) -> str:
+    """`report` (report.html's text) with its renders section replaced by `section`, or
+    `section` inserted before the footer of a report written before the section existed."""
+    start, end = report.find(RENDERS_START), report.find(RENDERS_END)
+    if start >= 0 and end > start:
+        return report[:start] + section + report[end + len(RENDERS_END):]
+    footer = report.rfind('<p style="color:#777">stairfit')
+    at = footer if footer >= 0 else report.rfind("</body>")
+    at = at if at >= 0 else len(report)
+    return report[:at] + section + "\n" + report[at:]
