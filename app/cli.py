@@ -18,7 +18,7 @@ from ._memory import first_line, is_out_of_memory
 from ._signals import Terminated, terminate_by_exception
 from .errors import StairfitWarning, UserError
 
-COMMANDS = ("predict", "simulate", "fit", "measure", "demo", "study", "render")
+COMMANDS = ("predict", "simulate", "init", "fit", "measure", "demo", "study", "render")
 """The subcommands, each the module `stairfit.commands.<name>` with `add_parser(sub)` and
 `run(args)`."""
 

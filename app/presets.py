@@ -67,9 +67,10 @@ class Preset:
       `posterior_max_steps`: the step limit (then a warning); `posterior_chunk_steps`: how
       often (in steps) the stopping rule is checked (a chain stops at a multiple of it).
     * `float32_figures`: evaluate figures in float32 (fits are always float64).
-    * `ladder_budget_s`: no further variant of the ladder is started after this many seconds
-      of its fits (after the lab model's kernel probes; the summary lists those not tried);
-      None: every variant is fitted.
+    * `ladder_budget_s`: no further variant of the ladder is started after this many CPU
+      seconds of its fits (after the lab model's kernel probes; the summary lists those not
+      tried; CPU time, so that a busy machine does not change the choice); None: every variant
+      is fitted.
     """
 
     name: str
@@ -107,7 +108,7 @@ PRESETS: dict[str, Preset] = {
         posterior_max_steps=1_500,
         posterior_chunk_steps=100,
         float32_figures=True,
-        ladder_budget_s=60.0,
+        ladder_budget_s=90.0,
     ),
     "balanced": Preset(
         name="balanced",
@@ -123,7 +124,7 @@ PRESETS: dict[str, Preset] = {
         posterior_max_steps=20_000,
         posterior_chunk_steps=100,
         float32_figures=False,
-        ladder_budget_s=120.0,
+        ladder_budget_s=180.0,
     ),
     "accurate": Preset(
         name="accurate",

@@ -23,6 +23,7 @@ from matplotlib.figure import Figure
 from stairfit.fitting import ESS_MIN, RHAT_MAX
 
 from . import __version__
+from ._gloss_report import gloss_html, gloss_record
 from ._misfit_report import (
     assessment_record,
     misfit_html,
@@ -211,6 +212,7 @@ def write_outputs(
     write_observations(outcome, out / "observations.csv")
     figures = write_figures(outcome, out / "figures", drawn, draw)
     results = results_dict(outcome, figures)
+    results["gloss"] = _jsonable(gloss_record(results, out))  # reads out/chain.npz
     write_file(out / "results.json", json.dumps(results, indent=2, allow_nan=False))
     write_file(out / "report.html", report_html(outcome, results, figures, out))
     if outcome.posterior is not None:  # the chain for ArviZ (docs/fitting.md §5)
@@ -383,6 +385,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         "assessment": assessment_record(outcome),
         "directions": directions_record(outcome),
         "accuracy": None if outcome.accuracy is None else outcome.accuracy.record(),
+        "specimen": specimen_record(outcome),
         "parameters": records,
         "fixed_parameters": fixed_parameters(outcome),
         "truth": truth_records(outcome, records),
@@ -403,6 +406,16 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
         },
     }
     return _jsonable(result)
+
+
+def specimen_record(outcome: FitOutcome) -> dict[str, Any]:
+    """results.json's `specimen`: the layer thickness and each wedge's name and angle (deg),
+    in the order of the fit's wedge indices (what `stairfit predict --gloss --fit` reads)."""
+    spec = outcome.scene.specimen
+    return {
+        "layer_um": spec.layer_um,
+        "wedges": [{"name": w.name, "angle_deg": w.angle_deg} for w in spec.wedges],
+    }
 
 
 def directions_record(outcome: FitOutcome) -> dict[str, Any]:
@@ -619,10 +632,30 @@ def _rel(path: Path, folder: Path) -> str:
     return f"figures/{path.relative_to(folder)}"
 
 
-def fit_per_wedge(outcome: FitOutcome) -> Figure:
+LINE_STYLES = ("-", "--", ":", "-.")
+"""The model curves' styles, one per light angle of a wedge (in the order of the angles)."""
+
+
+def model_curves_of(outcome: FitOutcome) -> list[Any] | None:
+    """The chosen fit's dense model curves (`fitting.model_curves`), or None when the fit
+    carries no prepared problem (a result assembled by hand)."""
+    from stairfit import fitting
+
+    fit = outcome.selection.fit
+    if getattr(fit, "problem", None) is None or getattr(fit, "spec", None) is None:
+        return None
+    return fitting.model_curves(fit)
+
+
+def fit_per_wedge(outcome: FitOutcome, curves: list[Any] | None = None) -> Figure:
     """Measured (error bars) and fitted radiance against the face-frame viewing angle, one
-    panel per wedge and one colour per channel (like the paper's Fig. 9)."""
+    panel per wedge and one colour per channel (like the paper's Fig. 9). The model is drawn as
+    a dense curve over the viewing angle (`curves`: `fitting.model_curves`, computed here when
+    None), one line style per light angle, so that the lobes between the measured views show;
+    without a prepared fit, as lines through the model at the measured views."""
     fit, obs = outcome.selection.fit, outcome.observations
+    if curves is None:
+        curves = model_curves_of(outcome)
     wedges = outcome.scene.specimen.wedges
     ncol = min(3, len(wedges))
     nrow = int(np.ceil(len(wedges) / ncol))
@@ -632,6 +665,7 @@ def fit_per_wedge(outcome: FitOutcome) -> Figure:
     theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
     for k, wedge in enumerate(wedges):
         ax = axes.flat[k]
+        lights = sorted({round(c.theta_i_rad / DEG, 6) for c in curves or () if c.wedge == k})
         for c, col in enumerate(colours):
             sel = (obs.wedge_index == k) & (obs.channel_index == c)
             if not np.any(sel):
@@ -652,7 +686,16 @@ def fit_per_wedge(outcome: FitOutcome) -> Figure:
             )
             if np.any(~used):
                 ax.plot(x[~used], y[~used], "x", color=col, alpha=0.6)
-            ax.plot(x, fit.model[sel][order], "-", color=col, lw=1)
+            if curves is None:
+                ax.plot(x, fit.model[sel][order], "-", color=col, lw=1)
+        for cv in curves or ():
+            if cv.wedge == k and cv.channel < len(colours):
+                style = LINE_STYLES[lights.index(round(cv.theta_i_rad / DEG, 6)) % 4]
+                ax.plot(cv.theta_o_rad / DEG, cv.value, style, color=colours[cv.channel], lw=1)
+        if len(lights) > 1:  # which line is which light angle
+            for j, t in enumerate(lights):
+                ax.plot([], [], LINE_STYLES[j % 4], color="0.3", label=f"theta_i {t:.3g} deg")
+            ax.legend(fontsize="x-small")
         ax.set(
             title=f"{wedge.name} ({wedge.angle_deg:g} deg)",
             xlabel="theta_o (deg, face)",
@@ -662,8 +705,12 @@ def fit_per_wedge(outcome: FitOutcome) -> Figure:
     for ax in axes.flat[len(wedges) :]:
         ax.axis("off")
     axes.flat[0].legend(fontsize="small", title="channel")
+    how = ("lines through the model at the measured views" if curves is None else
+           "curves: the model at every 0.5 deg of the viewing angle")  # fmt: skip
+    if curves and curves[0].mean_geometry:
+        how += " at each wedge's mean geometry, through the fitted values"
     fig.suptitle(
-        f"measured (points, x = not fitted) and model '{outcome.selection.chosen}' (lines)"
+        f"measured (points, x = not fitted) and model '{outcome.selection.chosen}' ({how})"
     )
     fixed_layout(fig, nrow, ncol, top=0.75, wspace=0.85, hspace=0.85)
     return fig
@@ -854,6 +901,7 @@ sizes (ArviZ). In red: outside R-hat &lt; {RHAT_MAX:g}, ESS &ge; {ESS_MIN:g}.</p
 <th>status / notes</th></tr>{table}</table>
 <p>Rounded edges: {e(rounding_sentence(outcome))}.</p>
 {_directions_html(results["directions"])}
+{gloss_html(results["gloss"]) if "gloss" in results else ""}
 <h2>Diagnostics</h2><p>least squares: {e(ls["message"])}, {ls["num_steps"]} steps; chi2 =
 {ls["chi2"]:.5g} for {ls["dof"]} degrees of freedom (reduced {ls["reduced_chi2"]:.3g});
 {ls["n_used"]} of {ls["n_rows"]} measurements fitted.<br>{e(_accuracy_line(outcome))}

@@ -354,6 +354,9 @@ class Scene:
 
 MAX_NAME = 100
 """The longest name of a wedge, patch or reference patch."""
+TODO_PREFIX = "TODO:"
+"""How `stairfit init` marks a value it could not know: a string starting with this in place
+of the value (docs/first-photo-set.md). A scene that still holds one is refused."""
 MAX_SCENE_BYTES = 16 * 2**20
 """The largest scene file read (16 MiB; a scene of a thousand photos is well under 1 MiB)."""
 
@@ -401,8 +404,39 @@ def load_scene(path: Path, measure_only: bool = False) -> Scene:
     return parse_scene(raw, path, measure_only)
 
 
+def todo_fields(raw: Any, where: str = "") -> list[tuple[str, str]]:
+    """Every (field, text) of a scene (or layout) dict whose value is still a TODO string that
+    `stairfit init` wrote (`TODO_PREFIX`), in the file's order."""
+    if isinstance(raw, str):
+        return [(where, raw)] if raw.startswith(TODO_PREFIX) else []
+    if isinstance(raw, dict):
+        return [t for k, v in raw.items() for t in todo_fields(v, _join(where, str(k)))]
+    if isinstance(raw, list):
+        return [t for k, v in enumerate(raw) for t in todo_fields(v, f"{where}[{k}]")]
+    return []
+
+
+def _refuse_todos(raw: dict[str, Any], path: Path) -> None:
+    """A one-line error naming the first TODO left in the file (and how many more)."""
+    todos = todo_fields(raw)
+    if not todos:
+        return
+    where, text = todos[0]
+    more = ""
+    if len(todos) > 1:
+        listed = ", ".join(w for w, _ in todos[1:4]) + (", ..." if len(todos) > 4 else "")
+        more = f" ({len(todos) - 1} more TODOs: {listed})"
+    what = text.removeprefix(TODO_PREFIX).strip()
+    raise UserError(
+        f"{path}: {where}: still a TODO left by 'stairfit init' ({what}); replace the string "
+        f"with the value{more}"
+    )
+
+
 def parse_scene(raw: dict[str, Any], path: Path, measure_only: bool = False) -> Scene:
-    """Validate a scene given as a dict (as read from TOML); see `load_scene`."""
+    """Validate a scene given as a dict (as read from TOML); see `load_scene`. A value still
+    marked as a TODO by `stairfit init` is refused first."""
+    _refuse_todos(raw, path)
     r = _Reader(path)
     top = r.table(
         raw,
@@ -452,6 +486,47 @@ def parse_scene(raw: dict[str, Any], path: Path, measure_only: bool = False) -> 
         _check_geometry(r, scene)
         _check_rois(r, scene)
     return scene
+
+
+LAYOUT_TABLES: tuple[str, ...] = ("specimen", "markers", "light", "camera")
+"""The tables of a layout file (`stairfit init --layout`): the scene file's own, nothing else."""
+
+
+@dataclass(frozen=True)
+class Layout:
+    """A validated layout file: a plate's and a setup's tables, written once and reused by
+    `stairfit init` for every photo set of them (docs/first-photo-set.md). None where the file
+    has no such table (`light` and `camera` then take the scene file's defaults)."""
+
+    specimen: Specimen | None
+    light: Light
+    camera: Camera
+    markers: Markers | None
+
+
+def parse_layout(raw: dict[str, Any], path: Path) -> Layout:
+    """Validate a layout given as a dict (as read from TOML): its tables are checked as in a
+    scene file, and every wedge needs roi_px, or face_mm and a [markers] table."""
+    _refuse_todos(raw, path)
+    r = _Reader(path)
+    if not isinstance(raw, dict):
+        r.fail("top level", "must be a table")
+    for key in raw:
+        if key not in LAYOUT_TABLES:
+            r.fail(key, "a layout holds only the [specimen], [markers], [light] and "
+                   "[camera] tables of a scene file; remove it (init writes the rest)")  # fmt: skip
+    specimen = _specimen(r, raw["specimen"]) if "specimen" in raw else None
+    light = _light(r, raw.get("light", {}))
+    camera = _camera(r, raw.get("camera", {}))
+    markers = _markers(r, raw["markers"], "markers") if "markers" in raw else None
+    for k, w in enumerate(specimen.wedges if specimen else ()):
+        if w.roi_px is None and (w.face_mm is None or markers is None):
+            r.fail(
+                f"specimen.wedges[{k}]",
+                f"wedge {w.name!r} needs roi_px (pixels, the same in every photo), or face_mm "
+                "(its outline on the base) and a [markers] table",
+            )
+    return Layout(specimen, light, camera, markers)
 
 
 class _Reader:

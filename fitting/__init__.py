@@ -15,6 +15,10 @@ from ._accuracy import NumericalError as NumericalError
 from ._accuracy import numerical_error as numerical_error
 from ._core import SOLVERS as SOLVERS
 from ._core import fisher_information as fisher_information
+from ._curves import DENSE_STEP_RAD as DENSE_STEP_RAD
+from ._curves import ModelCurve as ModelCurve
+from ._curves import model_at as model_at
+from ._curves import model_curves as model_curves
 from ._diagnostics import ESS_MIN as ESS_MIN
 from ._diagnostics import RHAT_MAX as RHAT_MAX
 from ._errors import BoundaryWarning as BoundaryWarning

@@ -221,8 +221,9 @@ def select_model(
     recorded in the table with their `Status`, and warnings of the chosen fit are emitted while
     those of the others are only recorded in their results. `on_variant(name)` is called after
     each variant's fit (for progress bars). `time_budget_s`: no further variant of the ladder is
-    started once it has run this long, counted after the kernel probes (those left are listed
-    as not tried); a variant that adds
+    started once it has used this much CPU time (this process's, all threads; counted after
+    the kernel probes; those left are listed as not tried): CPU time, not wall time, so that a
+    busy machine does not change which variants are fitted and hence the choice; a variant that adds
     nothing over its parent (`Status.ADDS_NOTHING`) is not scored and its children are not tried.
     """
     if criterion not in CRITERIA:
@@ -246,7 +247,7 @@ def select_model(
         settings = _Settings(opts, model_error, on_variant or (lambda name: None))
         facets = choose_kernel(problem, ladder, kernels, criterion, threshold, settings)
     # the budget is the ladder's: the kernel probes decide what the ladder fits, so they run whole
-    deadline = None if time_budget_s is None else time.perf_counter() + time_budget_s
+    deadline = None if time_budget_s is None else time.process_time() + time_budget_s
     kernel = facets.kernel if facets is not None else kernels[0]
     ladder = tuple(v._replace(kernel=kernel) for v in ladder)
     if force is not None:
@@ -409,8 +410,8 @@ def _with_facets(sel: Selection, facets: Facets | None) -> Selection:
 
 
 class _Settings(NamedTuple):
-    """How every variant of a ladder is fitted; `deadline` (a `time.perf_counter` value) and
-    `budget_s`: no further variant is started after the deadline (None: no limit)."""
+    """How every variant of a ladder is fitted; `deadline` (a `time.process_time` value: CPU
+    seconds) and `budget_s`: no further variant is started after the deadline (None: no limit)."""
 
     options: LeastSquaresOptions
     model_error: bool
@@ -669,8 +670,8 @@ def _skip_reason(
     if parents and all(r is not None and r.status == Status.ADDS_NOTHING for r in parents):
         names = " and ".join(repr(r.name) for r in parents if r is not None)
         return f"not tried: {names} added nothing"
-    if any_fitted and settings.deadline is not None and time.perf_counter() > settings.deadline:
-        return f"not tried: the ladder's time budget ({settings.budget_s:g} s) was spent"
+    if any_fitted and settings.deadline is not None and time.process_time() > settings.deadline:
+        return f"not tried: the ladder's time budget ({settings.budget_s:g} CPU s) was spent"
     return None
 
 

@@ -21,6 +21,8 @@ from ._calibration import DarkFrame as DarkFrame
 from ._calibration import FlatField as FlatField
 from ._calibration import build_calibration as build_calibration
 from ._calibration import calibration_spec as calibration_spec
+from ._camera_tags import CameraTags as CameraTags
+from ._camera_tags import read_camera_tags as read_camera_tags
 from ._decode import CHANNELS as CHANNELS
 from ._decode import RawFrame as RawFrame
 from ._decode import decode_raw as decode_raw
@@ -43,6 +45,7 @@ from ._markers import DetectorSettings as DetectorSettings
 from ._markers import MarkerDetection as MarkerDetection
 from ._markers import MarkerLayout as MarkerLayout
 from ._markers import Placement as Placement
+from ._markers import binned_linear as binned_linear
 from ._markers import detect_markers as detect_markers
 from ._markers import fit_placement as fit_placement
 from ._pipeline import TABLE_VERSION as TABLE_VERSION

@@ -106,3 +106,15 @@ from ._microfacet import ndf as ndf
 from ._microfacet import slope_marginal as slope_marginal
 from ._microfacet import smith_g1 as smith_g1
 from ._microfacet import smith_lambda as smith_lambda
+
+# isort: split
+# Gloss units (ISO 2813) of the staircase (issue 41; docs/gloss.md).
+from ._gloss import GLOSS_STANDARD_INDEX as GLOSS_STANDARD_INDEX
+from ._gloss import GLOSS_STANDARD_WAVELENGTH_NM as GLOSS_STANDARD_WAVELENGTH_NM
+from ._gloss import ISO2813_APERTURES as ISO2813_APERTURES
+from ._gloss import Gloss as Gloss
+from ._gloss import GlossAperture as GlossAperture
+from ._gloss import GlossGeometry as GlossGeometry
+from ._gloss import GlossSurface as GlossSurface
+from ._gloss import gloss as gloss
+from ._gloss import iso2813_geometry as iso2813_geometry

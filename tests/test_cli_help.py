@@ -46,6 +46,7 @@ EXPECTED_OPTIONS = {
         "--quiet",
     ],
     "measure": ["--output", "--workers", "--no-cache", "--force", "--quiet"],
+    "init": ["--light-deg", "--angles", "--layout", "--quiet"],
     "fit": [
         "--output",
         "--preset",
@@ -91,6 +92,7 @@ POSITIONAL = {
     "simulate": "out",
     "fit": "DIR",
     "measure": "DIR",
+    "init": "DIR",
     "demo": "out",
     "study": "ROOT_OR_FOLDER",
 }

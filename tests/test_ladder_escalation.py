@@ -46,6 +46,25 @@ def test_a_spent_time_budget_leaves_the_other_rungs_untried():
     assert rows["sharp"].status in (fitting.Status.OK, fitting.Status.MISFITS)  # always fitted
     untried = [r for r in sel.table if r.name != "sharp"]
     assert all(r.status == fitting.Status.NOT_FITTED for r in untried), sel.report()
-    assert all("time budget (1e-06 s)" in r.detail for r in untried)
+    assert all("time budget (1e-06 CPU s)" in r.detail for r in untried)
     with pytest.raises(fitting.FitInputError, match="time_budget_s"):
         fitting.select_model(obs, spec, ladder=LADDER, time_budget_s=0.0)
+
+
+def test_the_time_budget_counts_cpu_time_not_wall_time(monkeypatch):
+    """A busy machine must not change the choice: wall time that passes while the fit waits
+    for a core (here: a wall clock that jumps an hour per reading) does not spend the budget,
+    so every rung is tried."""
+    import types
+
+    from stairfit.fitting import _selection
+
+    real = _selection.time
+    hour = iter(range(0, 10**9, 3600))
+    fake = types.SimpleNamespace(perf_counter=lambda: float(next(hour)),
+                                 process_time=real.process_time)  # fmt: skip
+    monkeypatch.setattr(_selection, "time", fake)
+    obs, spec = zoo.standard(fitting.Params(sigma_rad=6 * DEG, delta_n=0.05, scale=1.0), 3,
+                             0.02)[:2]  # fmt: skip
+    sel = fitting.select_model(obs, spec, ladder=LADDER, time_budget_s=3600.0)
+    assert not any("time budget" in r.detail for r in sel.table), sel.report()

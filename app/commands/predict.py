@@ -20,6 +20,7 @@ from .._index_checks import extrapolation_warning
 from ..errors import UserError
 from ..outputs import staged_file
 from ._predict_checks import Given, check_combination, check_scalars, check_size, parse_index
+from ._predict_gloss import add_gloss_options, check_gloss, check_not_gloss, run_gloss
 
 CSV_START = b"wedge_deg,wavelength_nm,n,"
 """How every CSV `predict` writes begins (its header); `--force` replaces only such a file."""
@@ -48,14 +49,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("--wedge-deg", default="10,20,30,40,45,60", help="wedge angles beta2 (deg)")
-    p.add_argument("--layer-um", type=float, default=150.0, help="layer thickness l1 (um)")
+    p.add_argument(
+        "--layer-um", type=float, default=150.0, help="layer thickness l1 (um)", action=Given
+    )
     p.add_argument(
         "--material", default="pla", help="named dispersion model (see README)", action=Given
     )
     p.add_argument(
         "--n", default=None, help="constant complex index instead, e.g. 1.5 or 1.5+0.01j"
     )
-    p.add_argument("--delta-n", type=float, default=0.0, help="offset added to n")
+    p.add_argument("--delta-n", type=float, default=0.0, help="offset added to n", action=Given)
     p.add_argument(
         "--sigma-deg", type=float, default=5.0, help="Gaussian broadening (deg)", action=Given
     )
@@ -63,6 +66,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--edge-radius-um",
         type=float,
         default=0.0,
+        action=Given,
         help=(
             "radius r (um) of the rounded layer edges, 0 = sharp; 0 <= r <= min(l1, l2) for "
             "every wedge (docs/rounded.md). With r > 0 the density uses the rounded model and "
@@ -73,12 +77,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--fillet-radius-um",
         type=float,
         default=0.0,
+        action=Given,
         help=(
             "radius r_f (um) of the fillets in the concave corners, 0 = sharp; "
             "0 <= r_f <= min(l1, l2) - r for every wedge (docs/rounded.md §11); density only"
         ),
     )
-    p.add_argument("--wavelength-nm", default="550", help="wavelengths (nm)")
+    p.add_argument("--wavelength-nm", default="550", help="wavelengths (nm)", action=Given)
     p.add_argument("--theta-i-deg", default="0", help="angles of incidence (deg)", action=Given)
     p.add_argument(
         "--theta-o-deg", default="-90:90:1", help="angles of observation (deg)", action=Given
@@ -94,6 +99,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("-o", "--output", type=Path, default=None, help="CSV file (default: stdout)")
     p.add_argument("--force", action="store_true", help="overwrite an existing --output file")
+    add_gloss_options(p)
     p.set_defaults(func=run, given=frozenset())
 
 
@@ -108,6 +114,15 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(
             "standard output is closed (>&-), so the table has nowhere to go; give -o FILE"
         )
+    if args.gloss:
+        check_gloss(args)
+        check_combination(args)
+        check_scalars(args)
+        with _open_output(args.output, args.force) as out:
+            index = lambda: complex(_index(args, np.array([587.6]))[0])  # noqa: E731
+            run_gloss(args, csv.writer(out, lineterminator="\n"), index)
+        return 0
+    check_not_gloss(args)
     check_combination(args)
     check_scalars(args)
     wedges, lam, theta_i, theta_o = _grids(args)
