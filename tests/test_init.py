@@ -378,10 +378,10 @@ FIT_TOLERANCE_SE = 0.2
 (of the original scene's fit) of the original's."""
 
 
-def fit(folder: Path, out: Path) -> dict:
+def fit(folder: Path, out: Path, *options: str) -> dict:
     """results.json of `stairfit fit FOLDER --no-posterior` (no posterior: the least-squares
     values and standard errors are compared)."""
-    assert main(["fit", str(folder), "-o", str(out), "--no-posterior", "--quiet"]) == 0
+    assert main(["fit", str(folder), "-o", str(out), "--no-posterior", "--quiet", *options]) == 0
     return json.loads((out / "results.json").read_text())
 
 
@@ -514,6 +514,14 @@ def test_on_the_physically_based_dev_set(tmp_path: Path) -> None:
     assert max(abs(e) for e in errors.values()) < VIEW_TOLERANCE_DEG, errors
 
 
+PBR_MODEL = "rounded+floor"
+"""The dev set's model, as the default fit chooses it on an idle machine
+(benchmarks/results/lab_fit.md). The test fits it directly: the ladder stops starting variants
+after its time budget (app/presets.py), so under load two default fits of the same photos can
+choose different rungs (measured: 'sharp' and 'sharp+floor', both with model-error terms of
+60-90%), which says nothing about the scenes."""
+
+
 @pytest.mark.slow  # two fits of 28 photos with the lab model: several minutes each
 def test_on_the_physically_based_dev_set_the_draft_fits_as_the_original(tmp_path: Path) -> None:
     """The issue's criterion on the dev set: the lab model takes each face's view from the
@@ -528,9 +536,10 @@ def test_on_the_physically_based_dev_set_the_draft_fits_as_the_original(tmp_path
         fh.write("\n" + extraction)
     original = copy_raws(dev, tmp_path / "original")
     shutil.copy2(dev / "scene.toml", original / "scene.toml")
-    base = fit(original, tmp_path / "original-fit")
-    results = fit(photos, tmp_path / "draft-fit")
-    assert results["model_selection"]["chosen"] == base["model_selection"]["chosen"]
+    base = fit(original, tmp_path / "original-fit", "--model", PBR_MODEL)
+    results = fit(photos, tmp_path / "draft-fit", "--model", PBR_MODEL)
+    for key in ("model", "facets"):  # the lab model, the same facet kernel
+        assert results["directions"][key] == base["directions"][key], key
     diffs = differences_in_se(base, results)
     assert max(abs(d) for d in diffs.values()) < FIT_TOLERANCE_SE, diffs
 
