@@ -23,7 +23,7 @@ import io
 import math
 import os
 import tomllib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -344,11 +344,11 @@ def _detect(folder: Path, view: survey.View, layout: Any) -> tuple[Any, str]:
     return best[1], best[2]
 
 
-def _edges(folder: Path, view: survey.View) -> Any:
+def _edges(folder: Path, view: survey.View) -> Callable[[], list[pose.EdgeImage]]:
     """A callable giving a view's edge images (decoded only when called)."""
     from stairfit import imaging
 
-    def make() -> list:
+    def make() -> list[pose.EdgeImage]:
         frames = [imaging.decode_raw(folder / f.name) for f in view.files]
         return pose.edge_images(frames, [f.exposure for f in view.files])
 
@@ -652,8 +652,8 @@ def draft_scene(
                 Entry(
                     "angles_relative_to",
                     "base",
-                    "light_deg and view_deg below are "
-                    "measured from the base normal (docs/scene.md)",
+                    "light_deg and view_deg below are measured from the base normal "
+                    "(docs/scene.md)",
                 ),
             ),
         )
