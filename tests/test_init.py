@@ -433,8 +433,8 @@ def test_the_drafted_scene_with_the_true_view_angles_fits_as_the_original(
 @pytest.mark.xfail(
     strict=True,
     reason="the markers give the view angles within 0.02 deg (0.17 deg at 0 deg, where a "
-    "parallel projection's foreshortening hardly changes); this set's fit moves by about one "
-    "standard error per 0.02 deg (sigma +5.9, floor -10 se measured): "
+    "parallel projection's foreshortening does not change); this set's fit is so precise that "
+    "it moves by 6-10 standard errors (1.2 with the 0-deg view exact): "
     "benchmarks/results/init.md",
 )
 def test_the_drafted_scene_fits_as_the_original_within_0_2_standard_errors(
