@@ -112,6 +112,8 @@ from ._microfacet import smith_lambda as smith_lambda
 from ._gloss import GLOSS_STANDARD_INDEX as GLOSS_STANDARD_INDEX
 from ._gloss import GLOSS_STANDARD_WAVELENGTH_NM as GLOSS_STANDARD_WAVELENGTH_NM
 from ._gloss import ISO2813_APERTURES as ISO2813_APERTURES
+from ._gloss import RECEPTOR_NODES as RECEPTOR_NODES
+from ._gloss import SOURCE_NODES as SOURCE_NODES
 from ._gloss import Gloss as Gloss
 from ._gloss import GlossAperture as GlossAperture
 from ._gloss import GlossGeometry as GlossGeometry
