@@ -109,6 +109,7 @@ from ._microfacet import smith_lambda as smith_lambda
 
 # isort: split
 # Gloss units (ISO 2813) of the staircase (issue 41; docs/gloss.md).
+from ._gloss import GLOSS_ILLUMINANT as GLOSS_ILLUMINANT
 from ._gloss import GLOSS_STANDARD_INDEX as GLOSS_STANDARD_INDEX
 from ._gloss import GLOSS_STANDARD_WAVELENGTH_NM as GLOSS_STANDARD_WAVELENGTH_NM
 from ._gloss import ISO2813_APERTURES as ISO2813_APERTURES
@@ -120,3 +121,4 @@ from ._gloss import GlossGeometry as GlossGeometry
 from ._gloss import GlossSurface as GlossSurface
 from ._gloss import gloss as gloss
 from ._gloss import iso2813_geometry as iso2813_geometry
+from ._gloss import luminous_rule as luminous_rule

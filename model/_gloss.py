@@ -121,11 +121,12 @@ class GlossSurface(NamedTuple):
     """The staircase a glossmeter is put on [conventions §2, §11, §12].
 
     `beta2`: the surface's angle to the build plate (rad; 0 a top surface, pi/2 a wall);
-    `layer_um`: the layer thickness; `n`: the refractive index at the glossmeter's wavelength
-    (complex allowed); `width`: the facets' spread, Gaussian sigma (rad) or microfacet alpha;
-    `edge_radius_um`: the rounded edges' radius (0 sharp; used with `rounded=True`);
-    `body`: the diffuse body's weight, `albedo / pi` (the lab model's `floor / scale`): its
-    reflected power per steradian is `body * lab_body`.
+    `layer_um`: the layer thickness; `n`: the refractive index (complex allowed), one value or
+    one per wavelength sample on a last axis with `spectral_weight` (the glossmeter's luminous
+    response, `luminous_rule`) [conventions §8]; `width`: the facets' spread, Gaussian sigma
+    (rad) or microfacet alpha; `edge_radius_um`: the rounded edges' radius (0 sharp; used
+    with `rounded=True`); `body`: the diffuse body's weight, `albedo / pi` (the lab model's
+    `floor / scale`): its reflected power per steradian is `body * lab_body`.
     """
 
     beta2: ArrayLike
@@ -134,6 +135,42 @@ class GlossSurface(NamedTuple):
     width: ArrayLike
     edge_radius_um: ArrayLike = 0.0
     body: ArrayLike = 0.0
+    spectral_weight: ArrayLike | None = None
+
+
+GLOSS_ILLUMINANT = "C"
+"""ISO 2813's source and receptor together respond as CIE illuminant C times the luminous
+efficiency V(lambda) (the CIE 1931 y-bar): the gloss is a ratio of luminous fluxes."""
+
+LUMINOUS_NODES = 3
+"""Wavelengths of `luminous_rule`: the 3-point Gauss rule of the illuminant C x y-bar weight
+reproduces its 81-sample average of a flat surface's Fresnel reflectance within 0.001 GU, for
+the strongly dispersive `pla-bodurov2016` too (one wavelength, 557 nm, is 0.4 GU off;
+587.6 nm alone is 2 GU off at 20 deg)."""
+
+
+def luminous_rule(nodes: int = LUMINOUS_NODES) -> tuple[np.ndarray, np.ndarray]:
+    """Wavelengths (nm) and weights (sum 1) of the Gauss rule of the glossmeter's luminous
+    response (`GLOSS_ILLUMINANT` x y-bar on `spectral.VISIBLE_NM`): `sum_k w_k f(lambda_k)` is
+    the luminous average of a smooth `f`, exact for polynomials of degree `2 nodes - 1`
+    (Golub-Welsch from the Stieltjes recurrence of the discrete measure) [conventions §8]."""
+    from . import spectral
+
+    lam = spectral.VISIBLE_NM
+    w = spectral.xyz_weights(GLOSS_ILLUMINANT, lam)[1]
+    w = w / w.sum()
+    mid, half = 0.5 * (lam.max() + lam.min()), 0.5 * (lam.max() - lam.min())
+    u = (lam - mid) / half
+    alpha, beta = np.zeros(nodes), np.zeros(nodes)
+    p_prev, p, norm_prev = np.zeros_like(u), np.ones_like(u), 1.0
+    for j in range(nodes):
+        norm = np.sum(w * p * p)
+        alpha[j] = np.sum(w * u * p * p) / norm
+        beta[j] = norm / norm_prev if j else 0.0
+        p_prev, p, norm_prev = p, (u - alpha[j]) * p - beta[j] * p_prev, norm
+    off = np.sqrt(beta[1:])
+    x, vectors = np.linalg.eigh(np.diag(alpha) + np.diag(off, 1) + np.diag(off, -1))
+    return mid + half * x, vectors[0] ** 2
 
 
 class Gloss(NamedTuple):
@@ -291,7 +328,8 @@ def _surface(surface: GlossSurface, rounded: bool) -> GlossSurface:
     width = jnp.maximum(jnp.asarray(surface.width, b2.dtype), WIDTH_MIN)
     r = jnp.asarray(surface.edge_radius_um, b2.dtype)
     r = jnp.clip(r, 0.0, max_edge_radius(b2, l1)) if rounded else jnp.zeros_like(r)
-    return GlossSurface(b2, l1, jnp.asarray(surface.n), width, r, jnp.asarray(surface.body))
+    sw = None if surface.spectral_weight is None else jnp.asarray(surface.spectral_weight)
+    return GlossSurface(b2, l1, jnp.asarray(surface.n), width, r, jnp.asarray(surface.body), sw)
 
 
 def _lobe_frame(width: Array, kind: str, theta: Array, a: Array, b: Array, frame: Array
@@ -403,7 +441,7 @@ def gloss(
     standard = jnp.sum(w_s * cos_i * fresnel_unpolarised(cos_i, GLOSS_STANDARD_INDEX) * inside)
 
     # the receptor: a rule about each of the two lobes nearest to the window, shared out
-    lobes = lab_lobes(w_i, s.beta2, s.n)
+    lobes = lab_lobes(w_i, s.beta2, s.n, s.spectral_weight)
     dirs = face_direction(lobes.theta_o, lobes.t_o[:, None])  # (S, 3, 3)
     a_c, b_c = _to_meter(dirs, frame)
     half = jnp.stack([0.5 * geometry.receptor_in, 0.5 * geometry.receptor_perp])
@@ -450,13 +488,15 @@ def _densities(
         geo = rounded_geometry(projected_incidence(w_i).theta, s.beta2, s.layer_um,
                                s.edge_radius_um, resolution=resolution)  # fmt: skip
         flats = rounded_flats(w_i, w_o, s.beta2, s.n, s.width, s.layer_um, s.edge_radius_um,
-                              geo, kind)  # fmt: skip
-        arcs = rounded_arcs(w_i, w_g, s.beta2, s.n, s.width, geo, kind)
-        body = lab_body_rounded(w_i, w_g, s.beta2, s.n, s.layer_um, s.edge_radius_um)
+                              geo, kind, s.spectral_weight)  # fmt: skip
+        arcs = rounded_arcs(w_i, w_g, s.beta2, s.n, s.width, geo, kind, s.spectral_weight)
+        body = lab_body_rounded(w_i, w_g, s.beta2, s.n, s.layer_um, s.edge_radius_um,
+                                s.spectral_weight)  # fmt: skip
         return flats, arcs, body
     if kind == "gaussian":
-        spec = lab_density_gaussian(w_i, w_o, s.beta2, s.n, s.width)
+        spec = lab_density_gaussian(w_i, w_o, s.beta2, s.n, s.width,
+                                    spectral_weight=s.spectral_weight)  # fmt: skip
     else:
-        spec = lab_density_microfacet(w_i, w_o, s.beta2, s.n, s.width, kind)
-    body = lab_body(w_i, w_g, s.beta2, s.n)
+        spec = lab_density_microfacet(w_i, w_o, s.beta2, s.n, s.width, kind, s.spectral_weight)
+    body = lab_body(w_i, w_g, s.beta2, s.n, s.spectral_weight)
     return spec, jnp.zeros_like(body), body
