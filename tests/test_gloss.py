@@ -246,8 +246,10 @@ def test_rough_facets_agree_with_the_3d_ray_tracer(angle, azimuth, beta2):
     assert ours == pytest.approx(traced, rel=0.05, abs=0.005), (ours, traced)
 
 
-@pytest.mark.parametrize(("kind", "width"), [("gaussian", 1 * DEG), ("gaussian", 4 * DEG),
-                                              ("ggx", 0.03)])  # fmt: skip
+@pytest.mark.parametrize(("kind", "width"), [
+    ("gaussian", 1 * DEG), ("gaussian", 4 * DEG),
+    pytest.param("ggx", 0.03, marks=pytest.mark.slow),  # 25 s of compiling (CI budget)
+])  # fmt: skip
 def test_gloss_quadrature_converges(kind, width):
     """Twice the receptor's nodes and four times the source's move the gloss by less than
     0.15 GU, for facets of 1 deg and wider, at 20 and 85 deg, across and along the layer lines,
@@ -262,8 +264,11 @@ def test_gloss_quadrature_converges(kind, width):
                 assert a == pytest.approx(b, abs=0.15), (angle, azimuth, beta2, a, b)
 
 
-@pytest.mark.parametrize(("kind", "rounded"), [("gaussian", False), ("ggx", False),
-                                                ("gaussian", True)])  # fmt: skip
+@pytest.mark.parametrize(("kind", "rounded"), [
+    ("gaussian", False),
+    pytest.param("ggx", False, marks=pytest.mark.slow),  # 20 s of compiling each (CI budget)
+    pytest.param("gaussian", True, marks=pytest.mark.slow),
+])  # fmt: skip
 def test_values_and_gradients_are_finite_at_the_extremes(kind, rounded):
     geometry = model.iso2813_geometry(20)
 
@@ -319,6 +324,19 @@ def test_predict_gloss_of_given_parameters_is_fresnels_for_a_flat_mirror(capsys)
         assert float(r["gloss_gu"]) == pytest.approx(exact, abs=0.05)
         assert r["uncertainty"] == "none" and r["sd_gu"] == "" and r["facets"] == "gaussian"
     assert {r["layer_lines"] for r in rows} == {"across (source downhill)", "along"}
+
+
+def test_predict_gloss_says_where_the_rough_two_bounce_path_is_unchecked(capsys):
+    """GGX facets along the layer lines at 60 and 85 deg: one warning line (docs/gloss.md §4);
+    across them, none."""
+    argv = ["predict", "--gloss", "--facets", "ggx", "--alpha", "0.1", "--wedge-deg", "20",
+            "--geometry-deg", "85"]  # fmt: skip
+    assert main([*argv, "--azimuth-deg", "90"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("stairfit predict: warning: "), err
+    assert "checked against the 3-D ray tracer up to 45 deg" in err[0]
+    assert main([*argv, "--azimuth-deg", "0"]) == 0
+    assert capsys.readouterr().err == ""
 
 
 @pytest.fixture(scope="module")

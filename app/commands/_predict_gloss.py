@@ -197,8 +197,9 @@ def run_gloss(
             check_number(args.layer_um, "--layer-um", 1e-6, 10_000.0, "um")
     else:
         model = _given_model(args, index_of)
-    for note in model.notes:
-        warnings.warn(note, StairfitWarning, stacklevel=2)
+    note = gloss.out_of_plane_note(model, azimuths, angles)
+    for text in (*model.notes, *([note] if note else [])):
+        warnings.warn(text, StairfitWarning, stacklevel=2)
     layer = _layer(args, model)
     rows = gloss.gloss_table(model, wedges, layer, azimuths, angles)
     n = gloss.index_at(model, m.GLOSS_STANDARD_WAVELENGTH_NM) + model.fixed.get("delta_n", 0.0)
