@@ -12,25 +12,25 @@ in angle: (in the plane of incidence) x (perpendicular to it). Here the flux is
 
 with `s` the source's share of the beam (uniform per steradian over its rectangle) and `p`
 the staircase's reflected power per steradian per unit incident power (`lab_density_gaussian`,
-`lab_density_microfacet`, `lab_density_rounded`, plus the diffuse body `lab_body` /
-`lab_body_rounded` weighted by `body`). The standard's `p` is Fresnel's mirror, so its
-integral is `R(w_i . z)` whenever the mirror direction lies in the window.
+`lab_density_microfacet`, or the rounded model's `rounded_flats` and `rounded_arcs`, plus the
+diffuse body `lab_body` / `lab_body_rounded` weighted by `body`), averaged over the
+glossmeter's luminous response (`luminous_rule`). The standard's `p` is Fresnel's mirror, so
+its integral is `R(w_i . z)` whenever the mirror direction lies in the window.
 
 Quadrature (`SOURCE_NODES`, `RECEPTOR_NODES`, `SMOOTH_NODES`; docs/gloss.md §2): a
 Gauss-Legendre product rule over the source rectangle. Over the receptor, per source
-direction, a rule about the staircase's lobe nearest to the window (the lobe of non-zero
-ratio, in units of its width; its centre clipped into the window): in the lobe's own
-coordinates `(p, q) = L (a - a_c, b - b_c)` (`_lobe_frame`: the Gaussian kernel's `(theta',
-t)` per sigma, which a grazing view along the layer lines shears, or a microfacet lobe's
-`2 alpha` widths), the window is a parallelogram; `p` runs over its extent and `q` over each
-exact slice, each with a plain Gauss-Legendre rule over the lobe's core (`CORE_WIDTHS` widths
-either side) and a logarithmic one beyond (`_warped_axis`). A lobe far narrower than the
-window is then integrated as exactly as a wide one, so that a mirror-smooth flat surface gives
-Fresnel's gloss, and so is a smooth function across the window. The broad parts (the diffuse
-body, the rounded edges' arcs) take a plain product rule over the window. Not resolved: a
-second lobe narrower than the nodes' spacing inside the window beside the nearest one (facets
-smoother than about 0.1 deg seen along the layer lines a few degrees from flat, where the
-two-bounce path's lobe sits at the mirror direction beside the tread's): up to 1 GU there.
+direction, a rule about each of the `LOBE_RULES` lobes nearest to the window (lobes of non-zero
+ratio, in units of their width; centres clipped into the window), shared out by a smooth
+partition of unity (`_shares`). A rule works in its lobe's own coordinates `(p, q) = L (a -
+a_c, b - b_c)` (`_lobe_frame`: the Gaussian kernel's `(theta', t)` per sigma, which a grazing
+view along the layer lines shears, or a microfacet lobe's `2 alpha` widths), in which the window
+is a parallelogram: `p` runs over its extent and `q` over each exact slice, each with a plain
+Gauss-Legendre rule over the lobe's core (`CORE_WIDTHS` widths either side) and a logarithmic
+one beyond (`_warped_axis`). A lobe far narrower than the window is then integrated as exactly
+as a wide one, so that a mirror-smooth flat surface gives Fresnel's gloss, and so is a smooth
+function across the window. The broad parts (the diffuse body, the rounded edges' arcs) take a
+plain product rule over the window. Not resolved: a lobe narrower than the source that leaves
+the window for part of it (`SOURCE_NODES`).
 
 Radians inside; `iso2813_geometry` turns the standard's degrees into a `GlossGeometry`.
 Extremes: the wedge angle is held inside `[BETA_MIN_RAD, pi/2 - BETA_MIN_RAD]`, the layer at or
