@@ -8,10 +8,17 @@ Both are self-contained: a failure is recorded and shown as one sentence, never 
 from __future__ import annotations
 
 import html
+import time
 from pathlib import Path
 from typing import Any
 
 from .errors import UserError
+
+REPORT_DRAWS = 16
+"""Posterior draws whose gloss the report computes (`stairfit predict --gloss --fit` takes
+`stairfit.gloss.GLOSS_DRAWS`, 64): 16 x 18 evaluations cost about 40 s of a lab fit with GGX
+facets on the 2-core machine (docs/gloss.md §2), 64 would cost minutes; the 16-84% interval
+of 16 draws is good to about a fifth of a standard deviation."""
 
 REPORT_AZIMUTH_DEG = 0.0
 """The report's orientation: the plane of incidence across the layer lines, the source on the
@@ -25,8 +32,9 @@ def gloss_record(results: dict[str, Any], out: Path) -> dict[str, Any]:
     computed. `out`: the fit folder (for chain.npz)."""
     from . import gloss
 
+    t0 = time.perf_counter()
     try:
-        model = gloss.gloss_model_from_results(results, out)
+        model = gloss.gloss_model_from_results(results, out, REPORT_DRAWS)
         specimen = results.get("specimen") or {}
         wedges = [float(w["angle_deg"]) for w in specimen.get("wedges", [])]
         if not wedges or model.layer_um is None:
@@ -44,6 +52,7 @@ def gloss_record(results: dict[str, Any], out: Path) -> dict[str, Any]:
         "facets": model.kind,
         "uncertainty": model.uncertainty,
         "notes": list(model.notes),
+        "elapsed_s": time.perf_counter() - t0,
         "rows": [_row(specimen["wedges"][i // per_wedge]["name"], r) for i, r in enumerate(rows)],
     }
 

@@ -54,7 +54,8 @@ class GlossModel:
     """What the gloss depends on, at the fit's optimum (or as given) and its uncertainty.
 
     `kind`: the facets ("gaussian", "ggx", "beckmann"); `rounded`: rounded edges are modelled;
-    `index`: the material's refractive index at 587.6 nm without `delta_n`; `lab`: the scale
+    `index_nm`, `index`: the material's refractive index without `delta_n`, sampled in
+    wavelength (interpolated linearly between, held outside; `index_at`); `lab`: the scale
     is the lab model's (3-D); False: the in-plane model's, which absorbed the out-of-plane
     density `line_gaussian(0, 0, sigma)` (docs/gloss.md §3). The parameter vector: `keys`
     (`(param, wedge)`), `names` (display labels), `best` (display units: widths in degrees),
@@ -66,7 +67,8 @@ class GlossModel:
 
     kind: str
     rounded: bool
-    index: complex
+    index_nm: np.ndarray
+    index: np.ndarray
     lab: bool
     keys: tuple[tuple[str, int | None], ...]
     names: tuple[str, ...]
@@ -112,20 +114,33 @@ class GlossRow(NamedTuple):
 # --- the parameters -------------------------------------------------------------------------
 
 
+def index_at(model: GlossModel, wavelength_nm: Any) -> np.ndarray:
+    """The material's index (without `delta_n`) at `wavelength_nm`: linear between the samples
+    of `model`, held at the end values outside them."""
+    lam = np.asarray(wavelength_nm, float)
+    order = np.argsort(model.index_nm)
+    x, n = model.index_nm[order], np.asarray(model.index, complex)[order]
+    return np.interp(lam, x, n.real) + 1j * np.interp(lam, x, n.imag)
+
+
 def given_gloss_model(
     kind: str,
-    index: complex,
+    index_nm: np.ndarray,
+    index: np.ndarray,
     width: float,
     edge_radius_um: float = 0.0,
     body_albedo: float = 0.0,
     delta_n: float = 0.0,
 ) -> GlossModel:
-    """Given parameters: `width` is sigma in degrees for Gaussian facets, alpha for microfacet
-    ones; `body_albedo` the diffuse body's albedo (its weight is `albedo / pi`)."""
+    """Given parameters: the material's index `index` at `index_nm`; `width` is sigma in degrees
+    for Gaussian facets, alpha for microfacet ones; `body_albedo` the diffuse body's albedo
+    (its weight is `albedo / pi`)."""
     sigma_deg = width if kind == "gaussian" else float(np.degrees(np.arctan(width)))
     fixed = {"sigma_deg": sigma_deg, "delta_n": float(delta_n), "edge_radius_um":
              float(edge_radius_um), "floor": float(body_albedo) / np.pi, "scale": 1.0}  # fmt: skip
-    return GlossModel(kind=kind, rounded=edge_radius_um > 0.0, index=complex(index), lab=True,
+    return GlossModel(kind=kind, rounded=edge_radius_um > 0.0,
+                      index_nm=np.asarray(index_nm, float), index=np.asarray(index, complex),
+                      lab=True,
                       keys=(), names=(), best=np.zeros(0), draws=None, covariance=None,
                       fixed=fixed, wedge_deg=None, layer_um=None,
                       source="given parameters")  # fmt: skip
@@ -155,20 +170,22 @@ def _field(results: dict[str, Any], path: Path, *keys: str) -> Any:
     return node
 
 
-def _index_at_standard_wavelength(results: dict[str, Any], path: Path) -> complex:
-    """The material's index (without `delta_n`) at 587.6 nm, interpolated linearly in
-    wavelength between the camera channels' effective wavelengths of results.json's
-    `spectral` record (held constant outside them)."""
-    from stairfit.model import GLOSS_STANDARD_WAVELENGTH_NM
-
-    lam = np.asarray(_field(results, path, "spectral", "effective_wavelength_nm"), float)
-    n = np.asarray(_field(results, path, "spectral", "index_n"), float)
-    k = np.asarray(_field(results, path, "spectral", "index_k"), float)
+def _material_index(results: dict[str, Any], path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The material's index (without `delta_n`) sampled in wavelength: results.json's
+    `specimen.index` (every 10 nm), or from a folder written without it the `spectral`
+    record's index at the camera channels' effective wavelengths."""
+    index = (results.get("specimen") or {}).get("index")
+    if index is not None:
+        lam, n, k = (np.asarray(index[f], float) for f in ("wavelength_nm", "n", "k"))
+        where = "specimen.index"
+    else:
+        lam = np.asarray(_field(results, path, "spectral", "effective_wavelength_nm"), float)
+        n = np.asarray(_field(results, path, "spectral", "index_n"), float)
+        k = np.asarray(_field(results, path, "spectral", "index_k"), float)
+        where = "spectral.index_n"
     if lam.size == 0 or lam.shape != n.shape or n.shape != k.shape or not np.all(np.isfinite(n)):
-        raise UserError(f"{path}: spectral.index_n is empty or malformed; re-run `stairfit fit`")
-    order = np.argsort(lam)
-    at = GLOSS_STANDARD_WAVELENGTH_NM
-    return complex(np.interp(at, lam[order], n[order]), np.interp(at, lam[order], k[order]))
+        raise UserError(f"{path}: {where} is empty or malformed; re-run `stairfit fit`")
+    return lam, n + 1j * k
 
 
 def _draws(fit_dir: Path, results: dict[str, Any], keys: Sequence[tuple[str, int | None]],
@@ -209,9 +226,9 @@ def _draws(fit_dir: Path, results: dict[str, Any], keys: Sequence[tuple[str, int
 
 def fitted_gloss_model(fit_dir: str | Path, draws: int = GLOSS_DRAWS) -> GlossModel:
     """What the gloss depends on, from a fit folder (see `GlossModel`): the chosen variant's
-    parameters (results.json), its facets and model of the directions, the material's index at
-    587.6 nm, and its uncertainty: posterior draws (chain.npz) or the covariance. Any problem
-    with the folder is a one-line UserError naming the file and the fix."""
+    parameters (results.json), its facets and model of the directions, the material's index
+    over wavelength, and its uncertainty: posterior draws (chain.npz) or the covariance. Any
+    problem with the folder is a one-line UserError naming the file and the fix."""
     fit_dir = Path(fit_dir)
     if not fit_dir.is_dir():
         raise UserError(f"--fit {fit_dir}: no such folder; give a `stairfit fit` output folder")
@@ -258,8 +275,9 @@ def gloss_model_from_results(
                      "(docs/model.md §7.6); the gloss leaves them out")  # fmt: skip
     rounded = any(p == "edge_radius_um" for p, _ in keys) or fixed.get("edge_radius_um", 0.0) > 0
     chain = _draws(fit_dir, results, keys, draws)
+    lam, index = _material_index(results, path)
     return GlossModel(
-        kind=kind, rounded=rounded, index=_index_at_standard_wavelength(results, path),
+        kind=kind, rounded=rounded, index_nm=lam, index=index,
         lab=directions.get("model") == "lab", keys=keys, names=names, best=best, draws=chain,
         covariance=None if chain is not None else covariance_from_results(results),
         fixed=fixed, wedge_deg=wedge_deg,
@@ -298,7 +316,9 @@ def surface_of(model: GlossModel, vector: Any, wedge_deg: Any, layer_um: Any) ->
     """The `stairfit.model.GlossSurface` of a parameter vector (display units, in the order of
     `model.keys`) for a surface at `wedge_deg` with layers `layer_um`; traceable by JAX.
 
-    The diffuse body's weight is `floor / scale`, the lab model's scale; an in-plane fit's
+    The index: at the wavelengths of the glossmeter's luminous response (`luminous_rule`),
+    with `delta_n`. The diffuse body's weight is `floor / scale`, the lab model's scale; an
+    in-plane fit's
     scale absorbed the out-of-plane density `line_gaussian(0, 0, sigma)` (conventions §11), so
     its body weight is `floor line_gaussian(0, 0, sigma) / scale` (docs/gloss.md §3)."""
     import jax.numpy as jnp
@@ -306,7 +326,8 @@ def surface_of(model: GlossModel, vector: Any, wedge_deg: Any, layer_um: Any) ->
     from stairfit import model as m
 
     width_rad = _width_deg(model, vector, wedge_deg) * DEG
-    n = model.index + _value(model, vector, "delta_n", "delta_n", 0.0)
+    lam, weight = m.luminous_rule()
+    n = jnp.asarray(index_at(model, lam)) + _value(model, vector, "delta_n", "delta_n", 0.0)
     scale = _value(model, vector, "scale", "scale", 1.0)
     floor = _value(model, vector, "floor", "floor", 0.0)
     if not model.lab:
@@ -315,8 +336,35 @@ def surface_of(model: GlossModel, vector: Any, wedge_deg: Any, layer_um: Any) ->
     return m.GlossSurface(
         beta2=wedge_deg * DEG, layer_um=layer_um, n=n, width=width,
         edge_radius_um=_value(model, vector, "edge_radius_um", "edge_radius_um", 0.0),
-        body=floor / scale,
+        body=floor / scale, spectral_weight=jnp.asarray(weight),
     )  # fmt: skip
+
+
+OUT_OF_PLANE_CHECKED_DEG = 45.0
+"""How far out of the staircase's profile plane (the plane across the layer lines) the light
+of the rough two-bounce path was checked against the 3-D ray tracer (docs/model.md §7.4)."""
+
+
+def out_of_plane_note(model: GlossModel, azimuth_deg: Sequence[float],
+                      angles_deg: Sequence[float]) -> str | None:  # fmt: skip
+    """A note when microfacet facets are lit further out of the profile plane than their
+    two-bounce path was checked (`asin(sin theta sin azimuth)` above
+    `OUT_OF_PLANE_CHECKED_DEG`), else None: along the layer lines at 60 and 85 deg the model read
+    up to 3.5 times the ray tracer's gloss (docs/gloss.md §4)."""
+    if model.kind == "gaussian":
+        return None
+    worst = max(
+        np.degrees(np.arcsin(abs(np.sin(a * DEG) * np.sin(z * DEG))))
+        for a in angles_deg for z in azimuth_deg
+    )  # fmt: skip
+    if worst <= OUT_OF_PLANE_CHECKED_DEG:
+        return None
+    return (
+        f"the glossmeter's light is up to {worst:.0f} deg out of the plane across the layer "
+        f"lines; the rough facets' two-bounce path is checked against the 3-D ray tracer up to "
+        f"{OUT_OF_PLANE_CHECKED_DEG:g} deg, and along the layer lines at 60 and 85 deg it reads "
+        "up to 3.5 times the tracer's gloss on steep wedges (docs/gloss.md §4)"
+    )
 
 
 # --- the table ------------------------------------------------------------------------------

@@ -408,13 +408,25 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]
     return _jsonable(result)
 
 
+SPECIMEN_INDEX_NM = np.arange(380.0, 781.0, 10.0)
+"""Where results.json's `specimen.index` samples the material's index (every 10 nm)."""
+
+
 def specimen_record(outcome: FitOutcome) -> dict[str, Any]:
-    """results.json's `specimen`: the layer thickness and each wedge's name and angle (deg),
-    in the order of the fit's wedge indices (what `stairfit predict --gloss --fit` reads)."""
+    """results.json's `specimen`: the layer thickness, each wedge's name and angle (deg) in the
+    order of the fit's wedge indices, and the material's index without `delta_n` every 10 nm
+    (what `stairfit predict --gloss --fit` reads; a per-channel index through its channels'
+    effective wavelengths)."""
     spec = outcome.scene.specimen
+    n = np.asarray(refractive_index(_along_wavelength(outcome.scene), SPECIMEN_INDEX_NM, 0.0))
     return {
         "layer_um": spec.layer_um,
         "wedges": [{"name": w.name, "angle_deg": w.angle_deg} for w in spec.wedges],
+        "index": {
+            "wavelength_nm": SPECIMEN_INDEX_NM,
+            "n": np.round(np.real(n), 8),
+            "k": np.round(np.imag(n), 8),
+        },
     }
 
 

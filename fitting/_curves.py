@@ -180,18 +180,27 @@ def _mean_geometry(lab: LabGeometry, rows: NDArray, theta: NDArray
 
 
 def _dense_lab(lab: LabGeometry, table: Observations, where: list) -> LabGeometry:
-    """The dense table's lab geometry: one key (one node) per row, at its group's mean
-    geometry; the unused rows at the end read the first key."""
-    w_i, w_o, weight, irr, key = [], [], [], [], np.zeros(table.n_rows, int)
+    """The dense table's lab geometry: one key (one node) per group and grid angle, at the
+    group's mean geometry, shared by the group's channels; the unused rows at the end read
+    the first key."""
+    w_i, w_o, weight, irr, wedge = [], [], [], [], []
+    key = np.zeros(table.n_rows, int)
+    first: dict[tuple[int, float], tuple[NDArray, int]] = {}  # a group's grid, its first key
+    n_keys = 0
     for g, _, theta, sl in where:
-        parts = _mean_geometry(lab, g.rows, theta)
-        for acc, part in zip((w_i, w_o, weight, irr), parts, strict=True):
-            acc.append(part)
-        key[sl] = np.arange(sl.start, sl.stop)
+        ident = (g.wedge, g.theta_i)
+        if ident not in first or not np.array_equal(first[ident][0], theta):
+            parts = _mean_geometry(lab, g.rows, theta)
+            for acc, part in zip((w_i, w_o, weight, irr), parts, strict=True):
+                acc.append(part)
+            wedge.append(np.full(theta.size, g.wedge))
+            first[ident] = (theta, n_keys)
+            n_keys += theta.size
+        key[sl] = first[ident][1] + np.arange(theta.size)
     return LabGeometry(
         w_i=np.concatenate(w_i)[:, None, :], w_o=np.concatenate(w_o)[:, None, :],
         weight=np.concatenate(weight)[:, None], irradiance=np.concatenate(irr)[:, None],
-        wedge=np.asarray(table.wedge_index[: sum(len(a) for a in weight)], int), key=key,
+        wedge=np.concatenate(wedge).astype(int), key=key,
     )  # fmt: skip
 
 

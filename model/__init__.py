@@ -109,12 +109,16 @@ from ._microfacet import smith_lambda as smith_lambda
 
 # isort: split
 # Gloss units (ISO 2813) of the staircase (issue 41; docs/gloss.md).
+from ._gloss import GLOSS_ILLUMINANT as GLOSS_ILLUMINANT
 from ._gloss import GLOSS_STANDARD_INDEX as GLOSS_STANDARD_INDEX
 from ._gloss import GLOSS_STANDARD_WAVELENGTH_NM as GLOSS_STANDARD_WAVELENGTH_NM
 from ._gloss import ISO2813_APERTURES as ISO2813_APERTURES
+from ._gloss import RECEPTOR_NODES as RECEPTOR_NODES
+from ._gloss import SOURCE_NODES as SOURCE_NODES
 from ._gloss import Gloss as Gloss
 from ._gloss import GlossAperture as GlossAperture
 from ._gloss import GlossGeometry as GlossGeometry
 from ._gloss import GlossSurface as GlossSurface
 from ._gloss import gloss as gloss
 from ._gloss import iso2813_geometry as iso2813_geometry
+from ._gloss import luminous_rule as luminous_rule

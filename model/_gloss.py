@@ -12,17 +12,25 @@ in angle: (in the plane of incidence) x (perpendicular to it). Here the flux is
 
 with `s` the source's share of the beam (uniform per steradian over its rectangle) and `p`
 the staircase's reflected power per steradian per unit incident power (`lab_density_gaussian`,
-`lab_density_microfacet`, `lab_density_rounded`, plus the diffuse body `lab_body` /
-`lab_body_rounded` weighted by `body`). The standard's `p` is Fresnel's mirror, so its
-integral is `R(w_i . z)` whenever the mirror direction lies in the window.
+`lab_density_microfacet`, or the rounded model's `rounded_flats` and `rounded_arcs`, plus the
+diffuse body `lab_body` / `lab_body_rounded` weighted by `body`), averaged over the
+glossmeter's luminous response (`luminous_rule`). The standard's `p` is Fresnel's mirror, so
+its integral is `R(w_i . z)` whenever the mirror direction lies in the window.
 
-Quadrature (`SOURCE_NODES`, `RECEPTOR_NODES`): Gauss-Legendre over the source rectangle; over
-the receptor, one Gauss-Legendre product rule per *warp*, each in the variable `u = atan((x -
-c) / w)` about one of the staircase's lobe directions `c` (tread, riser, two-bounce path) with
-the facets' width `w`, and one nearly uniform warp, combined by the balance heuristic: the
-receptor integral is `sum_k sum_n omega_kn f(x_kn) / sum_j q_j(x_kn)`, `q_j` the density of
-warp `j`'s nodes. A lobe much narrower than the window is then integrated as exactly as a wide
-one, so a mirror-smooth flat surface gives Fresnel's values (docs/gloss.md §2).
+Quadrature (`SOURCE_NODES`, `RECEPTOR_NODES`, `SMOOTH_NODES`; docs/gloss.md §2): a
+Gauss-Legendre product rule over the source rectangle. Over the receptor, per source
+direction, a rule about each of the `LOBE_RULES` lobes nearest to the window (lobes of non-zero
+ratio, in units of their width; centres clipped into the window), shared out by a smooth
+partition of unity (`_shares`). A rule works in its lobe's own coordinates `(p, q) = L (a -
+a_c, b - b_c)` (`_lobe_frame`: the Gaussian kernel's `(theta', t)` per sigma, which a grazing
+view along the layer lines shears, or a microfacet lobe's `2 alpha` widths), in which the window
+is a parallelogram: `p` runs over its extent and `q` over each exact slice, each with a plain
+Gauss-Legendre rule over the lobe's core (`CORE_WIDTHS` widths either side) and a logarithmic
+one beyond (`_warped_axis`). A lobe far narrower than the window is then integrated as exactly
+as a wide one, so that a mirror-smooth flat surface gives Fresnel's gloss, and so is a smooth
+function across the window. The broad parts (the diffuse body, the rounded edges' arcs) take a
+plain product rule over the window. Not resolved: a lobe narrower than the source that leaves
+the window for part of it (`SOURCE_NODES`).
 
 Radians inside; `iso2813_geometry` turns the standard's degrees into a `GlossGeometry`.
 Extremes: the wedge angle is held inside `[BETA_MIN_RAD, pi/2 - BETA_MIN_RAD]`, the layer at or
@@ -37,6 +45,7 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
+from jax.scipy.special import logsumexp
 from jaxtyping import Array, ArrayLike, Float
 
 from ._fresnel import fresnel_unpolarised
@@ -51,6 +60,7 @@ from ._lab import (
 )
 from ._lab_rounded import lab_body_rounded, rounded_arcs, rounded_flats
 from ._rounded import ROUNDED_RESOLUTION, max_edge_radius, rounded_geometry
+from ._shapes import with_rank
 
 GLOSS_STANDARD_INDEX = 1.567
 """The black glass standard's refractive index: ISO 2813 assigns 100 gloss units to a polished
@@ -111,11 +121,12 @@ class GlossSurface(NamedTuple):
     """The staircase a glossmeter is put on [conventions §2, §11, §12].
 
     `beta2`: the surface's angle to the build plate (rad; 0 a top surface, pi/2 a wall);
-    `layer_um`: the layer thickness; `n`: the refractive index at the glossmeter's wavelength
-    (complex allowed); `width`: the facets' spread, Gaussian sigma (rad) or microfacet alpha;
-    `edge_radius_um`: the rounded edges' radius (0 sharp; used with `rounded=True`);
-    `body`: the diffuse body's weight, `albedo / pi` (the lab model's `floor / scale`): its
-    reflected power per steradian is `body * lab_body`.
+    `layer_um`: the layer thickness; `n`: the refractive index (complex allowed), one value or
+    one per wavelength sample on a last axis with `spectral_weight` (the glossmeter's luminous
+    response, `luminous_rule`) [conventions §8]; `width`: the facets' spread, Gaussian sigma
+    (rad) or microfacet alpha; `edge_radius_um`: the rounded edges' radius (0 sharp; used
+    with `rounded=True`); `body`: the diffuse body's weight, `albedo / pi` (the lab model's
+    `floor / scale`): its reflected power per steradian is `body * lab_body`.
     """
 
     beta2: ArrayLike
@@ -124,6 +135,42 @@ class GlossSurface(NamedTuple):
     width: ArrayLike
     edge_radius_um: ArrayLike = 0.0
     body: ArrayLike = 0.0
+    spectral_weight: ArrayLike | None = None
+
+
+GLOSS_ILLUMINANT = "C"
+"""ISO 2813's source and receptor together respond as CIE illuminant C times the luminous
+efficiency V(lambda) (the CIE 1931 y-bar): the gloss is a ratio of luminous fluxes."""
+
+LUMINOUS_NODES = 3
+"""Wavelengths of `luminous_rule`: the 3-point Gauss rule of the illuminant C x y-bar weight
+reproduces its 81-sample average of a flat surface's Fresnel reflectance within 0.001 GU, for
+the strongly dispersive `pla-bodurov2016` too (one wavelength, 557 nm, is 0.4 GU off;
+587.6 nm alone is 2 GU off at 20 deg)."""
+
+
+def luminous_rule(nodes: int = LUMINOUS_NODES) -> tuple[np.ndarray, np.ndarray]:
+    """Wavelengths (nm) and weights (sum 1) of the Gauss rule of the glossmeter's luminous
+    response (`GLOSS_ILLUMINANT` x y-bar on `spectral.VISIBLE_NM`): `sum_k w_k f(lambda_k)` is
+    the luminous average of a smooth `f`, exact for polynomials of degree `2 nodes - 1`
+    (Golub-Welsch from the Stieltjes recurrence of the discrete measure) [conventions §8]."""
+    from . import spectral
+
+    lam = spectral.VISIBLE_NM
+    w = spectral.xyz_weights(GLOSS_ILLUMINANT, lam)[1]
+    w = w / w.sum()
+    mid, half = 0.5 * (lam.max() + lam.min()), 0.5 * (lam.max() - lam.min())
+    u = (lam - mid) / half
+    alpha, beta = np.zeros(nodes), np.zeros(nodes)
+    p_prev, p, norm_prev = np.zeros_like(u), np.ones_like(u), 1.0
+    for j in range(nodes):
+        norm = np.sum(w * p * p)
+        alpha[j] = np.sum(w * u * p * p) / norm
+        beta[j] = norm / norm_prev if j else 0.0
+        p_prev, p, norm_prev = p, (u - alpha[j]) * p - beta[j] * p_prev, norm
+    off = np.sqrt(beta[1:])
+    x, vectors = np.linalg.eigh(np.diag(alpha) + np.diag(off, 1) + np.diag(off, -1))
+    return mid + half * x, vectors[0] ** 2
 
 
 class Gloss(NamedTuple):
@@ -135,14 +182,23 @@ class Gloss(NamedTuple):
     body: Float[Array, "..."]
 
 
-SOURCE_NODES = 3
-"""Gauss-Legendre nodes per axis over the source rectangle: the flux varies smoothly with the
-source direction except where a lobe narrower than the source crosses the window's edge."""
+_TINY = 1e-12
+_BIG = 1e30
 
-RECEPTOR_NODES = 10
-"""Gauss-Legendre nodes per axis of each receptor warp (four warps: three lobes, one nearly
-uniform). Doubling them moves the gloss of the tests' staircases by less than 0.01 GU
-(tests/test_gloss.py::test_gloss_quadrature_converges)."""
+SOURCE_NODES: tuple[int, int] = (2, 5)
+"""Gauss-Legendre nodes over the source rectangle, (in the plane of incidence, across it). Its
+0.75 deg in the plane barely change a lobe wider than it; across, its 2.5 deg turn the
+projected angle of incidence by up to 14 deg at 85 deg along the layer lines, through the lobe
+weights' kinks: 3 x 3 nodes were 0.6 GU (2.5%) off there with 1-deg facets, 2 x 5 within
+0.15 GU of 9 x 9. Not resolved: a lobe narrower than the source that leaves the window for
+part of it (mirror-smooth facets a few tenths of a degree from flat), where the reading is a
+step in the source direction."""
+
+RECEPTOR_NODES = 8
+"""Gauss-Legendre nodes of each of the four pieces (core and tail on either side of the lobe)
+of each receptor axis: 32 x 32 nodes per source direction. With facets of 1 deg and wider
+(alpha 0.02 and above) doubling them moves the gloss by at most 0.15 GU, by 0.02 GU in nine
+cases of ten (docs/gloss.md §2; tests/test_gloss.py::test_gloss_quadrature_converges)."""
 
 SMOOTH_NODES = 4
 """Gauss-Legendre nodes per axis of the plain product rule over the receptor on which the
@@ -160,10 +216,17 @@ WIDTH_MIN = 1e-6
 """The smallest facet width (sigma in rad, or alpha): a narrower lobe is a mirror to within
 far below a gloss unit, and the warps keep it resolved."""
 
-CORE_WIDTHS = 3.0
+LOBE_RULES = 2
+"""Receptor rules per source direction, one about each of the lobes nearest to the window:
+along the layer lines a few degrees from flat the two-bounce path's lobe lies at the mirror
+direction beside the tread's, both narrow across the plane of incidence at grazing angles (a
+single rule about the nearest missed the other by up to 0.8 GU at 85 deg with 1-deg facets)."""
+
+CORE_WIDTHS = 5.0
 """The receptor's nodes resolve the nearest lobe's core, this many lobe widths on each side
 of its centre, with a plain Gauss-Legendre rule, and the rest of the window with a
-logarithmic one (`_warped_axis`)."""
+logarithmic one (`_warped_axis`). Three widths left the Gaussian's 0.3% beyond them to the
+logarithmic rule, which gave a mirror-smooth flat surface 0.03 GU too much at 60 deg."""
 
 
 def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -211,6 +274,7 @@ def _warped_axis(centre: Array, width: Array, lo: Array, hi: Array, v: Array, w:
     `x = x_core +- width (exp(lam v) - 1)`, `lam` such that `v = 1` reaches the interval's end:
     the lobe's core, its tail and a smooth function across the whole window are all integrated
     to high accuracy (docs/gloss.md §2). Returns `(..., 4N)` nodes and weights."""
+    v, w = with_rank(v, centre.ndim + 1), with_rank(w, centre.ndim + 1)
     parts_x, parts_w = [], []
     for side, reach in ((-1.0, centre - lo), (1.0, hi - centre)):
         core = jnp.minimum(CORE_WIDTHS * width, reach)[..., None]
@@ -223,16 +287,38 @@ def _warped_axis(centre: Array, width: Array, lo: Array, hi: Array, v: Array, w:
     return jnp.concatenate(parts_x, axis=-1), jnp.concatenate(parts_w, axis=-1)
 
 
-def _nearest_lobe(a: Array, b: Array, ratio: Array, half_a: Array, half_b: Array,
-                  scale: Array) -> tuple[Array, Array]:  # fmt: skip
-    """The receptor point nearest to the lobe (of non-zero ratio) nearest to the receptor, in
-    units of the lobes' width: the centre of the receptor warps, per source node."""
-    ca, cb = jnp.clip(a, -half_a, half_a), jnp.clip(b, -half_b, half_b)
+def _nearest_lobes(a: Array, b: Array, ratio: Array, half: Array, scale: Array
+                   ) -> tuple[Array, Array, Array]:  # fmt: skip
+    """The `LOBE_RULES` lobes (of non-zero ratio) nearest to the window, in units of the lobes'
+    width, per source node: their centres `(S, K, 2)`, the window's points nearest to them
+    (the rules' centres) and whether each is a lobe at all (`(S, K)`; False where fewer lobes
+    have light)."""
+    ca, cb = jnp.clip(a, -half[0], half[0]), jnp.clip(b, -half[1], half[1])
     dist = jnp.hypot(a - ca, b - cb) / scale
-    dist = jnp.where(ratio > 1e-12, dist, jnp.inf)
-    k = jnp.argmin(dist, axis=-1)[..., None]
-    return (jnp.take_along_axis(ca, k, axis=-1)[..., 0],
-            jnp.take_along_axis(cb, k, axis=-1)[..., 0])  # fmt: skip
+    has = ratio > 1e-12
+    order = jnp.argsort(jnp.where(has, dist, jnp.inf), axis=-1)[:, :LOBE_RULES]
+
+    def pick(x: Array) -> Array:
+        return jnp.take_along_axis(x, order, axis=-1)
+
+    centre = jnp.stack([pick(a), pick(b)], -1)
+    return centre, jnp.stack([pick(ca), pick(cb)], -1), pick(has)
+
+
+def _shares(a: Array, b: Array, centre: Array, lobe: Array, valid: Array) -> Array:
+    """Each rule's share of its nodes `(S, K, M)`: a partition of unity over the window,
+    `g_k / sum_j g_j` with `g_j = |det L_j| / (1 + |L_j (x - c_j)|^2)^2` about lobe `j`'s own
+    centre (0 for no lobe). Near a lobe its own rule takes (nearly) all, so each lobe is
+    integrated by the rule crowded about it; the shares are smooth, so the rules see smooth
+    integrands."""
+    x = jnp.stack([a, b], -1)  # (S, K, M, 2): the nodes of rule k
+    d = x[:, :, None, :, :] - centre[:, None, :, None, :]  # (S, K, J, M, 2)
+    r2 = jnp.sum(jnp.einsum("sjpq,skjmq->skjmp", lobe, d) ** 2, axis=-1)  # (S, K, J, M)
+    log_det = jnp.log(jnp.abs(jnp.linalg.det(lobe)))[:, None, :, None]  # (S, 1, J, 1)
+    log_g = jnp.where(valid[:, None, :, None], log_det - 2.0 * jnp.log1p(r2), -jnp.inf)
+    own = jnp.take_along_axis(log_g, jnp.arange(log_g.shape[1])[None, :, None, None], axis=2)
+    share = jnp.exp(own[:, :, 0, :] - logsumexp(log_g, axis=2))
+    return jnp.where(valid[:, :, None], share, 0.0)
 
 
 def _surface(surface: GlossSurface, rounded: bool) -> GlossSurface:
@@ -242,17 +328,75 @@ def _surface(surface: GlossSurface, rounded: bool) -> GlossSurface:
     width = jnp.maximum(jnp.asarray(surface.width, b2.dtype), WIDTH_MIN)
     r = jnp.asarray(surface.edge_radius_um, b2.dtype)
     r = jnp.clip(r, 0.0, max_edge_radius(b2, l1)) if rounded else jnp.zeros_like(r)
-    return GlossSurface(b2, l1, jnp.asarray(surface.n), width, r, jnp.asarray(surface.body))
+    sw = None if surface.spectral_weight is None else jnp.asarray(surface.spectral_weight)
+    return GlossSurface(b2, l1, jnp.asarray(surface.n), width, r, jnp.asarray(surface.body), sw)
 
 
-def _lobe_widths(width: Array, kind: str, theta: Array) -> tuple[Array, Array]:
-    """The angular widths of the staircase's lobes in and perpendicular to the plane of
-    incidence, for the receptor's nodes: Gaussian facets spread by sigma both ways
-    (conventions §11: in `theta'` and in `t`); a micro-normal tilted by `d` turns a reflection
-    by `2 d` in the plane of incidence and by `2 d cos(theta)` across it."""
-    if kind == "gaussian":
-        return width, width
-    return 2.0 * width, 2.0 * width * jnp.cos(theta)
+def _lobe_frame(width: Array, kind: str, theta: Array, a: Array, b: Array, frame: Array
+                ) -> Array:  # fmt: skip
+    """`L` `(..., 2, 2)`: receptor offsets `(da, db)` at `(a, b)` to the lobe's own coordinates
+    `L (da, db)`, in which the lobe is about one wide either way [conventions §11, §12].
+
+    Gaussian facets spread by sigma in `theta'` and in `t`, so `L = J / sigma` with `J` the
+    derivative of `(theta', t)` by `(a, b)`: sheared, not only scaled, where `theta'` is the
+    projection of a direction close to the layer lines (grazing incidence along them, a source
+    node out of the plane of incidence). A micro-normal tilted by `d` turns a reflection by
+    `2 d` in the plane of incidence and by `2 d cos(theta)` across it:
+    `L = diag(1 / 2 alpha, 1 / (2 alpha cos(theta)))`."""
+    one, zero = jnp.ones_like(a), jnp.zeros_like(a)
+    if kind != "gaussian":
+        inv = 0.5 / width
+        return jnp.stack([jnp.stack([inv * one, zero], -1),
+                          jnp.stack([zero, inv / jnp.cos(theta) * one], -1)], -2)  # fmt: skip
+    ca, sa, cb, sb = jnp.cos(theta + a), jnp.sin(theta + a), jnp.cos(b), jnp.sin(b)
+    w = jnp.einsum("sj,kj->sk", jnp.stack([cb * sa, sb, cb * ca], -1), frame)
+    d_a = jnp.einsum("sj,kj->sk", jnp.stack([cb * ca, zero, -cb * sa], -1), frame)
+    d_b = jnp.einsum("sj,kj->sk", jnp.stack([-sb * sa, cb, -sb * ca], -1), frame)
+    c2 = jnp.maximum(w[:, 0] ** 2 + w[:, 2] ** 2, _TINY)
+
+    def column(d: Array) -> Array:  # d(theta', t) along one receptor axis
+        return jnp.stack([(w[:, 2] * d[:, 0] - w[:, 0] * d[:, 2]) / c2, d[:, 1]], -1)
+
+    return jnp.stack([column(d_a), column(d_b)], -1) / width
+
+
+def _interval(m: Array, c: Array, lo: Array, hi: Array) -> tuple[Array, Array]:
+    """The `q` with `lo <= m q + c <= hi`: an interval, or all `q` (as +-`_BIG`) where `m` is 0
+    (then the outer variable's range has already enforced it)."""
+    has = jnp.abs(m) > _TINY
+    m_s = jnp.where(has, m, 1.0)
+    q1, q2 = (lo - c) / m_s, (hi - c) / m_s
+    return jnp.where(has, jnp.minimum(q1, q2), -_BIG), jnp.where(has, jnp.maximum(q1, q2), _BIG)
+
+
+def _receptor_nodes(centre: Array, lobe: Array, half: Array, v: Array, w: Array
+                    ) -> tuple[Array, Array, Array]:  # fmt: skip
+    """Receptor nodes `(a, b)` `(S, M)` and weights (da db included) for lobes at `centre`
+    `(S, 2)` with lobe frames `lobe` `(S, 2, 2)` (`_lobe_frame`), over the window
+    `|a| <= half[0]`, `|b| <= half[1]`: in the lobe's coordinates `(p, q) = L (a, b) - L c`,
+    in which the window is a parallelogram, the outer variable `p` over its extent and for each
+    `p` the inner `q` over the exact slice, both `_warped_axis` about the lobe (or the window's
+    point nearest to it)."""
+    inv = jnp.linalg.inv(lobe)  # (S, 2, 2): (p, q) -> (da, db)
+    corners = jnp.asarray([[-1.0, -1.0], [-1.0, 1.0], [1.0, -1.0], [1.0, 1.0]]) * half[None, :]
+    pq = jnp.einsum("sij,skj->ski", lobe, corners[None] - centre[:, None, :])  # (S, 4, 2)
+    p_lo, p_hi = jnp.min(pq[..., 0], axis=1), jnp.max(pq[..., 0], axis=1)
+    p, wp = _warped_axis(jnp.clip(0.0, p_lo, p_hi), jnp.ones_like(p_lo), p_lo, p_hi, v, w)
+    bounds = [  # each window edge pair as a condition on q for the node's p
+        _interval(inv[:, k, 1, None], centre[:, k, None] + inv[:, k, 0, None] * p, -half[k],
+                  half[k])
+        for k in range(2)
+    ]  # fmt: skip
+    q_lo = jnp.maximum(bounds[0][0], bounds[1][0])
+    q_hi = jnp.maximum(jnp.minimum(bounds[0][1], bounds[1][1]), q_lo)  # empty slices: 0 long
+    q, wq = _warped_axis(jnp.clip(0.0, q_lo, q_hi), jnp.ones_like(q_lo), q_lo, q_hi, v, w)
+    n = p.shape[1]
+    p = jnp.broadcast_to(p[:, :, None], q.shape)  # (S, P, Q)
+    a = centre[:, 0, None, None] + inv[:, 0, 0, None, None] * p + inv[:, 0, 1, None, None] * q
+    b = centre[:, 1, None, None] + inv[:, 1, 0, None, None] * p + inv[:, 1, 1, None, None] * q
+    weight = wp[:, :, None] * wq * jnp.abs(jnp.linalg.det(inv))[:, None, None]
+    flat = (a.shape[0], n * q.shape[-1])
+    return a.reshape(flat), b.reshape(flat), weight.reshape(flat)
 
 
 def gloss(
@@ -262,7 +406,7 @@ def gloss(
     kind: str = "gaussian",
     *,
     rounded: bool = False,
-    source_nodes: int = SOURCE_NODES,
+    source_nodes: tuple[int, int] = SOURCE_NODES,
     receptor_nodes: int = RECEPTOR_NODES,
     resolution: int = ROUNDED_RESOLUTION,
 ) -> Gloss:
@@ -283,10 +427,10 @@ def gloss(
     theta = jnp.asarray(geometry.angle, s.beta2.dtype)
 
     # the source: Gauss-Legendre over its rectangle, uniform per steradian
-    xs, ws = _gauss_legendre(source_nodes)
-    a_s = 0.5 * geometry.source_in * jnp.asarray(np.repeat(xs, source_nodes))
-    b_s = 0.5 * geometry.source_perp * jnp.asarray(np.tile(xs, source_nodes))
-    w_s = jnp.asarray(np.outer(ws, ws).ravel()) * jnp.cos(b_s)  # (S,)
+    (xa, wa), (xb, wb) = (_gauss_legendre(n) for n in source_nodes)
+    a_s = 0.5 * geometry.source_in * jnp.asarray(np.repeat(xa, xb.size))
+    b_s = 0.5 * geometry.source_perp * jnp.asarray(np.tile(xb, xa.size))
+    w_s = jnp.asarray(np.outer(wa, wb).ravel()) * jnp.cos(b_s)  # (S,)
     w_i = jnp.einsum("sj,kj->sk", _meter_direction(theta, a_s, b_s, -1.0), frame)  # (S, 3)
     cos_i = w_i[:, 2]
 
@@ -296,35 +440,38 @@ def gloss(
     )
     standard = jnp.sum(w_s * cos_i * fresnel_unpolarised(cos_i, GLOSS_STANDARD_INDEX) * inside)
 
-    # the receptor: Gauss-Legendre in log-warped coordinates about the nearest lobe
-    lobes = lab_lobes(w_i, s.beta2, s.n)
+    # the receptor: a rule about each of the two lobes nearest to the window, shared out
+    lobes = lab_lobes(w_i, s.beta2, s.n, s.spectral_weight)
     dirs = face_direction(lobes.theta_o, lobes.t_o[:, None])  # (S, 3, 3)
     a_c, b_c = _to_meter(dirs, frame)
-    half_a, half_b = 0.5 * geometry.receptor_in, 0.5 * geometry.receptor_perp
-    width_a, width_b = _lobe_widths(s.width, kind, theta)
-    c_a, c_b = _nearest_lobe(a_c - theta, b_c, lobes.ratio, half_a, half_b, width_a)
+    half = jnp.stack([0.5 * geometry.receptor_in, 0.5 * geometry.receptor_perp])
+    scale = s.width if kind == "gaussian" else 2.0 * s.width
+    centre, clipped, valid = _nearest_lobes(a_c - theta, b_c, lobes.ratio, half, scale)
+    n_s, k = centre.shape[:2]
+    lobe = _lobe_frame(s.width, kind, theta, clipped[..., 0].ravel(), clipped[..., 1].ravel(),
+                       frame).reshape(n_s, k, 2, 2)  # fmt: skip
     v, w = (jnp.asarray(x) for x in _gauss_legendre01(receptor_nodes))
-    a_r, wa = _warped_axis(c_a, width_a, -half_a, half_a, v, w)  # (S, 2N)
-    b_r, wb = _warped_axis(c_b, width_b, -half_b, half_b, v, w)
-    n2 = 4 * receptor_nodes
-    a_r = jnp.broadcast_to(a_r[:, :, None], (a_r.shape[0], n2, n2)).reshape(-1, n2 * n2)
-    b_r = jnp.broadcast_to(b_r[:, None, :], (b_r.shape[0], n2, n2)).reshape(-1, n2 * n2)
-    weight = (wa[:, :, None] * wb[:, None, :]).reshape(-1, n2 * n2) * jnp.cos(b_r)
+    a_r, b_r, weight = _receptor_nodes(clipped.reshape(-1, 2), lobe.reshape(-1, 2, 2), half,
+                                       v, w)  # fmt: skip
+    a_r, b_r, weight = (x.reshape(n_s, k, -1) for x in (a_r, b_r, weight))
+    weight = weight * _shares(a_r, b_r, centre, lobe, valid)  # (S, K, M)
+    a_r, b_r, weight = (x.reshape(n_s, -1) for x in (a_r, b_r, weight))
+    weight = weight * jnp.cos(b_r)  # d omega = cos b da db
     w_o = jnp.einsum("smj,kj->smk", _meter_direction(theta, a_r, b_r, 1.0), frame)  # (S, M, 3)
 
     # the broad parts (the diffuse body, the rounded edges' arcs) on a plain product rule
     xg, wg = (jnp.asarray(x) for x in _gauss_legendre(SMOOTH_NODES))
-    a_g = jnp.repeat(half_a * xg, SMOOTH_NODES)
-    b_g = jnp.tile(half_b * xg, SMOOTH_NODES)
+    a_g = jnp.repeat(half[0] * xg, SMOOTH_NODES)
+    b_g = jnp.tile(half[1] * xg, SMOOTH_NODES)
     weight_g = jnp.outer(wg, wg).ravel() * geometry.receptor_in * geometry.receptor_perp
     weight_g = weight_g * jnp.cos(b_g)
     w_g = jnp.einsum("mj,kj->mk", _meter_direction(theta, a_g, b_g, 1.0), frame)  # (G, 3)
 
     peaked, broad, body = _densities(s, w_i[:, None, :], w_o, w_g[None], kind, rounded,
                                      resolution)  # fmt: skip
-    received = jnp.sum(weight * peaked, axis=1) + jnp.sum(weight_g * broad, axis=1)
+    received = jnp.sum(weight * peaked, axis=1) + jnp.sum(weight_g[None] * broad, axis=1)
     flux_spec = jnp.sum(w_s * cos_i * received)
-    flux_body = jnp.sum(w_s * cos_i * jnp.sum(weight_g * body, axis=1)) * s.body
+    flux_body = jnp.sum(w_s * cos_i * jnp.sum(weight_g[None] * body, axis=1)) * s.body
     specular = 100.0 * flux_spec / standard
     diffuse = 100.0 * flux_body / standard
     return Gloss(total=specular + diffuse, specular=specular, body=diffuse)
@@ -341,13 +488,15 @@ def _densities(
         geo = rounded_geometry(projected_incidence(w_i).theta, s.beta2, s.layer_um,
                                s.edge_radius_um, resolution=resolution)  # fmt: skip
         flats = rounded_flats(w_i, w_o, s.beta2, s.n, s.width, s.layer_um, s.edge_radius_um,
-                              geo, kind)  # fmt: skip
-        arcs = rounded_arcs(w_i, w_g, s.beta2, s.n, s.width, geo, kind)
-        body = lab_body_rounded(w_i, w_g, s.beta2, s.n, s.layer_um, s.edge_radius_um)
+                              geo, kind, s.spectral_weight)  # fmt: skip
+        arcs = rounded_arcs(w_i, w_g, s.beta2, s.n, s.width, geo, kind, s.spectral_weight)
+        body = lab_body_rounded(w_i, w_g, s.beta2, s.n, s.layer_um, s.edge_radius_um,
+                                s.spectral_weight)  # fmt: skip
         return flats, arcs, body
     if kind == "gaussian":
-        spec = lab_density_gaussian(w_i, w_o, s.beta2, s.n, s.width)
+        spec = lab_density_gaussian(w_i, w_o, s.beta2, s.n, s.width,
+                                    spectral_weight=s.spectral_weight)  # fmt: skip
     else:
-        spec = lab_density_microfacet(w_i, w_o, s.beta2, s.n, s.width, kind)
-    body = lab_body(w_i, w_g, s.beta2, s.n)
+        spec = lab_density_microfacet(w_i, w_o, s.beta2, s.n, s.width, kind, s.spectral_weight)
+    body = lab_body(w_i, w_g, s.beta2, s.n, s.spectral_weight)
     return spec, jnp.zeros_like(body), body

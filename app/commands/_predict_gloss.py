@@ -148,10 +148,14 @@ def _grids(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return wedges, azimuths, angles
 
 
-def _given_model(args: argparse.Namespace, index: complex) -> Any:
-    """The gloss model of the parameters given on the command line; `index` at 587.6 nm with
-    `--delta-n` added."""
+def _given_model(args: argparse.Namespace, index_of: Callable[[np.ndarray], np.ndarray]) -> Any:
+    """The gloss model of the parameters given on the command line; `index_of(nm)`: the given
+    material's index with `--delta-n` added (predict's own lookup and checks)."""
+    from stairfit import model
+
     from .. import gloss
+
+    lam = np.sort(np.r_[model.luminous_rule()[0], model.GLOSS_STANDARD_WAVELENGTH_NM])
 
     check_number(args.body_albedo, "--body-albedo", 0.0, 1.0)
     check_number(args.edge_radius_um, "--edge-radius-um", 0.0, 10_000.0, "um")
@@ -159,7 +163,7 @@ def _given_model(args: argparse.Namespace, index: complex) -> Any:
         width = args.sigma_deg
     else:
         width = check_number(args.alpha, "--alpha", 1e-6, 10.0)
-    return gloss.given_gloss_model(args.facets, index, width, args.edge_radius_um,
+    return gloss.given_gloss_model(args.facets, lam, index_of(lam), width, args.edge_radius_um,
                                    args.body_albedo)  # fmt: skip
 
 
@@ -177,9 +181,13 @@ def _layer(args: argparse.Namespace, model: Any) -> float:
     return float(model.layer_um)
 
 
-def run_gloss(args: argparse.Namespace, writer: Any, index_at: Callable[[], complex]) -> None:
-    """Compute the gloss table and write it with `writer` (a csv writer). `index_at()`: the
-    given material's index at 587.6 nm with `--delta-n` (predict's own lookup and checks)."""
+def run_gloss(
+    args: argparse.Namespace, writer: Any, index_of: Callable[[np.ndarray], np.ndarray]
+) -> None:
+    """Compute the gloss table and write it with `writer` (a csv writer). `index_of(nm)`: the
+    given material's index with `--delta-n` (predict's own lookup and checks)."""
+    from stairfit import model as m
+
     from .. import gloss
 
     wedges, azimuths, angles = _grids(args)
@@ -188,12 +196,13 @@ def run_gloss(args: argparse.Namespace, writer: Any, index_at: Callable[[], comp
         if "layer_um" in getattr(args, "given", frozenset()):
             check_number(args.layer_um, "--layer-um", 1e-6, 10_000.0, "um")
     else:
-        model = _given_model(args, index_at())
-    for note in model.notes:
-        warnings.warn(note, StairfitWarning, stacklevel=2)
+        model = _given_model(args, index_of)
+    note = gloss.out_of_plane_note(model, azimuths, angles)
+    for text in (*model.notes, *([note] if note else [])):
+        warnings.warn(text, StairfitWarning, stacklevel=2)
     layer = _layer(args, model)
     rows = gloss.gloss_table(model, wedges, layer, azimuths, angles)
-    n = model.index + model.fixed.get("delta_n", 0.0)
+    n = gloss.index_at(model, m.GLOSS_STANDARD_WAVELENGTH_NM) + model.fixed.get("delta_n", 0.0)
     if ("delta_n", None) in model.keys:
         n += model.best[model.keys.index(("delta_n", None))]
     writer.writerow(GLOSS_COLUMNS)

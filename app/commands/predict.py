@@ -119,8 +119,7 @@ def run(args: argparse.Namespace) -> int:
         check_combination(args)
         check_scalars(args)
         with _open_output(args.output, args.force) as out:
-            index = lambda: complex(_index(args, np.array([587.6]))[0])  # noqa: E731
-            run_gloss(args, csv.writer(out, lineterminator="\n"), index)
+            run_gloss(args, csv.writer(out, lineterminator="\n"), lambda nm: _index(args, nm))
         return 0
     check_not_gloss(args)
     check_combination(args)
