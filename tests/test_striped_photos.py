@@ -193,7 +193,7 @@ def test_sharp_stripes_square_to_the_pixels() -> None:
     pixel's square such a harmonic keeps a few percent of the mean, and on the R and B sites it
     is a near-constant of opposite sign. Fitting harmonics down to 0.4 px only, R and B came out
     up to 6% apart with pulls up to 66 (6 photos; 22 on these 3); with the harmonics that the
-    residuals show fitted as well: within 1% (pulls sd 0.74 over 6 photos, max 2.3: the
+    residuals show fitted as well: within 1% (pulls sd 0.75 over 6 photos, max 2.3: the
     errors are a little conservative here)."""
     rows = []
     for seed in range(3):
