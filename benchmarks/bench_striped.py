@@ -3,8 +3,9 @@
 Photos from the independent renderer tests/striped_photos.py (never `stairfit.imaging.synthetic`):
 each holds 4 faces, their layer period 1-8 px at any orientation, aliased by the pixel grid and
 the RGGB mosaic, under a near lamp's gradient, with shot and read noise. Per condition (grey or
-coloured faces, exposure, stripes along the pixel axes, face size, surface texture, irregular
-layers, irregular layer positions) `--photos` photos are measured three ways:
+coloured faces, exposure, stripes along the pixel axes, a sharp highlight with the lines exactly
+along the pixel rows or columns and no lens blur, face size, surface texture, irregular layers,
+irregular layer positions) `--photos` photos are measured three ways:
 
 * **roi_px**: `imaging.measure_frame` with each face as a pixel polygon (the stripes'
   orientation estimated from the pixels), as `stairfit measure` measures a scene with roi_px;
@@ -58,6 +59,10 @@ CONDITIONS: dict[str, dict] = {
     "irregular layers 1%": {"texture": sp.Texture(layers=0.01)},
     "irregular positions 0.02 layer": {"texture": sp.Texture(positions=0.02)},
     "all three, milder": {"texture": sp.Texture(layers=0.005, surface=0.01, positions=0.01)},
+    # last, so that the conditions above keep their seeds
+    "sharp highlight, square to the pixels, no blur": {
+        "square": True, "sharp": True, "blur_px": 0.0,
+    },
 }
 
 

@@ -20,10 +20,11 @@ has one.
 
 An ROI that shows its layer lines as stripes (`_stripes`) is measured on its pixels with the
 fitted stripes subtracted; its blocks are then detrended by a quadratic surface, strips along
-the layer lines may replace them (`_with_strips`), and the noise the fitted stripes carry into
-the mean is added (`finish_stats`). `roi_data` does the work that needs the pixels, and
-`finish_stats` what needs the photo's noise model, so that the pipeline can fit that model to
-all of a photo's ROIs in between.
+the layer lines may replace them (`_with_strips`), the noise the fitted stripes carry into the
+mean is added (`finish_stats`), and so is, to R and B, what the stripes leave at the mosaic's
+Nyquist frequency, which the two greens show (`_green_parity`). `roi_data` does the work that
+needs the pixels, and `finish_stats` what needs the photo's noise model, so that the pipeline
+can fit that model to all of a photo's ROIs in between.
 
 See docs/imaging.md §Standard errors and §Layer stripes for the checks and for what they do not
 cover.
@@ -204,6 +205,8 @@ class RoiData:
             fitted stripes' coupling (`StripeFit.coupling`).
         plain: (3,) 1 / N, the same sum for the plain mean (weights 1 / N).
         stripes: the fitted stripes, or None.
+        greens: with stripes, the de-striped sums of the two green sites (`_green_sites`),
+            else None.
     """
 
     blocks: Blocks
@@ -214,6 +217,34 @@ class RoiData:
     weights: np.ndarray
     plain: np.ndarray
     stripes: StripeFit | None
+    greens: GreenSites | None = None
+
+
+@dataclass(frozen=True)
+class GreenSites:
+    """The de-striped pixels of the two green sites of a Bayer tile (`_green_parity`).
+
+    Attributes:
+        counts: (2,) pixels of G1 (the green in R's row) and G2 (the green in B's row).
+        sums: (2,) their de-striped sums (DN).
+    """
+
+    counts: np.ndarray
+    sums: np.ndarray
+
+
+def _green_sites(frame: RawFrame, px: Pixels, fit: StripeFit) -> GreenSites:
+    """The two greens' de-striped sums (for a Bayer mosaic: `_bayer`)."""
+    assert frame.cfa is not None
+    (ry,), (rx,) = np.nonzero(frame.cfa == 0)
+    y, x = px.y.astype(np.int64), px.x.astype(np.int64)
+    green = px.good & (px.colour == 1)
+    first = green & (y % 2 == ry)  # R's row, B's column
+    second = green & (x % 2 == rx)  # B's row, R's column
+    values = px.value - fit.periodic
+    counts = np.array([first.sum(), second.sum()], dtype=np.float64)
+    sums = np.array([values[first].sum(), values[second].sum()])
+    return GreenSites(counts, sums)
 
 
 def roi_channel_stats(
@@ -316,7 +347,8 @@ def roi_data(
     base = tuple(a.stats() for a in acc)
     noise_local = np.array([a.noise_variance(est.slopes[c], step) for c, a in enumerate(acc)])
     weights, plain, lev = _noise_weights(acc, fit, px)
-    return RoiData(blocks, est, base, noise_local, lev, weights, plain, fit)  # type: ignore[arg-type]
+    greens = _green_sites(frame, px, fit) if fit is not None and px is not None else None
+    return RoiData(blocks, est, base, noise_local, lev, weights, plain, fit, greens)  # type: ignore[arg-type]
 
 
 STRIP_OFFSETS = (0.0, 0.25, 0.5, 0.75)
@@ -389,17 +421,13 @@ def finish_stats(
     """The three channels' statistics of one ROI, its pixel noise from `noise` (the photo's
     noise model) or, without one, from each channel's own neighbour differences."""
     blocks, est = rd.blocks, rd.estimate
-    corrs = _correlations(est.cov)
-    defined = [c for c in corrs if math.isfinite(c)]
-    mean_corr = float(np.clip(np.mean(defined), 0.0, 1.0)) if defined else math.nan
     shifts = _centroid_shifts(blocks, est.slopes)
     fit = rd.stripes
-    out = []
+    means, totals, noises = np.full(3, math.nan), np.full(3, math.nan), np.full(3, math.nan)
     for c, base in enumerate(rd.base):
         if base.n_pixels == 0:
-            out.append(base)
             continue
-        base = dataclasses.replace(base, mean_dn=base.mean_dn + shifts[c])
+        means[c] = base.mean_dn + shifts[c]
         var, nu = float(est.cov[c, c]), float(est.dof[c])
         # the variance of a pull (x - mu) / s with s^2 ~ V chi2_nu / nu is nu / (nu - 2)
         infl = nu / (nu - 2) if nu > 2 else 1.0
@@ -416,6 +444,29 @@ def finish_stats(
             # the fitted stripes move the mean by their own noise: what the pixel weights add
             # to the plain mean's noise (docs/imaging.md §Layer stripes)
             total = max(total + w_var - p_var, w_var)
+        totals[c], noises[c] = total, w_var
+    before = np.sqrt(totals)
+    corrs = np.array(_correlations(est.cov))
+    parity = _green_parity(rd, noise)
+    if parity is not None:
+        totals, extra = _parity_terms(means, totals, parity)
+        # the R-B covariance that the fit builds from corr_rb and the stderrs, less the parity
+        # term's (it moves R and B in opposite directions); the others keep their covariance
+        after = np.sqrt(totals)
+        pairs = ((0, 1), (0, 2), (1, 2))
+        cov = [corrs[k] * before[a] * before[b] for k, (a, b) in enumerate(pairs)]
+        cov[1] -= extra * means[0] * means[2]
+        corrs = np.array(
+            [np.clip(cov[k] / (after[a] * after[b]), -1, 1) for k, (a, b) in enumerate(pairs)]
+        )
+    corr_tuple = (float(corrs[0]), float(corrs[1]), float(corrs[2]))
+    defined = [c for c in corr_tuple if math.isfinite(c)]
+    mean_corr = float(np.clip(np.mean(defined), 0.0, 1.0)) if defined else math.nan
+    out = []
+    for c, base in enumerate(rd.base):
+        if base.n_pixels == 0:
+            out.append(base)
+            continue
         stripe = {}
         if fit is not None:
             stripe = {
@@ -424,20 +475,72 @@ def finish_stats(
                 "stripe_amplitude": fit.amplitude,
                 "stripe_offset": float(fit.offset[c]),
             }
+        total, w_var = float(totals[c]), float(noises[c])
         out.append(
             dataclasses.replace(
                 base,
+                mean_dn=float(means[c]),
                 stderr_dn=math.sqrt(total) if math.isfinite(total) else math.nan,
                 n_blocks=int(est.n_blocks[c]),
                 channel_corr=mean_corr,
                 stderr_noise_dn=math.sqrt(w_var) if w_var >= 0 else math.nan,
-                dof=nu,
+                dof=float(est.dof[c]),
                 block_px=est.size_px,
-                channel_corrs=corrs,
+                channel_corrs=corr_tuple,
                 **stripe,
             )
         )
     return tuple(out)  # type: ignore[return-value]
+
+
+def _green_parity(rd: RoiData, noise: NoiseModel | None) -> tuple[float, float] | None:
+    """(d, its standard error) for an ROI with fitted stripes: d the relative difference of the
+    de-striped means of the two greens, G1 (in R's row) less G2 (in B's row).
+
+    The stripes' fit removes a pattern that is a function of the layer phase. What it leaves
+    at a Nyquist frequency of the mosaic ((0, 1/2) or (1/2, 0) cycles per px) is a
+    near-constant of opposite sign on the two halves of the Bayer tile (the rows, or the
+    columns, of R and G1 against those of G2 and B). The channels' levels take up R's and B's
+    part of it, which moves R and B apart by about d / 2 each; the two greens, one colour on
+    both halves, show it as d. Seen on physically based renders of layer periods under a pixel
+    (under a strong perspective) and of sharp highlights (docs/imaging.md §Layer stripes). The
+    standard error is the pixel noise's (the photo's noise model or the greens' own neighbour
+    differences, the larger)."""
+    g = rd.greens
+    if g is None or not np.all(g.counts > 0):
+        return None
+    level = float(g.sums.sum() / g.counts.sum())
+    var = max(rd.noise_local[1], 0.0)
+    if noise is not None:
+        var = max(var, float(noise.variance(level)))
+    if not (level > 0 and var > 0):
+        return None
+    m1, m2 = g.sums / g.counts
+    d = float(m1 - m2) / level
+    sd = math.sqrt(var * float(np.sum(1.0 / g.counts))) / level
+    return d, sd
+
+
+PARITY_Z = 2.0
+"""The two greens' difference counts in R's and B's errors when it exceeds its noise's
+standard error this many times (`_parity_terms`)."""
+
+
+def _parity_terms(
+    means: np.ndarray, totals: np.ndarray, parity: tuple[float, float]
+) -> tuple[np.ndarray, float]:
+    """R's and B's variances with the greens' parity difference (`_green_parity`) in them:
+    `(d^2 - sd^2) / 4` of their values squared (d less its noise) when |d| exceeds PARITY_Z
+    times its noise's standard error sd (pixel noise alone gives such a d in 5% of the ROIs;
+    counting every d above sd made the errors of plain striped faces 5-8% too large), and that
+    relative variance (their covariance is its negative: the pattern left at the Nyquist
+    frequency moves R and B in opposite directions, by about d / 2 each)."""
+    d, sd = parity
+    extra = (d**2 - sd**2) / 4 if abs(d) > PARITY_Z * sd else 0.0
+    totals = totals.copy()
+    for c in (0, 2):
+        totals[c] += extra * means[c] ** 2
+    return totals, extra
 
 
 def noise_points(rd: RoiData) -> list[tuple[int, float, float, float]]:

@@ -69,7 +69,7 @@ from ._roi import (
 )
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 13
+TABLE_VERSION = 14
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
@@ -86,6 +86,9 @@ TABLE_VERSION = 13
 12: the face_points_mm and camera_mm columns (the lab model's 3-D geometry of each ROI).
 13: resolved layer stripes fitted and removed, the photo's noise model, the erosion adapted to
     a face's thickness, thin ROIs flagged; the stripe_* and erode_px columns (issue 45).
+14: the stripes' harmonics shorter than 0.4 px that the residuals show are fitted too; what the
+    stripes leave at the mosaic's Nyquist frequency (the two greens' difference) is in R's and
+    B's errors (issue 45).
 """
 
 

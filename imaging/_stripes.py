@@ -29,7 +29,9 @@ highest peak of their periodogram, if it stands `DETECT_RATIO` times above the p
 median around it and at the same distance from zero (a random texture does not). The fit is
 Gauss-Newton on all parameters (phase included) over at most `FIT_PIXELS` pixels; its harmonics
 are those of wavelength at least 0.4 px, at most `max_harmonics`, less those that the pixel grid
-folds onto the smooth level (`_orders`).
+folds onto the smooth level (`_orders`), and then the shorter ones (up to order `MAX_ORDER`) that
+its residuals show (`_extra_orders`: a sharp highlight without lens blur keeps them after the
+pixel's square, and one folded near a Bayer Nyquist frequency splits R from B).
 """
 
 from __future__ import annotations
@@ -64,6 +66,17 @@ matter, and a noiseless test image would otherwise show stripes of rounding erro
 
 GRADIENT_HARMONICS = 2
 """Harmonics whose amplitude may change linearly across the ROI (lamp, viewing angle)."""
+
+MAX_ORDER = 64
+"""The highest harmonic tested beyond the fitted ones (`_extra_orders`)."""
+
+EXTRA_Z = 5.0
+"""A harmonic beyond the fitted ones is added when its amplitude, fitted to the residuals with
+the channels' levels, stands this many standard errors above zero."""
+
+EXTRA_MIN_CYCLES = 4.0
+"""... and when the pixel grid folds it to at least this many cycles across the ROI (fewer, it
+is a change of the level, which the fit cannot tell from the face's own)."""
 
 
 @dataclass(frozen=True)
@@ -486,27 +499,67 @@ def _colour_harmonics(q: np.ndarray, colour: np.ndarray, nu: np.ndarray, kmat: n
     return out
 
 
+@dataclass(frozen=True)
+class _Start:
+    """A fit's parameters (`theta` in layout `lay`) and the amplitudes (cos, sin) of harmonics
+    it lacks, to start a fit with more harmonics from."""
+
+    theta: np.ndarray
+    lay: _Layout
+    added: dict[int, tuple[float, float]]
+
+    def embed(self, lay: _Layout) -> np.ndarray:
+        """The parameters in `lay`: the levels, each harmonic's amplitudes (shared, their
+        change across the ROI, R's and B's own) where the fit had it, the added ones', phase
+        steps zero."""
+        old, theta = self.lay, np.zeros(lay.size)
+        theta[:LEVEL_PARAMS] = self.theta[:LEVEL_PARAMS]
+        for j, h in enumerate(lay.orders):
+            k = lay.shared + 2 * j
+            if h in old.orders:
+                i = old.shared + 2 * old.orders.index(h)
+                theta[k : k + 2] = self.theta[i : i + 2]
+            elif h in self.added:
+                theta[k : k + 2] = self.added[h]
+        for g in range(min(lay.n_grad, old.n_grad)):
+            if lay.orders[g] == old.orders[g]:
+                i, k = old.gradient + 4 * g, lay.gradient + 4 * g
+                theta[k : k + 4] = self.theta[i : i + 4]
+        for c in (0, 2):
+            mine, theirs = lay.colour.get(c, []), old.colour.get(c, [])
+            for j, h in enumerate(mine):
+                if h in theirs:
+                    i = old.colour_start[c] + 2 * theirs.index(h)
+                    k = lay.colour_start[c] + 2 * j
+                    theta[k : k + 2] = self.theta[i : i + 2]
+        return theta
+
+
 def _fit(
     q: np.ndarray, colour: np.ndarray, v: np.ndarray, nu: np.ndarray,
     orders: tuple[int, ...], scale: float, iterations: int = 8,
+    kmat: np.ndarray | None = None, start: _Start | None = None,
 ) -> tuple[np.ndarray, _Layout, np.ndarray, np.ndarray, float] | None:  # fmt: skip
-    """Gauss-Newton: (theta, layout, nu, K, rss) or None."""
-    kmat = np.zeros((2, 2))
+    """Gauss-Newton from the wave vector nu (and chirp K, default none): (theta, layout, nu,
+    K, rss) or None. `start`: a fit with fewer harmonics to start from (`_Start`)."""
+    kmat = np.zeros((2, 2)) if kmat is None else kmat
     lay = _Layout(orders, _colour_harmonics(q, colour, nu, kmat, orders))
-    hmax = lay.harmonics
-    theta = np.zeros(lay.size)
-    for c in range(3):  # start: each channel's plane, no curvature
-        sel = colour == c
-        if sel.sum() < 3:
-            return None
-        design = np.column_stack([np.ones(sel.sum()), q[sel] / scale])
-        coef = np.linalg.lstsq(design, v[sel], rcond=None)[0]
-        theta[c], theta[3 + 2 * c : 5 + 2 * c] = coef[0], coef[1:]
-    # the pattern alone, linear given the levels and the phase
-    d = _design(q, colour, theta, lay, nu, kmat, scale)
-    sl = slice(lay.shared, lay.shared + 2 * hmax)
-    step, _ = _solve(d.cols[:, sl], v - d.model)
-    theta[sl] = step
+    if start is not None:
+        theta = start.embed(lay)
+    else:
+        theta = np.zeros(lay.size)
+        for c in range(3):  # start: each channel's plane, no curvature
+            sel = colour == c
+            if sel.sum() < 3:
+                return None
+            design = np.column_stack([np.ones(sel.sum()), q[sel] / scale])
+            coef = np.linalg.lstsq(design, v[sel], rcond=None)[0]
+            theta[c], theta[3 + 2 * c : 5 + 2 * c] = coef[0], coef[1:]
+        # the pattern alone, linear given the levels and the phase
+        d = _design(q, colour, theta, lay, nu, kmat, scale)
+        sl = slice(lay.shared, lay.shared + 2 * lay.harmonics)
+        step, _ = _solve(d.cols[:, sl], v - d.model)
+        theta[sl] = step
     rss = math.inf
     damping = 1e-3
     for _ in range(iterations):
@@ -569,6 +622,57 @@ def _orders(nu: np.ndarray, q: np.ndarray, limit: int) -> tuple[int, ...]:
     return tuple(kept)
 
 
+def _extra_orders(
+    q: np.ndarray, colour: np.ndarray, v: np.ndarray, theta: np.ndarray, lay: _Layout,
+    nu: np.ndarray, kmat: np.ndarray, scale: float,
+) -> dict[int, tuple[float, float]]:  # fmt: skip
+    """Harmonics beyond `lay.orders` (up to MAX_ORDER) that the fit's residuals show, with
+    their amplitudes (cos, sin; relative to the level).
+
+    A sharp pattern (a narrow highlight, the tread's edge) seen without lens blur keeps about
+    1/h of its harmonic h after the pixel's square when its lines run along the pixel rows or
+    columns, however short the wavelength; on the pixel grid such a harmonic is its alias. One
+    that the grid folds near a Bayer Nyquist frequency ((1/2, 0) or (0, 1/2) cycles per px) is
+    nearly a constant of opposite sign on the R and the B sites: left out, it moves R and B
+    apart (a grey face's channels split). Each candidate's alias must differ by at least a cycle
+    across the ROI from those of the fitted harmonics and of the candidates before it (else an
+    earlier one already stands for it on the grid) and lie EXTRA_MIN_CYCLES from zero; all are
+    fitted at once to the residuals at the fitted phase, with the channels' levels and slopes
+    (a harmonic at a Nyquist frequency is told from the levels by the two greens, which see it
+    with opposite signs), and those whose amplitude (both quadratures, with their covariance)
+    stands EXTRA_Z standard errors above zero are kept."""
+    aliases = [_wrap(h * nu) for h in lay.orders]
+    cands = []
+    for h in range(max(lay.orders) + 1, MAX_ORDER + 1):
+        alias = _wrap(h * nu)
+        if float(np.ptp(q @ alias)) < EXTRA_MIN_CYCLES:
+            continue
+        if any(min(np.ptp(q @ (alias - a)), np.ptp(q @ (alias + a))) < 1.0 for a in aliases):
+            continue
+        cands.append(h)
+        aliases.append(alias)
+    if not cands:
+        return {}
+    d = _design(q, colour, theta, lay, nu, kmat, scale, jacobian=False)
+    level = d.model - d.periodic
+    phi = _phase(q, nu, kmat)
+    onehot = [(colour == c).astype(float) for c in range(3)]
+    cols = [level * f(h * phi) for h in cands for f in (np.cos, np.sin)]
+    cols += onehot + [o * q[:, k] / scale for o in onehot for k in (0, 1)]
+    design = np.column_stack(cols)
+    coef, inv = _solve(design, v - d.model)
+    r = v - d.model - design @ coef
+    sigma2 = float(r @ r) / max(1, v.size - lay.size - len(cands) * 2)
+    keep = {}
+    for j, h in enumerate(cands):
+        c2 = coef[2 * j : 2 * j + 2]
+        cov = sigma2 * inv[2 * j : 2 * j + 2, 2 * j : 2 * j + 2]
+        z2 = float(c2 @ np.linalg.pinv(cov, rcond=1e-8) @ c2)  # a quadrature may be unseen
+        if z2 > EXTRA_Z**2:
+            keep[h] = (float(c2[0]), float(c2[1]))
+    return keep
+
+
 def _quick_rss(
     q: np.ndarray, colour: np.ndarray, v: np.ndarray, nu: np.ndarray,
     orders: tuple[int, ...], scale: float,
@@ -610,7 +714,8 @@ def fit_stripes(
         across: the unit image vector (x, y) across the layer lines when known (a face placed
             from markers: its layer lines run along the face's y axis), else None: the
             orientation is then estimated from the image.
-        max_harmonics: the most harmonics fitted.
+        max_harmonics: the most harmonics of wavelength 0.4 px or more fitted (shorter ones are
+            added when the residuals show them, `_extra_orders`).
     """
     good = px.good
     if good.sum() < MIN_FIT_PIXELS:
@@ -662,6 +767,13 @@ def fit_stripes(
     if got is None:
         return None
     theta, lay, nu, kmat, _ = got
+    extra = _extra_orders(q, colour, v, theta, lay, nu, kmat, scale)
+    if extra:
+        start = _Start(theta, lay, extra)
+        more = tuple(sorted(orders + tuple(extra)))
+        refit = _fit(q, colour, v, nu, more, scale, iterations=4, kmat=kmat, start=start)
+        if refit is not None:
+            theta, lay, nu, kmat, _ = refit
     return _result(px, q_all, good, origin, theta, lay, nu, kmat, scale, across, ratio, sub)
 
 

@@ -150,6 +150,18 @@ def grey_pattern(rng: np.random.Generator, specular: bool = True) -> Pattern:
     )
 
 
+def sharp_pattern(rng: np.random.Generator) -> Pattern:
+    """A grey face with a narrow highlight and sharp tread edges (glossy layer tips): its
+    harmonics decay slowly, so that those shorter than half a pixel keep a few percent of the
+    mean after the pixel's square (when the layer lines run along the pixel rows or columns)."""
+    return replace(
+        grey_pattern(rng),
+        specular=float(rng.uniform(0.5, 2.0)),
+        rounding=0.01,
+        spec_width=float(rng.uniform(0.015, 0.03)),
+    )
+
+
 def coloured_pattern(rng: np.random.Generator) -> Pattern:
     """A coloured body with a white highlight: the stripes differ in shape between channels."""
     body = tuple(float(v) for v in rng.uniform(0.3, 1.2, size=3))
@@ -507,23 +519,35 @@ def random_face(
     graded: bool = True,
     axis_aligned: bool = False,
     thickness_px: float | None = None,
+    square: bool = False,
+    sharp: bool = False,
 ) -> Face:
     """A face about `extent_px` across in the image, random in everything else; `thickness_px`
-    makes it that thin across its layer lines (a face seen near grazing)."""
+    makes it that thin across its layer lines (a face seen near grazing); `square` puts its
+    layer lines exactly along the pixel rows or columns and keeps them parallel (a camera
+    squared to the specimen: no turn, no skew, perspective only along the layers' normal);
+    `sharp` gives it `sharp_pattern`."""
     period = period_px if period_px is not None else float(rng.uniform(1.0, 8.0))
     layer_mm = 0.15
     across_px = thickness_px if thickness_px is not None else rng.uniform(0.7, 1.0) * extent_px
     size = float(across_px) * layer_mm / period  # mm across the layers
     angle = (
-        float(rng.choice([0.0, 90.0, 180.0, 270.0])) if axis_aligned else float(rng.uniform(0, 360))
+        float(rng.choice([0.0, 90.0, 180.0, 270.0]))
+        if axis_aligned or square
+        else float(rng.uniform(0, 360))
     )
-    if axis_aligned:
+    if axis_aligned and not square:
         angle += float(rng.normal(0, 0.3))
     scale_t = float(rng.uniform(0.6, 1.0)) * extent_px / 20.0
     # perspective: the period changes by a few % across the face (a 135 mm lens at 0.9 m sees
     # a 20 mm face's ends 1% nearer and farther)
     pers = rng.normal(0, 0.01, size=2) / np.array([size, 20.0])
     grad = rng.normal(0, 0.25 / extent_px, size=2) if graded else np.zeros(2)
+    phase = float(rng.uniform(0, 1))  # the draws in their historical order (seeded scenes)
+    skew = float(rng.normal(0, 3))
+    pattern = sharp_pattern(rng) if sharp else grey_pattern(rng) if grey else coloured_pattern(rng)
+    if square:
+        pers[1], skew = 0.0, 0.0
     return Face(
         centre=centre,
         angle_deg=angle,
@@ -531,9 +555,9 @@ def random_face(
         size_mm=(size, 20.0),
         scale_t=scale_t,
         perspective=(float(pers[0]), float(pers[1])),
-        phase=float(rng.uniform(0, 1)),
-        skew_deg=float(rng.normal(0, 3)),
-        pattern=grey_pattern(rng) if grey else coloured_pattern(rng),
+        phase=phase,
+        skew_deg=skew,
+        pattern=pattern,
         light=float(rng.uniform(0.6, 1.0)),
         gradient=(float(grad[0]), float(grad[1])),
         curvature=float(rng.normal(0, 0.03)) if graded else 0.0,
@@ -555,9 +579,14 @@ def random_photo(
     read_noise_dn: float = 3.0,
     gain_e_per_dn: float = 1.0,
     thickness_px: tuple[float | None, ...] | None = None,
+    square: bool = False,
+    sharp: bool = False,
+    blur_px: float | None = None,
 ) -> PhotoSpec:
     """Faces in a row, each in its own square cell of a photo (1.5 x `extent_px` wide);
-    `thickness_px` (one per face, None: the default) makes faces thin across their layers."""
+    `thickness_px` (one per face, None: the default) makes faces thin across their layers;
+    `square` and `sharp` as in `random_face`; `blur_px` the lens blur (default: drawn from
+    0-0.5 px)."""
     cell = int(1.5 * extent_px) // 2 * 2
     h, w = cell + 40, faces * cell + 40
     out = []
@@ -568,15 +597,16 @@ def random_photo(
         out.append(
             random_face(
                 rng, centre, extent_px, period_px=period, grey=grey, texture=texture,
-                axis_aligned=axis_aligned, thickness_px=thick,
+                axis_aligned=axis_aligned, thickness_px=thick, square=square, sharp=sharp,
             )
         )  # fmt: skip
     level = level_dn if level_dn is not None else float(rng.uniform(300, 4000))
     # the brightest stripe of the brightest face at most 70% of the raw range
     peak = max(f.pattern.peak() * f.light * 1.4 for f in out)
     level = min(level, 0.7 * (WHITE_DN - BLACK_DN) / peak)
+    blur = float(rng.uniform(0.0, 0.5))
     sensor = Sensor(level_dn=level, gain_e_per_dn=gain_e_per_dn, read_noise_dn=read_noise_dn,
-                    blur_px=float(rng.uniform(0.0, 0.5)))  # fmt: skip
+                    blur_px=blur if blur_px is None else blur_px)  # fmt: skip
     return PhotoSpec((h, w), tuple(out), sensor)
 
 
