@@ -370,9 +370,11 @@ def out_of_plane_note(model: GlossModel, azimuth_deg: Sequence[float],
 # --- the table ------------------------------------------------------------------------------
 
 
-GLOSS_BATCH = 4
-"""Parameter vectors evaluated at once (`jax.lax.map`'s batch): every surface and geometry of
-a table is vectorised, the draws are taken a few at a time so that the arrays stay small."""
+COMBO_BATCH = 3
+"""Surface-and-geometry combinations evaluated at once (`jax.lax.map`'s batch), and parameter
+vectors one at a time: a rounded microfacet surface holds about 350 MB of arrays per
+combination, so that vectorising a six-wedge table (18 combinations) took 6.5 GB, and the
+delta method's forward Jacobian or a batch of draws multiplied that past the machine's memory."""
 
 
 class _Combos(NamedTuple):
@@ -392,7 +394,7 @@ def _combos(wedge_deg: Sequence[float], azimuth_deg: Sequence[float],
 def _table_function(model: GlossModel, combos: _Combos, layer_um: float
                     ) -> Callable[[Any], Any]:  # fmt: skip
     """`f(vector) -> (C, 3)`: gloss (total, specular, body) of one parameter vector at every
-    combination, vectorised over the combinations."""
+    combination, a few combinations at a time (`COMBO_BATCH`)."""
     import jax
     import jax.numpy as jnp
 
@@ -408,8 +410,11 @@ def _table_function(model: GlossModel, combos: _Combos, layer_um: float
         g = m.gloss(s, geo, az, model.kind, rounded=model.rounded)
         return jnp.stack([g.total, g.specular, g.body])
 
-    per_combo = jax.vmap(one, in_axes=(None, 0, 0, 0))
-    return lambda vector: per_combo(vector, wedge, azimuth, geometry)
+    def table(vector: Any) -> Any:
+        return jax.lax.map(lambda c: one(vector, *c), (wedge, azimuth, geometry),
+                           batch_size=COMBO_BATCH)  # fmt: skip
+
+    return table
 
 
 def gloss_table(
@@ -428,7 +433,7 @@ def gloss_table(
     combos = _combos(wedge_deg, azimuth_deg, angles_deg)
     f = _table_function(model, combos, layer_um)
     vectors = model.best[None, :] if model.draws is None else np.vstack([model.best, model.draws])
-    values = np.asarray(jax.jit(lambda v: jax.lax.map(f, v, batch_size=GLOSS_BATCH))(
+    values = np.asarray(jax.jit(lambda v: jax.lax.map(f, v))(
         jnp.asarray(vectors, float)))  # (V, C, 3)  # fmt: skip
     best, totals = values[0], values[1:, :, 0]
     sd = np.full(best.shape[0], np.nan)
