@@ -95,6 +95,8 @@ class Facets(NamedTuple):
     probe: str
     rows: tuple[ComparisonRow, ...]
     reason: str
+    fits: tuple[FitResult, ...] = ()
+    """The chosen kernel's converged probe fits: starts for the same variants of the ladder."""
 
 
 class Rounding(NamedTuple):
@@ -250,12 +252,14 @@ def select_model(
     deadline = None if time_budget_s is None else time.process_time() + time_budget_s
     kernel = facets.kernel if facets is not None else kernels[0]
     ladder = tuple(v._replace(kernel=kernel) for v in ladder)
+    probes = facets.fits if facets is not None else ()
     if force is not None:
         forced = _find(force, ladder)
         sel = _forced(problem, forced._replace(kernel=kernel), model_error, criterion, threshold,
-                      opts)  # fmt: skip
+                      opts, probes)  # fmt: skip
         return _with_facets(sel, facets)
-    opts = _Settings(opts, model_error, on_variant or (lambda name: None), deadline, time_budget_s)
+    opts = _Settings(opts, model_error, on_variant or (lambda name: None), deadline, time_budget_s,
+                     probes)  # fmt: skip
     sel = _select_ladder(problem, ladder, rounded_rungs, criterion, threshold, opts)
     if facets is not None:
         sel, facets = _recheck_kernel(problem, sel, facets, kernels, criterion, threshold, opts)
@@ -354,11 +358,17 @@ def choose_kernel(
     facets, fits = _probe_kernels(problem, probe, kernels, criterion, threshold, settings, {})
     rounded = next((v for v in ladder if v.name == KERNEL_PROBE_ROUNDED), None)
     if rounded is None or not all(r.status != Status.OK for r in facets.rows):
-        return facets
-    second, _ = _probe_kernels(problem, rounded, kernels, criterion, threshold, settings, fits)
+        return facets._replace(fits=_chosen(fits, facets.kernel))
+    second, fits2 = _probe_kernels(problem, rounded, kernels, criterion, threshold, settings, fits)
     reason = (f"{second.reason}, fitted because every kernel misfits at '{probe.name}' "
               f"({facets.reason})")  # fmt: skip
-    return second._replace(rows=facets.rows + second.rows, reason=reason)
+    return second._replace(rows=facets.rows + second.rows, reason=reason,
+                           fits=_chosen(fits, second.kernel) + _chosen(fits2, second.kernel))
+
+
+def _chosen(fits: dict[str, FitResult], kernel: str) -> tuple[FitResult, ...]:
+    """The fit of `kernel` among a probe's fits (none if it did not converge)."""
+    return (fits[kernel],) if kernel in fits else ()
 
 
 def _probe_kernels(
@@ -424,6 +434,17 @@ class _Settings(NamedTuple):
     on_variant: Callable[[str], None]
     deadline: float | None = None
     budget_s: float | None = None
+    starts: tuple[FitResult, ...] = ()
+    """Fits of the same problem (the chosen kernel's probes) whose optima also start the
+    variant of the same name (`_probe_starts`)."""
+
+
+def _probe_starts(v: Variant, starts: tuple[FitResult, ...]) -> tuple[FitResult, ...]:
+    """The fits in `starts` of the variant `v` itself (same free parameters and kernel)."""
+    free = v.free | {"model_error_frac"}
+    return tuple(f for f in starts
+                 if f.requested.kernel == v.kernel and f.requested.free | {"model_error_frac"}
+                 == free and f.requested.per_wedge_sigma == v.per_wedge_sigma)  # fmt: skip
 
 
 def _select_ladder(
@@ -587,19 +608,24 @@ def _forced(
     criterion: str,
     threshold: float,
     opts: LeastSquaresOptions,
+    probes: tuple[FitResult, ...] = (),
 ) -> Selection:
+    """Fit only `v`, also from the kernel probes' optima (`probes`) of it and of its sharp
+    counterpart."""
     v = v.with_free(model_error=True) if model_error else v
     parents: tuple[FitResult, ...] = ()
     if _is_rounded(v):  # start from the sharp counterpart: r near 0 if the data are sharp
         sharp = v._replace(free=v.free - {"edge_radius_um", FILLET})
-        parent = fit_least_squares(problem, variant=sharp, options=opts)
+        parent = fit_least_squares(problem, variant=sharp, options=opts,
+                                   start_from=_probe_starts(sharp, probes))  # fmt: skip
         parents = (parent,) if parent.success else ()
     if _is_filleted(v):  # then from the rounded counterpart: r_f near 0 if the data are rounded
         rounded = v._replace(free=v.free - {FILLET})
         parent = fit_least_squares(problem, variant=rounded, options=opts, start_from=parents)
         parents = (parent,) if parent.success else ()
     t0 = time.perf_counter()
-    fit = fit_least_squares(problem, variant=v, options=opts, start_from=parents)
+    fit = fit_least_squares(problem, variant=v, options=opts,
+                            start_from=parents + _probe_starts(v, probes))  # fmt: skip
     if not fit.success:
         raise FitError(f"the forced variant {v.name!r} did not converge: {fit.message}")
     emit(fit.warnings)
@@ -640,7 +666,7 @@ def _fit_ladder(
         parents = tuple(fits[u.name] for u in parents_of(v, known) if u.name in fits)
         t0 = time.perf_counter()
         try:
-            fit = _fit_variant(problem, v, settings, parents)
+            fit = _fit_variant(problem, v, settings, parents + _probe_starts(v, settings.starts))
         except UnconstrainedError as err:  # a misfit running to a degenerate limit, or no signal
             rows[v.name] = _unconstrained_row(v, err)
             continue

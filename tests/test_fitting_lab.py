@@ -156,6 +156,8 @@ def test_a_lab_fit_recovers_a_microfacet_truth_and_chooses_its_kernel(lab_arrays
     facets = choose_kernel(problem, fitting.DEFAULT_LADDER, ("gaussian", "ggx", "beckmann"),
                            "bic", 2.0, settings)  # fmt: skip
     assert facets.kernel == "ggx"
+    # the chosen kernel's probe fit is kept: it starts the ladder's (or a forced) sharp+floor
+    assert [(f.requested.kernel, f.success) for f in facets.fits] == [("ggx", True)]
     deltas = {r.name: r.delta for r in facets.rows}
     assert min(v for k, v in deltas.items() if "ggx" not in k) > 100
     fit = fitting.fit_least_squares(problem, variant=fitting.variant("sharp+floor", "floor")
