@@ -155,7 +155,7 @@ def residual_pattern_figure(outcome: FitOutcome) -> Figure:
     photo (left), and model / measured against the face-frame viewing angle per wedge (right)."""
     from stairfit import fitting
 
-    fit, obs = outcome.selection.fit, outcome.observations
+    fit, obs = outcome.selection.fit, outcome.observations.data
     used = np.asarray(obs.use, bool)
     z = fitting.measurement_residuals(fit)
     wedges, photos = outcome.scene.specimen.wedges, outcome.scene.photos
@@ -173,7 +173,7 @@ def residual_pattern_figure(outcome: FitOutcome) -> Figure:
     a1.set_xticks(range(len(photos)), [f"{p.view_deg:g}" for p in photos], fontsize="small")
     a1.set(xlabel="photo: view (deg)", title="mean whitened residual (measurement errors)")
     fig.colorbar(im, ax=a1, shrink=0.8)
-    theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
+    theta_o = np.array([r.theta_o_deg for r in outcome.observations.labels])
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.asarray(fit.model) / np.asarray(obs.value)
     for k, wedge in enumerate(wedges):

@@ -23,6 +23,12 @@ from typing import Any
 
 import numpy as np
 
+from .results_file import OLDER_RESULTS as OLDER_RESULTS
+from .results_file import OlderResultsError as OlderResultsError
+from .results_file import check_parameter_records as check_parameter_records
+from .results_file import covariance_from_results as covariance_from_results
+from .results_file import parameter_key as parameter_key
+
 DEG = np.pi / 180
 
 OBSERVATION_COLUMNS: dict[str, type] = {
@@ -41,37 +47,6 @@ OBSERVATION_COLUMNS: dict[str, type] = {
     "whitened_residual": float,
 }
 """The columns of observations.csv (`stairfit.report.write_observations`) and their types."""
-
-OLDER_RESULTS = "was written by an older stairfit (no parameter records): re-run `stairfit fit`"
-"""Why a results.json without the `parameter` and `wedge` fields is refused: a parameter's
-identity is never parsed back from its display name."""
-
-
-class OlderResultsError(ValueError):
-    """A results.json written before its parameter records had `parameter` and `wedge`."""
-
-
-def parameter_key(rec: dict[str, Any]) -> tuple[str, int | None]:
-    """`(param, wedge)` of a results.json parameter record: the fitting layer's identity of the
-    parameter (`("sigma_rad", 2)` for wedge 2's own width, shown as `sigma_deg[2: ...]`).
-
-    Raises:
-        OlderResultsError: the record has no `parameter` or `wedge` field.
-    """
-    if "parameter" not in rec or "wedge" not in rec:
-        raise OlderResultsError(f"results.json {OLDER_RESULTS} (record {rec.get('name')!r})")
-    return str(rec["parameter"]), None if rec["wedge"] is None else int(rec["wedge"])
-
-
-def check_parameter_records(results: dict[str, Any], fit_dir: str | Path) -> None:
-    """Every parameter record of results.json names its `parameter` and `wedge`.
-
-    Raises:
-        OlderResultsError: one line naming the folder and the fix (re-run `stairfit fit`).
-    """
-    if any("parameter" not in r or "wedge" not in r for r in results.get("parameters", [])):
-        raise OlderResultsError(f"results.json in {fit_dir} {OLDER_RESULTS}")
-
 
 # --- the folder -----------------------------------------------------------------------------
 
@@ -242,16 +217,6 @@ def strong_correlations(
     return sorted(pairs, key=lambda p: -abs(p[2]))
 
 
-def covariance_from_results(results: dict[str, Any]) -> np.ndarray | None:
-    """The least-squares covariance (display units) from stderr and correlation, or None."""
-    corr = results["correlation"]["matrix"]
-    se = [p["least_squares"]["stderr"] for p in results["parameters"]]
-    if corr is None or any(s is None for s in se):
-        return None
-    s = np.asarray(se, float)
-    return np.asarray(corr, float) * np.outer(s, s)
-
-
 # --- chains ---------------------------------------------------------------------------------
 
 
@@ -336,7 +301,7 @@ def fit_model(fit: FitFolder) -> FitModel:
     """Rebuild the fitted model from the folder and its photo folder (needs scene.toml)."""
     from stairfit import fitting, imaging
 
-    from .commands.fit import fit_setup, to_observations
+    from .pipeline import fit_setup, observations
     from .presets import get_preset
     from .scene import load_scene
 
@@ -348,15 +313,15 @@ def fit_model(fit: FitFolder) -> FitModel:
     results = fit.results
     scene = load_scene(fit.photo_folder / results["inputs"]["scene"]["file"])
     table = imaging.MeasurementTable.read_csv(fit.path / results["files"]["measurements"])
-    obs, _info, _notes = to_observations(scene, table)
+    obs = observations(scene, table).data
     preset = get_preset(results["settings"]["preset"]["name"])
-    spectral, aperture = fit_setup(scene, preset)
+    setup = fit_setup(scene, preset)
     free = tuple(p["name"] for p in results["parameters"])
     return FitModel(
         scene,
         obs,
-        spectral,
-        aperture,
+        setup.spectral,
+        setup.aperture,
         params_from_results(results),
         free,
         fitting.Resolution(preset.rounded_resolution, preset.fillet_rays),

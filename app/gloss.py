@@ -240,7 +240,7 @@ def gloss_model_from_results(
 ) -> GlossModel:
     """`fitted_gloss_model` of results.json's content `results` (the chain file, if any, in
     `fit_dir`)."""
-    from .explore import (
+    from .results_file import (
         OlderResultsError,
         check_parameter_records,
         covariance_from_results,

@@ -10,10 +10,13 @@ import html
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .fileio import writing
 from .scene import Scene
+
+if TYPE_CHECKING:
+    from stairfit import imaging
 
 NEAR_LIMIT = 1.5
 """Markers with cells under this many times the detection limit get a note."""
@@ -116,8 +119,9 @@ def html_table(reports: Sequence[PhotoReport], columns: Sequence[str]) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def fit_marker_reports(scene: Scene, table: Any) -> list[PhotoReport]:
-    """The per-photo reports of a fit's measurement table (for its markers.csv and report)."""
-    from .imaging_specs import photo_specs
-
-    return photo_reports(scene, photo_specs(scene), table)
+def fit_marker_reports(
+    scene: Scene, specs: Sequence[imaging.PhotoSpec], table: imaging.MeasurementTable
+) -> list[PhotoReport]:
+    """The per-photo reports of a fit's measurement table (for its markers.csv and report),
+    from the photo specs the fit measured with."""
+    return photo_reports(scene, specs, table)

@@ -15,7 +15,7 @@ import platform
 import sys
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -43,6 +43,9 @@ from .figures import (
 )
 from .fileio import write_file, writing
 from .outcome import FitOutcome, sha256_of
+
+if TYPE_CHECKING:
+    from stairfit.model.materials import Dispersion
 
 DEG = np.pi / 180
 PACKAGES = (
@@ -207,7 +210,7 @@ def write_outputs(
 
     out.mkdir(parents=True, exist_ok=True)
     outcome.table.write_csv(out / "measurements.csv")
-    markers = fit_marker_reports(outcome.scene, outcome.table)
+    markers = fit_marker_reports(outcome.scene, outcome.photo_specs, outcome.table)
     write_table(out / "markers.csv", markers, MARKER_COLUMNS)
     write_observations(outcome, out / "observations.csv")
     figures = write_figures(outcome, out / "figures", drawn, draw)
@@ -248,17 +251,17 @@ def write_observations(outcome: FitOutcome, path: Path) -> None:
                 "view_spread",
             ]
         )
-        obs = outcome.observations
-        for i, info in enumerate(outcome.row_info):
+        obs = outcome.observations.data
+        for i, info in enumerate(outcome.observations.labels):
             w.writerow(
                 [
-                    info["photo"],
-                    info["wedge"],
-                    info["channel"],
-                    info["light_deg"],
-                    info["view_deg"],
-                    f"{info['theta_i_deg']:.6g}",
-                    f"{info['theta_o_deg']:.6g}",
+                    info.photo,
+                    info.wedge,
+                    info.channel,
+                    info.light_deg,
+                    info.view_deg,
+                    f"{info.theta_i_deg:.6g}",
+                    f"{info.theta_o_deg:.6g}",
                     f"{obs.value[i]:.8g}",
                     f"{obs.stderr[i]:.6g}",
                     int(bool(obs.use[i])),
@@ -418,7 +421,7 @@ def specimen_record(outcome: FitOutcome) -> dict[str, Any]:
     (what `stairfit predict --gloss --fit` reads; a per-channel index through its channels'
     effective wavelengths)."""
     spec = outcome.scene.specimen
-    n = np.asarray(refractive_index(_along_wavelength(outcome.scene), SPECIMEN_INDEX_NM, 0.0))
+    n = np.asarray(refractive_index(_along_wavelength(outcome), SPECIMEN_INDEX_NM, 0.0))
     return {
         "layer_um": spec.layer_um,
         "wedges": [{"name": w.name, "angle_deg": w.angle_deg} for w in spec.wedges],
@@ -529,15 +532,13 @@ def spectral_record(outcome: FitOutcome) -> dict[str, Any]:
     effective wavelength (its sensitivity x illuminant weighted mean, `ChannelWeights.
     effective_nm`; what the "effective" sampling evaluates) and the material's index there,
     without `delta_n` (`index_n`, `index_k`)."""
-    from stairfit.model import materials, spectral
+    from stairfit.model import materials
 
     from .scene import CHANNELS
 
     scene = outcome.scene
-    eff = spectral.channel_weights(scene.camera.sensitivity, scene.light.illuminant).effective_nm
-    index = np.asarray(materials.index_per_channel(scene.specimen.index.build(), eff[:, None]))[
-        :, 0
-    ]
+    eff = outcome.setup.effective_nm
+    index = np.asarray(materials.index_per_channel(outcome.setup.index, eff[:, None]))[:, 0]
     return {
         "camera": scene.camera.sensitivity,
         "illuminant": scene.light.illuminant,
@@ -593,7 +594,7 @@ def fit_figures(outcome: FitOutcome, folder: Path, draw: SaveFigure = save) -> d
     wedges = [w.angle_deg for w in outcome.scene.specimen.wedges]
     pick = sorted({min(wedges), max(wedges)})
     sigma_deg = float(np.mean(p.sigma_rad)) / DEG
-    disp = _along_wavelength(outcome.scene)
+    disp = _along_wavelength(outcome)
     lam = VISIBLE_NM  # the grid of reflected_colours: one compilation serves both figures
     n_lam = refractive_index(disp, lam, float(p.delta_n))
     n550 = complex(np.interp(550.0, lam, n_lam.real), np.interp(550.0, lam, np.imag(n_lam)))
@@ -628,16 +629,15 @@ def fit_figures(outcome: FitOutcome, folder: Path, draw: SaveFigure = save) -> d
     return figs
 
 
-def _along_wavelength(scene: Any) -> Any:
-    """The scene's index as a function of wavelength for the figures: a dispersion model as
-    it is, a per-channel index through its channels' effective wavelengths."""
-    from stairfit.model import materials, spectral
+def _along_wavelength(outcome: FitOutcome) -> Dispersion:
+    """The fit's index as a function of wavelength for the figures: a dispersion model as it
+    is, a per-channel index through its channels' effective wavelengths."""
+    from stairfit.model import materials
 
-    index = scene.specimen.index.build()
+    index = outcome.setup.index
     if not isinstance(index, materials.PerChannel):
         return index
-    cw = spectral.channel_weights(scene.camera.sensitivity, scene.light.illuminant)
-    return index.along_wavelength(cw.effective_nm)
+    return index.along_wavelength(outcome.setup.effective_nm)
 
 
 def _rel(path: Path, folder: Path) -> str:
@@ -665,7 +665,7 @@ def fit_per_wedge(outcome: FitOutcome, curves: list[Any] | None = None) -> Figur
     a dense curve over the viewing angle (`curves`: `fitting.model_curves`, computed here when
     None), one line style per light angle, so that the lobes between the measured views show;
     without a prepared fit, as lines through the model at the measured views."""
-    fit, obs = outcome.selection.fit, outcome.observations
+    fit, obs = outcome.selection.fit, outcome.observations.data
     if curves is None:
         curves = model_curves_of(outcome)
     wedges = outcome.scene.specimen.wedges
@@ -674,7 +674,7 @@ def fit_per_wedge(outcome: FitOutcome, curves: list[Any] | None = None) -> Figur
     fig = Figure(figsize=(4.3 * ncol, 3.2 * nrow))  # no pyplot: no global state (app/figures.py)
     axes = fig.subplots(nrow, ncol, squeeze=False)
     colours = ("tab:red", "tab:green", "tab:blue")
-    theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
+    theta_o = np.array([r.theta_o_deg for r in outcome.observations.labels])
     for k, wedge in enumerate(wedges):
         ax = axes.flat[k]
         lights = sorted({round(c.theta_i_rad / DEG, 6) for c in curves or () if c.wedge == k})
@@ -730,8 +730,8 @@ def fit_per_wedge(outcome: FitOutcome, curves: list[Any] | None = None) -> Figur
 
 def residual_figure(outcome: FitOutcome) -> Figure:
     """Whitened residuals against viewing angle per wedge, and their histogram vs N(0, 1)."""
-    fit, obs = outcome.selection.fit, outcome.observations
-    theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
+    fit, obs = outcome.selection.fit, outcome.observations.data
+    theta_o = np.array([r.theta_o_deg for r in outcome.observations.labels])
     used = np.asarray(obs.use, bool)
     fig = Figure(figsize=(11, 3.6))
     a1, a2 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [2, 1]})
@@ -997,7 +997,8 @@ def _markers_html(outcome: FitOutcome) -> str:
     """The per-photo marker table (app/commands/measure.py), as in markers.csv."""
     from .photo_reports import MARKER_COLUMNS, fit_marker_reports, html_table
 
-    return html_table(fit_marker_reports(outcome.scene, outcome.table), MARKER_COLUMNS)
+    reports = fit_marker_reports(outcome.scene, outcome.photo_specs, outcome.table)
+    return html_table(reports, MARKER_COLUMNS)
 
 
 def _fmt(x: Any, spec: str) -> str:

@@ -114,8 +114,8 @@ def prepare_worker(task: FolderTask) -> str | None:
 def fit_or_skip(task: FolderTask) -> FolderReport:
     """The folder's status, scene summary and results (the fit runs only when needed)."""
     from ..outputs import staged_folder
+    from ..pipeline import check_photos, fit_scene
     from ..scene import load_scene
-    from .fit import check_photos, fit_scene
 
     scene = load_scene(task.folder)
     summary = scene_summary(scene)
@@ -235,7 +235,7 @@ def read_results(dest: Path) -> dict[str, Any] | None:
 def describe_error(err: BaseException, task: FolderTask) -> str:
     """The one-line error of a failed folder, as `stairfit fit` would print it; the traceback
     of an internal error goes to a file beside the ledger (never to the study's terminal)."""
-    from ..cli import one_line
+    from ..errors import one_line
 
     imaging = sys.modules.get("stairfit.imaging")
     if isinstance(err, UserError) or (imaging and isinstance(err, imaging.ImagingError)):

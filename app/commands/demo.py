@@ -14,8 +14,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
+from ..outcome import FitOutcome
 from ..outputs import staged_folder
-from . import fit, simulate
+from ..pipeline import fit_scene
+from ..scene import load_scene
+from . import simulate
+from ._fit_options import add_fit_options, options_from_args
 
 DEG = np.pi / 180
 
@@ -34,7 +38,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("out", type=Path, nargs="?", default=Path("stairfit-demo"), help="output folder")
     simulate.add_truth_options(p, seed_and_workers=False)
-    fit.add_fit_options(p)
+    add_fit_options(p)
     p.set_defaults(func=run)
 
 
@@ -46,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and not args.force:
         raise UserError(f"{out}: already exists; choose another folder or add --force")
     settings = simulate.settings_from_args(args)
-    options = fit.options_from_args(args)
+    options = options_from_args(args)
     t0 = time.perf_counter()
     with staged_folder(out, args.force, command="demo", option="OUT") as tmp:
         photos = tmp / "photos"
@@ -57,8 +61,8 @@ def run(args: argparse.Namespace) -> int:
         )
         simulate.simulate(photos, settings, progress=options.progress)
         t_sim = time.perf_counter() - t0
-        scene = fit.load_scene(photos)
-        outcome = fit.fit_scene(scene, tmp / "fit", options)
+        scene = load_scene(photos)
+        outcome = fit_scene(scene, tmp / "fit", options)
     from ..report import print_summary
 
     print_summary(outcome, out / "fit", source=out / "photos")
@@ -74,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def compare_table(outcome: fit.FitOutcome, truth: dict[str, float]) -> str:
+def compare_table(outcome: FitOutcome, truth: dict[str, float]) -> str:
     """Recovered against true values, the 95% interval, and the deviation in standard deviations.
 
     A truth outside its 95% interval happens for about 1 parameter in 20 by chance; the last

@@ -74,7 +74,7 @@ def default_output(folder: Path) -> Path:
 def run(args: argparse.Namespace) -> int:
     """`stairfit measure DIR`."""
     from ..outputs import staged_folder
-    from .fit import check_photos
+    from ..pipeline import check_photos
 
     _ranges.check_workers(args.workers)
     scene = load_scene(args.folder, measure_only=True)

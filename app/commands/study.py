@@ -50,7 +50,7 @@ SKIP_DIRS = frozenset({".stairfit-cache", LEDGER_DIR})
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the `study` command (with every option of `fit`, which pass through)."""
-    from .fit import add_fit_options
+    from ._fit_options import add_fit_options
 
     shared = argparse.ArgumentParser(add_help=False)
     add_fit_options(shared)
@@ -149,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
 
 def plan_study(args: argparse.Namespace) -> StudyPlan:
     """Options, folders and tasks, every user mistake caught before a cluster starts."""
-    from .fit import options_from_args
+    from ._fit_options import options_from_args
 
     options = options_from_args(args)
     if args.workers != 1:

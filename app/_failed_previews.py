@@ -37,7 +37,7 @@ def keep_previews(
     """
     from stairfit import imaging
 
-    from ..outputs import in_staging
+    from .outputs import in_staging
 
     if in_staging(folder):  # e.g. the demo's photos: the folder goes with the failed run
         return ""
