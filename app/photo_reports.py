@@ -10,7 +10,7 @@ import html
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from .fileio import writing
 from .scene import Scene
@@ -39,7 +39,9 @@ class PhotoReport:
     note: str
 
 
-def photo_reports(scene: Scene, specs: Sequence[Any], table: Any) -> list[PhotoReport]:
+def photo_reports(
+    scene: Scene, specs: Sequence[imaging.PhotoSpec], table: imaging.MeasurementTable
+) -> list[PhotoReport]:
     """One `PhotoReport` per photo, in scene order (failed photos included)."""
     failed = dict(table.failed)
     layout_ids = [m.id for m in scene.markers.markers] if scene.markers else []
@@ -55,7 +57,9 @@ def photo_reports(scene: Scene, specs: Sequence[Any], table: Any) -> list[PhotoR
     return reports
 
 
-def _report(photo: str, rows: Sequence[Any], layout_ids: list[int]) -> PhotoReport:
+def _report(
+    photo: str, rows: Sequence[imaging.MeasurementRow], layout_ids: list[int]
+) -> PhotoReport:
     from stairfit import imaging
 
     placed = next((r for r in rows if r.roi_source == "markers"), None)
@@ -91,7 +95,7 @@ PHOTO_COLUMNS = ("photo", "status", "rois", "flagged", "exposure_source", *MARKE
 
 
 def _cells(report: PhotoReport, columns: Sequence[str]) -> list[str]:
-    def text(v: Any) -> str:
+    def text(v: object) -> str:
         if v is None:
             return ""
         if isinstance(v, float):

@@ -15,7 +15,7 @@ import platform
 import sys
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -45,7 +45,12 @@ from .fileio import write_file, writing
 from .outcome import FitOutcome, sha256_of
 
 if TYPE_CHECKING:
+    from collections.abc import Iterable
+
+    from stairfit import fitting
     from stairfit.model.materials import Dispersion
+
+    from ._jsontypes import JSONValue, Record
 
 DEG = np.pi / 180
 PACKAGES = (
@@ -74,25 +79,25 @@ def display_param(param: str) -> str:
     return "sigma_deg" if param == "sigma_rad" else param
 
 
-def display_name(p: Any) -> tuple[str, float]:
+def display_name(p: fitting.Estimate | fitting.Parameter) -> tuple[str, float]:
     """Name and factor for files and screens of a parameter (a `fitting.Estimate` or
     `fitting.Parameter`): widths become degrees (`sigma_deg`, `sigma_deg[2: 30 deg]`)."""
     return p.label(display_param(p.param)), 1.0 / DEG if p.param == "sigma_rad" else 1.0
 
 
-def display_unit(p: Any) -> str:
+def display_unit(p: fitting.Estimate | fitting.Parameter) -> str:
     """Unit for files and screens of a parameter (see `display_name`)."""
     return "deg" if p.param == "sigma_rad" else p.unit
 
 
-def parameter_records(outcome: FitOutcome) -> list[dict[str, Any]]:
+def parameter_records(outcome: FitOutcome) -> list[Record]:
     """One record per free parameter: least-squares and posterior estimates, display units."""
     fit, post = outcome.selection.fit, outcome.posterior
     records = []
     sampled = [] if post is None else [(p.param, p.wedge) for p in post.parameters]
     for i, e in enumerate(fit.estimates):
         name, f = display_name(e)
-        rec: dict[str, Any] = {
+        rec: Record = {
             "name": name,
             "parameter": e.param,
             "wedge": e.wedge,
@@ -119,7 +124,7 @@ def parameter_records(outcome: FitOutcome) -> list[dict[str, Any]]:
     return records
 
 
-def chain_checks(post: Any, j: int) -> dict[str, Any]:
+def chain_checks(post: fitting.PosteriorResult, j: int) -> Record:
     """Parameter `j`'s convergence diagnostics for results.json: split R-hat, bulk and tail
     ESS, and whether they pass the thresholds (R-hat < 1.01, ESS >= 400; docs/fitting.md §5)."""
     rhat, bulk, tail = float(post.rhat[j]), float(post.ess_bulk[j]), float(post.ess_tail[j])
@@ -131,11 +136,11 @@ def chain_checks(post: Any, j: int) -> dict[str, Any]:
     }
 
 
-def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
+def fixed_parameters(outcome: FitOutcome) -> Record:
     """Parameters the chosen variant kept fixed, with their values (display units)."""
     fit = outcome.selection.fit
     free = set(fit.variant.free)
-    out: dict[str, Any] = {}
+    out: Record = {}
     for name in ("delta_n", "edge_radius_um", "fillet_radius_um", "floor", "model_error_frac"):
         if name not in free:
             out[name] = float(getattr(fit.params, name))
@@ -144,7 +149,7 @@ def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
     return out
 
 
-def truth_records(outcome: FitOutcome, records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def truth_records(outcome: FitOutcome, records: list[Record]) -> list[Record]:
     """The scene's `[truth]` beside the fit (results.json's `truth`; [] without a truth table).
 
     One record per fitted parameter that has a true value (each wedge's own width against the
@@ -156,7 +161,7 @@ def truth_records(outcome: FitOutcome, records: list[dict[str, Any]]) -> list[di
     if truth is None:
         return []
     given = dict(truth.items())
-    out: list[dict[str, Any]] = []
+    out: list[Record] = []
     for rec in records:
         key = display_param(rec["parameter"])
         if key in given:
@@ -277,7 +282,7 @@ def write_observations(outcome: FitOutcome, path: Path) -> None:
             )
 
 
-def _jsonable(x: Any) -> Any:
+def _jsonable(x: object) -> JSONValue:
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
@@ -293,7 +298,7 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
-def table_records_of(rows: Any) -> list[dict[str, Any]]:
+def table_records_of(rows: Iterable[fitting.ComparisonRow]) -> list[Record]:
     """`table_records` of any comparison rows (e.g. the facet kernels' probe fits)."""
     return [
         {"variant": r.name, "n_free": r.n_free, "chi2": r.chi2, "bic": r.bic, "delta": r.delta,
@@ -302,7 +307,7 @@ def table_records_of(rows: Any) -> list[dict[str, Any]]:
     ]  # fmt: skip
 
 
-def table_records(sel: Any) -> list[dict[str, Any]]:
+def table_records(sel: fitting.Selection) -> list[Record]:
     """results.json's `model_selection.table`: one record per ladder variant."""
     return [
         {
@@ -325,7 +330,7 @@ def table_records(sel: Any) -> list[dict[str, Any]]:
     ]
 
 
-def posterior_diagnostics(post: Any) -> dict[str, Any] | None:
+def posterior_diagnostics(post: fitting.PosteriorResult | None) -> Record | None:
     """results.json's `diagnostics.posterior` (None without a posterior)."""
     if post is None:
         return None
@@ -353,7 +358,7 @@ def posterior_diagnostics(post: Any) -> dict[str, Any] | None:
     }
 
 
-def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]:
+def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> Record:
     """The content of results.json (see the README's "Outputs")."""
     sel, fit, post = outcome.selection, outcome.selection.fit, outcome.posterior
     names = [display_name(e)[0] for e in fit.estimates]
@@ -415,7 +420,7 @@ SPECIMEN_INDEX_NM = np.arange(380.0, 781.0, 10.0)
 """Where results.json's `specimen.index` samples the material's index (every 10 nm)."""
 
 
-def specimen_record(outcome: FitOutcome) -> dict[str, Any]:
+def specimen_record(outcome: FitOutcome) -> Record:
     """results.json's `specimen`: the layer thickness, each wedge's name and angle (deg) in the
     order of the fit's wedge indices, and the material's index without `delta_n` every 10 nm
     (what `stairfit predict --gloss --fit` reads; a per-channel index through its channels'
@@ -433,7 +438,7 @@ def specimen_record(outcome: FitOutcome) -> dict[str, Any]:
     }
 
 
-def directions_record(outcome: FitOutcome) -> dict[str, Any]:
+def directions_record(outcome: FitOutcome) -> Record:
     """How the fit modelled the directions (docs/fitting.md §10): `model` ("lab" or
     "in_plane"), why, the facets' kernel and how it was chosen, the roughness `alpha` of
     microfacet facets (`tan` of the fitted width, with its delta-method error), and each
@@ -444,7 +449,7 @@ def directions_record(outcome: FitOutcome) -> dict[str, Any]:
     fit, sel = outcome.selection.fit, outcome.selection
     lab = fit.problem is not None and fit.problem.lab is not None
     kernel = fit.requested.kernel
-    record: dict[str, Any] = {
+    record: Record = {
         "model": "lab" if lab else "in_plane",
         "reason": outcome.lab_reason,
         "facets": kernel if lab else "gaussian",
@@ -481,7 +486,7 @@ def package_versions() -> dict[str, str | None]:
     return versions
 
 
-def inputs_record(outcome: FitOutcome) -> dict[str, Any]:
+def inputs_record(outcome: FitOutcome) -> Record:
     """results.json's `inputs`: SHA-256 of the scene file, every photo and calibration frame;
     for each photo whether its values were measured now or read from the measurement cache."""
     scene = outcome.scene
@@ -504,7 +509,7 @@ def inputs_record(outcome: FitOutcome) -> dict[str, Any]:
     }
 
 
-def least_squares_diagnostics(fit: Any) -> dict[str, Any]:
+def least_squares_diagnostics(fit: fitting.FitResult) -> Record:
     """results.json's `diagnostics.least_squares` of the chosen fit (a `fitting.FitResult`)."""
     return {
         "solver": fit.solver,
@@ -527,7 +532,7 @@ def least_squares_diagnostics(fit: Any) -> dict[str, Any]:
     }
 
 
-def spectral_record(outcome: FitOutcome) -> dict[str, Any]:
+def spectral_record(outcome: FitOutcome) -> Record:
     """The camera model's channels for results.json [conventions §7, §8]: each channel's
     effective wavelength (its sensitivity x illuminant weighted mean, `ChannelWeights.
     effective_nm`; what the "effective" sampling evaluates) and the material's index there,
@@ -648,7 +653,7 @@ LINE_STYLES = ("-", "--", ":", "-.")
 """The model curves' styles, one per light angle of a wedge (in the order of the angles)."""
 
 
-def model_curves_of(outcome: FitOutcome) -> list[Any] | None:
+def model_curves_of(outcome: FitOutcome) -> list[fitting.ModelCurve] | None:
     """The chosen fit's dense model curves (`fitting.model_curves`), or None when the fit
     carries no prepared problem (a result assembled by hand)."""
     from stairfit import fitting
@@ -659,7 +664,7 @@ def model_curves_of(outcome: FitOutcome) -> list[Any] | None:
     return fitting.model_curves(fit)
 
 
-def fit_per_wedge(outcome: FitOutcome, curves: list[Any] | None = None) -> Figure:
+def fit_per_wedge(outcome: FitOutcome, curves: list[fitting.ModelCurve] | None = None) -> Figure:
     """Measured (error bars) and fitted radiance against the face-frame viewing angle, one
     panel per wedge and one colour per channel (like the paper's Fig. 9). The model is drawn as
     a dense curve over the viewing angle (`curves`: `fitting.model_curves`, computed here when
@@ -802,7 +807,7 @@ def value_with_errors(value: float, minus: float, plus: float) -> str:
 # --- report and summary ---------------------------------------------------------------------
 
 
-def _parameter_rows_html(results: dict[str, Any]) -> list[str]:
+def _parameter_rows_html(results: Record) -> list[str]:
     """The rows of the report's parameter table."""
     e = html.escape
     rows = []
@@ -823,7 +828,7 @@ def _parameter_rows_html(results: dict[str, Any]) -> list[str]:
     return rows
 
 
-def _truth_html(results: dict[str, Any]) -> str:
+def _truth_html(results: Record) -> str:
     """The report's truth table (the scene's `[truth]` beside the fit); "" without one."""
     e = html.escape
     rows = []
@@ -851,7 +856,7 @@ def _truth_html(results: dict[str, Any]) -> str:
 
 
 def report_html(
-    outcome: FitOutcome, results: dict[str, Any], figures: dict[str, str], out: Path
+    outcome: FitOutcome, results: Record, figures: dict[str, str], out: Path
 ) -> str:
     """A single self-explaining HTML page (figures referenced by relative path)."""
     e = html.escape
@@ -927,7 +932,7 @@ also in results.json.</p></body></html>
 """
 
 
-def _directions_html(d: dict[str, Any]) -> str:
+def _directions_html(d: Record) -> str:
     """The report's section on how the directions were modelled, the facets, and each wedge's
     largest out-of-plane angles."""
     e = html.escape
@@ -982,7 +987,7 @@ def _misfits(outcome: FitOutcome) -> bool:
     return a is not None and a.misfits
 
 
-def _checks_html(po: dict[str, Any] | None) -> str:
+def _checks_html(po: Record | None) -> str:
     """The R-hat and ESS cells of a parameter row (red outside the thresholds)."""
     if not po:
         return "<td></td><td></td>"
@@ -1001,12 +1006,12 @@ def _markers_html(outcome: FitOutcome) -> str:
     return html_table(reports, MARKER_COLUMNS)
 
 
-def _fmt(x: Any, spec: str) -> str:
+def _fmt(x: object, spec: str) -> str:
     """Format a number, or an empty cell for None (skipped variants)."""
     return "" if x is None else format(x, spec)
 
 
-def _checks_text(po: dict[str, Any] | None) -> str:
+def _checks_text(po: Record | None) -> str:
     """`1.0032  1893/2410` (R-hat, bulk / tail ESS) for the summary, `!` past a threshold."""
     if not po:
         return ""
@@ -1016,7 +1021,7 @@ def _checks_text(po: dict[str, Any] | None) -> str:
     return f"{rhat:>6.4f} {bulk:>5.0f}/{tail:<5.0f}{flag}"
 
 
-def posterior_warning_lines(post: Any) -> list[str]:
+def posterior_warning_lines(post: fitting.PosteriorResult | None) -> list[str]:
     """The posterior's warnings for the summary: the step limit and the acceptance as they
     are, R-hat and ESS one line each naming every parameter concerned."""
     if post is None:
@@ -1132,11 +1137,11 @@ def renders_html(folder: Path) -> str:
     return "".join(parts)
 
 
-def _green(values: Any) -> float | None:
+def _green(values: object) -> float | None:
     return None if not values else float(values[1])
 
 
-def _ratio(face: dict[str, Any]) -> str:
+def _ratio(face: Record) -> str:
     p, r = _green(face.get("photo")), _green(face.get("render"))
     return "" if not p or r is None else f"{r / p:.3f}"
 

@@ -6,9 +6,12 @@ the files of an older stairfit in one line.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ._jsontypes import JSONObject
 
 OLDER_RESULTS = "was written by an older stairfit (no parameter records): re-run `stairfit fit`"
 """Why a results.json without the `parameter` and `wedge` fields is refused: a parameter's
@@ -19,7 +22,7 @@ class OlderResultsError(ValueError):
     """A results.json written before its parameter records had `parameter` and `wedge`."""
 
 
-def parameter_key(rec: dict[str, Any]) -> tuple[str, int | None]:
+def parameter_key(rec: JSONObject) -> tuple[str, int | None]:
     """`(param, wedge)` of a results.json parameter record: the fitting layer's identity of the
     parameter (`("sigma_rad", 2)` for wedge 2's own width, shown as `sigma_deg[2: ...]`).
 
@@ -31,7 +34,7 @@ def parameter_key(rec: dict[str, Any]) -> tuple[str, int | None]:
     return str(rec["parameter"]), None if rec["wedge"] is None else int(rec["wedge"])
 
 
-def check_parameter_records(results: dict[str, Any], fit_dir: str | Path) -> None:
+def check_parameter_records(results: JSONObject, fit_dir: str | Path) -> None:
     """Every parameter record of results.json names its `parameter` and `wedge`.
 
     Raises:
@@ -41,7 +44,7 @@ def check_parameter_records(results: dict[str, Any], fit_dir: str | Path) -> Non
         raise OlderResultsError(f"results.json in {fit_dir} {OLDER_RESULTS}")
 
 
-def covariance_from_results(results: dict[str, Any]) -> np.ndarray | None:
+def covariance_from_results(results: JSONObject) -> np.ndarray | None:
     """The least-squares covariance (display units) from stderr and correlation, or None."""
     corr = results["correlation"]["matrix"]
     se = [p["least_squares"]["stderr"] for p in results["parameters"]]

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,6 +29,14 @@ from ..fileio import write_file
 from ..outputs import staged_folder as staged_folder
 from ..scene import SCENE_FILE, SCENE_VERSION
 from ._layout import SpecimenLayout, camera_for
+
+if TYPE_CHECKING:
+    import jax
+
+    from stairfit import fitting, model
+    from stairfit.imaging import Exposure, synthetic
+
+    from .._jsontypes import Record
 
 DEG = np.pi / 180
 TRUTH_FILE = "truth.json"
@@ -419,12 +427,19 @@ def face_mean(profile: np.ndarray) -> np.ndarray:
     return np.einsum("...qc,q->...c", profile, w / w.sum())
 
 
-def _sharp_values(obs: Any, spectral: Any, params: Any, aperture: Any) -> Any:
+def _sharp_values(
+    obs: fitting.Observations,
+    spectral: fitting.Spectral,
+    params: fitting.Params,
+    aperture: model.Aperture,
+) -> jax.Array:
     import jax
 
     from stairfit import model
 
-    def values(ti: Any, to: Any, b2: Any, n: Any, w: Any) -> Any:
+    def values(
+        ti: jax.Array, to: jax.Array, b2: jax.Array, n: jax.Array, w: jax.Array
+    ) -> jax.Array:
         dens = model.band_density(ti, to, b2, n, w, params.sigma_rad, aperture)
         return model.radiance(dens, ti, to, params.scale, params.floor)
 
@@ -433,7 +448,7 @@ def _sharp_values(obs: Any, spectral: Any, params: Any, aperture: Any) -> Any:
     return jax.jit(values)(obs.theta_i_rad, obs.theta_o_rad, obs.beta2_rad, n, w)
 
 
-def simulate(folder: Path, settings: SimulationSettings, progress: bool = False) -> dict[str, Any]:
+def simulate(folder: Path, settings: SimulationSettings, progress: bool = False) -> Record:
     """Render every photo (and any calibration frames) into `folder`; write scene and truth."""
     import tomli_w
 
@@ -481,7 +496,7 @@ SENSOR_BLACK_DN = 1024
 """The black level the synthetic camera's files declare."""
 
 
-def _sensor(effects: SessionEffects) -> Any:
+def _sensor(effects: SessionEffects) -> synthetic.SensorModel:
     from stairfit.imaging import synthetic
 
     return synthetic.SensorModel(
@@ -490,7 +505,9 @@ def _sensor(effects: SessionEffects) -> Any:
     )  # fmt: skip
 
 
-def view_exposures(settings: SimulationSettings, radiance: np.ndarray) -> list[tuple[Any, ...]]:
+def view_exposures(
+    settings: SimulationSettings, radiance: np.ndarray
+) -> list[tuple[Exposure, ...]]:
     """Per view, its exposures (one, or a bracket): a photographer's choice.
 
     The (first, shortest) exposure puts the brightest face of the view (with `fixed_exposure`:
@@ -516,7 +533,7 @@ def view_exposures(settings: SimulationSettings, radiance: np.ndarray) -> list[t
 
 
 def write_calibration_frames(
-    folder: Path, settings: SimulationSettings, size: tuple[int, int], exposure: Any
+    folder: Path, settings: SimulationSettings, size: tuple[int, int], exposure: Exposure
 ) -> dict[str, list[str]]:
     """Write the session's flat-field photos and dark frames; the scene's [calibration] table.
 
@@ -549,7 +566,7 @@ def write_calibration_frames(
     return table
 
 
-def _render_all(jobs: Sequence[_PhotoJob], workers: int, progress: bool) -> list[dict[str, Any]]:
+def _render_all(jobs: Sequence[_PhotoJob], workers: int, progress: bool) -> list[Record]:
     """Render every photo (in `workers` spawned processes when > 1), with a progress bar.
 
     The bar is closed (its line ended) and queued jobs are cancelled however this ends, so an
@@ -557,7 +574,7 @@ def _render_all(jobs: Sequence[_PhotoJob], workers: int, progress: bool) -> list
     """
     from tqdm import tqdm
 
-    photos: list[dict[str, Any]] = []
+    photos: list[Record] = []
     with tqdm(total=len(jobs), desc="rendering photos", unit="photo", disable=not progress) as bar:
         if workers <= 1:
             for job in jobs:
@@ -585,14 +602,14 @@ class _PhotoJob:
     layout: SpecimenLayout
     radiance: np.ndarray  # (n_wedges, Q, 3): the profile along each face (face_radiance)
     seed: int
-    exposures: tuple[Any, ...]  # imaging.Exposure, the reference (shortest) first
+    exposures: tuple[Exposure, ...]  # the reference (shortest) first
     effects: SessionEffects
     exposure_tags: str = "exif"
     markers: str = "quiet-zone"
     paper: float = 6000.0  # relative radiance of the markers' white paper
 
 
-def _render(job: _PhotoJob) -> dict[str, Any]:
+def _render(job: _PhotoJob) -> Record:
     """Render and write one view (every exposure of a bracket); its [[photos]] entry."""
     from stairfit.imaging import MarkerLayout, synthetic
 
@@ -631,7 +648,7 @@ def _render(job: _PhotoJob) -> dict[str, Any]:
         name = f"IMG_{job.index + 1:04d}.dng" if k == 0 else f"IMG_{job.index + 1:04d}_{k}.dng"
         photo.write_dng(job.folder / name, exposure_tags=job.exposure_tags)
         files.append(name)
-    entry: dict[str, Any] = {
+    entry: Record = {
         "file": files[0] if len(files) == 1 else files,
         "light_deg": None,  # filled in by _scene_dict (same light for every photo)
         "view_deg": round(job.view_deg, 6),
@@ -694,9 +711,9 @@ def _wedge_name(beta2_deg: float) -> str:
 def _scene_dict(
     s: SimulationSettings,
     layout: SpecimenLayout,
-    photos: Sequence[dict[str, Any]],
+    photos: Sequence[Record],
     calibration: dict[str, list[str]] | None = None,
-) -> dict[str, Any]:
+) -> Record:
     wedges = [
         {
             "name": _wedge_name(b),
