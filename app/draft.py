@@ -703,24 +703,16 @@ def draft_scene(
 def write_draft(folder: Path, draft: Draft) -> Path:
     """Write the draft to scene.toml, or to scene.draft.toml beside an existing scene.toml;
     never over an existing file (created by a hard link of a finished temporary file, which
-    fails if the name exists)."""
-    import tempfile
+    fails if the name exists: `fileio.create_text`)."""
+    from .fileio import create_text
 
     target = _target(folder)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=".scene.", suffix=".tmp", dir=folder)
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(draft.text)
-        try:
-            os.link(tmp, target)
-        except FileExistsError:
-            raise UserError(
-                f"{target}: appeared while init ran; init never replaces a file, run it again"
-            ) from None
-        finally:
-            os.unlink(tmp)
-    except UserError:
-        raise
+        create_text(target, draft.text)
+    except FileExistsError:
+        raise UserError(
+            f"{target}: appeared while init ran; init never replaces a file, run it again"
+        ) from None
     except OSError as e:
         raise UserError(
             f"{folder}: cannot write {target.name} ({e.strerror or e}); check the "
