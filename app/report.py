@@ -149,6 +149,47 @@ def fixed_parameters(outcome: FitOutcome) -> Record:
     return out
 
 
+def compare_table(outcome: FitOutcome, truth: dict[str, float]) -> str:
+    """Recovered against true values, the 95% interval, and the deviation in standard deviations.
+
+    A truth outside its 95% interval happens for about 1 parameter in 20 by chance; the last
+    column says how far off it is (|pull| > 3 would point to a bias, not to chance).
+    """
+    lines = [
+        f"  {'parameter':<16} {'true':>12} {'recovered':>12} {'95% interval':>26}  "
+        f"{'inside?':>7}  {'(rec - true) / sd':>17}"
+    ]
+    records = parameter_records(outcome)
+    for rec in records:  # matched by identity: each wedge's own width against the one truth
+        name, key = rec["name"], display_param(rec["parameter"])
+        if key not in truth:
+            continue
+        true = truth[key]
+        po, ls = rec.get("posterior"), rec["least_squares"]
+        if po is not None:
+            val, lo, hi = po["median"], po["p2_5"], po["p97_5"]
+        elif ls["stderr"] is not None:
+            val, lo, hi = (
+                ls["value"],
+                ls["value"] - 2 * ls["stderr"],
+                ls["value"] + 2 * ls["stderr"],
+            )
+        else:
+            val, lo, hi = ls["value"], np.nan, np.nan
+        inside = "yes" if lo <= true <= hi else "NO"
+        sd = 0.25 * (hi - lo)  # the interval spans about +-2 standard deviations
+        pull = f"{(val - true) / sd:+.2f}" if sd > 0 else "-"
+        interval = f"[{lo:.6g}, {hi:.6g}]"
+        lines.append(
+            f"  {name:<16} {true:>12.6g} {val:>12.6g} {interval:>26}  {inside:>7}  {pull:>17}"
+        )
+    fitted = {display_param(r["parameter"]) for r in records}
+    fixed = [k for k in truth if k not in fitted]
+    for k in fixed:
+        lines.append(f"  {k:<16} {truth[k]:>12.5g} {'(not fitted: the chosen model fixes it)':>40}")
+    return "\n".join(lines)
+
+
 def truth_records(outcome: FitOutcome, records: list[Record]) -> list[Record]:
     """The scene's `[truth]` beside the fit (results.json's `truth`; [] without a truth table).
 

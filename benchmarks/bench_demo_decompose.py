@@ -101,7 +101,7 @@ def render_recording(seed: int, photos: Path) -> tuple[dict[str, Any], list[dict
     """Render the demo's photos of `seed` into `photos` (one process), recording each view's
     renderer expectations: (truth.json, [{face name: (expected, expected_untextured)}] in
     photo order)."""
-    from stairfit.commands import simulate
+    from stairfit import simulation as simulate
     from stairfit.imaging import synthetic
 
     records: list[dict[str, Any]] = []
@@ -202,7 +202,7 @@ def whitener(groups: list[tuple[np.ndarray, np.ndarray]], n: int) -> Any:
 
 def decompose(seed: int, work: Path, fit: bool = False) -> dict[str, Any]:
     from stairfit import fitting, pipeline
-    from stairfit.commands import simulate
+    from stairfit import simulation as simulate
     from stairfit.presets import PRESETS
     from stairfit.scene import load_scene
 

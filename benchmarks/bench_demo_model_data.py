@@ -71,7 +71,7 @@ def demo_observations(seed: int, work: Path) -> tuple[Any, Any, Any, Any, dict[s
     """Render the demo's photos of `seed`, measure them like `stairfit fit`: (observations,
     spectral, aperture, options, truth.json parameters)."""
     from stairfit import pipeline
-    from stairfit.commands import simulate
+    from stairfit import simulation as simulate
     from stairfit.scene import load_scene
 
     views = tuple(float(v) for v in np.linspace(-80.0, 20.0, VIEWS))

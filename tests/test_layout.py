@@ -1,16 +1,20 @@
 """The layering of the `stairfit` package's own code (app/, issue 43): nothing but the CLI's entry
-imports a command module (the pipeline, explore, the report and the studies are libraries that
-commands call), and the app's modules import each other without a cycle. Read from the source
-with `ast` (imports inside functions count; those under `if TYPE_CHECKING:` do not, as they
-never run); the checks are tried on small planted trees too, so that they can fail."""
+imports a command module (the pipeline, simulation, explore and the report are libraries that
+commands call; the benchmarks call them too), no command imports another command, and the app's
+modules import each other without a cycle. Read from the source with `ast` (imports inside
+functions count; those under `if TYPE_CHECKING:` do not, as they never run); the checks are
+tried on small planted trees too, so that they can fail."""
 
 from __future__ import annotations
 
 import ast
 from pathlib import Path
 
-APP = Path(__file__).resolve().parents[1] / "app"
+ROOT = Path(__file__).resolve().parents[1]
+APP = ROOT / "app"
 PACKAGE = "stairfit"
+COMMANDS = ("predict", "simulate", "init", "fit", "measure", "demo", "study", "render")
+"""`stairfit.cli.COMMANDS`, restated so that this test reads the source only."""
 
 
 def _module_name(root: Path, path: Path) -> str:
@@ -84,6 +88,29 @@ def command_importers(graph: dict[str, set[str]]) -> list[str]:
     )
 
 
+def command_to_command(graph: dict[str, set[str]]) -> list[tuple[str, str]]:
+    """(command, command) pairs where one command module imports another (their shared
+    helpers sit in private modules beside them)."""
+    names = {f"{PACKAGE}.commands.{c}" for c in COMMANDS}
+    return sorted((a, b) for a in names & graph.keys() for b in graph[a] & names)
+
+
+def script_command_imports(folder: Path) -> list[str]:
+    """Files under `folder` (the benchmarks) that import `stairfit.commands` or a module of
+    it: they call the libraries, never a command."""
+    found = []
+    for path in sorted(folder.rglob("*.py")):
+        for node in _runtime_imports(ast.parse(path.read_text(), str(path))):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            if isinstance(node, ast.ImportFrom) and not node.level and node.module:
+                names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+            if any(n == f"{PACKAGE}.commands" or n.startswith(f"{PACKAGE}.commands.")
+                   for n in names):  # fmt: skip
+                found.append(path.relative_to(folder).as_posix())
+                break
+    return found
+
+
 def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     """The strongly connected groups of more than one module (Tarjan), each sorted."""
     index: dict[str, int] = {}
@@ -123,6 +150,17 @@ def test_only_the_cli_imports_a_command_module() -> None:
     assert command_importers(import_graph(APP)) == []
 
 
+def test_no_command_imports_another() -> None:
+    from stairfit import cli
+
+    assert cli.COMMANDS == COMMANDS
+    assert command_to_command(import_graph(APP)) == []
+
+
+def test_the_benchmarks_call_libraries_not_commands() -> None:
+    assert script_command_imports(ROOT / "benchmarks") == []
+
+
 def test_the_app_modules_import_each_other_without_a_cycle() -> None:
     assert cycles(import_graph(APP)) == []
 
@@ -140,6 +178,10 @@ def test_the_checks_find_planted_problems(tmp_path: Path) -> None:
         "commands/__init__.py": "",
         "commands/fit.py": "from .. import pipeline\nfrom . import _helper\n",
         "commands/_helper.py": "from ..outcome import x\n",
+        "commands/demo.py": "from .fit import run\n",  # a command importing a command
+        "bench/a.py": "from stairfit.commands import fit\n",
+        "bench/b.py": "import stairfit.commands.demo as d\n",
+        "bench/c.py": "from stairfit import pipeline\n",
     }
     for rel, text in files.items():
         path = tmp_path / rel
@@ -147,5 +189,7 @@ def test_the_checks_find_planted_problems(tmp_path: Path) -> None:
         path.write_text(text)
     graph = import_graph(tmp_path)
     assert graph["stairfit.outcome"] == set()  # the TYPE_CHECKING import does not run
-    assert command_importers(graph) == ["stairfit.explore"]
+    assert command_importers(graph) == ["stairfit.bench.a", "stairfit.bench.b", "stairfit.explore"]
+    assert command_to_command(graph) == [("stairfit.commands.demo", "stairfit.commands.fit")]
+    assert script_command_imports(tmp_path / "bench") == ["a.py", "b.py"]
     assert cycles(graph) == [["stairfit.pipeline", "stairfit.report"]]
