@@ -71,7 +71,8 @@ DEG = np.pi / 180
 
 
 def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
-    """The whole pipeline into the (temporary) folder `out`: measure the photos, then `fit`."""
+    """The whole pipeline into the (temporary) folder `out`: measure the photos, their
+    observations, then `fit`."""
     specs = tuple(photo_specs(scene))
     t0 = time.perf_counter()
     table = measure(scene, out, options, specs)
@@ -79,24 +80,6 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     # the posterior's and the report's imports, in a thread while the model is compiled and
     # fitted (not while the photos are decoded, which keeps both cores busy)
     prefetch(FIT_MODULES if options.posterior else REPORT_MODULES, options.freeze_imports)
-    return fit(scene, table, out, options, specs=specs, timings=timings)
-
-
-def fit(
-    scene: Scene,
-    table: imaging.MeasurementTable,
-    out: Path,
-    options: FitOptions,
-    *,
-    specs: Sequence[imaging.PhotoSpec] | None = None,
-    timings: dict[str, float] | None = None,
-) -> FitOutcome:
-    """Fit measured photos and write every output into `out`: observations, model selection,
-    accuracy check, posterior (the figures drawn in a thread beside it, in this process:
-    nothing is left running if it is killed) and the report. `specs`: the photos' specs when
-    already computed; `timings`: the stages' times so far (e.g. `measure_s`)."""
-    specs = tuple(photo_specs(scene) if specs is None else specs)
-    timings = dict(timings or {})
     t0 = time.perf_counter()
     try:
         obs = observations(scene, table)
@@ -105,6 +88,28 @@ def fit(
         shown = "ROIs, saturated pixels in magenta"
         where = keep_previews(kept, out / "previews", specs, table.photos(), shown)
         raise UserError(f"{err}{where}") from None
+    return fit(scene, table, obs, out, options, specs=specs, timings=timings, started=t0)
+
+
+def fit(
+    scene: Scene,
+    table: imaging.MeasurementTable,
+    obs: Observations,
+    out: Path,
+    options: FitOptions,
+    *,
+    specs: Sequence[imaging.PhotoSpec] | None = None,
+    timings: dict[str, float] | None = None,
+    started: float | None = None,
+) -> FitOutcome:
+    """Fit the observations `obs` of the measured photos (`table`) and write every output into
+    `out`: model selection, accuracy check, posterior (the figures drawn in a thread beside
+    it, in this process: nothing is left running if it is killed) and the report. `specs`: the
+    photos' specs when already computed; `timings`: the stages' times so far (e.g.
+    `measure_s`); `started`: the `time.perf_counter()` `fit_s` counts from (default: now)."""
+    specs = tuple(photo_specs(scene) if specs is None else specs)
+    timings = dict(timings or {})
+    t0 = time.perf_counter() if started is None else started
     notes = [*obs.notes, *cache_notes(scene, table)]
     setup = fit_setup(scene, options.preset)
     notes.extend(index_notes(scene, setup))
