@@ -51,6 +51,7 @@ __all__ = [
     "fit",
     "fit_scene",
     "fit_setup",
+    "fitted_rows",
     "index_notes",
     "lab_setup",
     "ladder_for",
@@ -60,6 +61,7 @@ __all__ = [
     "refine",
     "roi_correlations",
     "sample",
+    "sample_while_drawing",
     "select",
     "view_spread",
 ]
