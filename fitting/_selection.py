@@ -378,13 +378,19 @@ def _probe_kernels(
     settings: _Settings,
     starts: dict[str, FitResult],
 ) -> tuple[Facets, dict[str, FitResult]]:
-    """`probe` fitted with every kernel (each also from `starts[kernel]`), the choice by the
-    ladder's rule, and the converged fits by kernel."""
+    """`probe` fitted with every kernel (each also from `starts[kernel]` and from the optima of
+    the kernels fitted before it at this probe), the choice by the ladder's rule, and the
+    converged fits by kernel.
+
+    Lobes of the same width differ mostly in their tails, so another kernel's optimum starts
+    a kernel near its own: started from the widths alone, a misfitting microfacet probe can run
+    off to a flat lobe (roughness and scale both huge) and lose the comparison for it
+    (docs/fitting.md §4)."""
     rows, scored, fits = [], {}, {}
     for kernel in kernels:
         v = probe._replace(kernel=kernel, name=f"{probe.name} ({kernel} facets)")
         t0 = time.perf_counter()
-        parents = (starts[kernel],) if kernel in starts else ()
+        parents = ((starts[kernel],) if kernel in starts else ()) + tuple(fits.values())
         try:
             fit = _fit_variant(problem, v, settings, parents)
         except FitError as err:

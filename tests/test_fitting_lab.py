@@ -10,7 +10,7 @@ import pytest
 
 from stairfit import fitting, model
 from stairfit.fitting._lab import _lab_impl, distinct_samples, lab_data, lab_grid
-from stairfit.fitting._selection import _Settings, choose_kernel
+from stairfit.fitting._selection import _probe_kernels, _Settings, choose_kernel
 
 WEDGES_DEG = np.array([10.0, 30.0, 45.0, 60.0])
 
@@ -164,6 +164,31 @@ def test_a_lab_fit_recovers_a_microfacet_truth_and_chooses_its_kernel(lab_arrays
     for name, value in (("sigma_rad", truth), ("scale", 3e5), ("floor", 30.0)):
         assert abs(est[name].value - value) < 4 * est[name].stderr, name
     assert fit.chi2 / fit.dof < 1.3
+
+
+def test_each_kernel_is_also_started_from_the_kernels_fitted_before_it(lab_arrays):
+    """A microfacet probe started from the widths alone ran off to a flat lobe (alpha and scale
+    near 1e26) on the polarised physically based set and lost the kernel comparison for it:
+    each kernel's starts include the optima of the kernels fitted before it at the probe."""
+    geo, spec, ld = lab_arrays
+    sp, body = lab_grid(jnp.full(ld.b2.shape, np.deg2rad(3.4)), 0.0, ld, "ggx")
+    ch = np.tile(np.arange(3), geo.key.size // 3)
+    value = np.asarray(3e5 * sp[geo.key, ch] + 30.0 * body[geo.key, ch])
+    obs = fitting.Observations.from_arrays(
+        theta_i_rad=0.0, theta_o_rad=0.0, beta2_rad=np.deg2rad(WEDGES_DEG)[geo.wedge][geo.key],
+        layer_um=150.0, wedge_index=geo.wedge[geo.key], channel_index=ch,
+        value=value, stderr=0.005 * value + 0.5,
+    )  # fmt: skip
+    settings = _Settings(fitting.LeastSquaresOptions(on_failure="flag", emit_warnings=False),
+                         False, lambda name: None)  # fmt: skip
+    probe = fitting.variant("sharp+floor", "floor")
+    _, fits = _probe_kernels(fitting.prepare(obs, spec, lab=geo), probe,
+                             ("gaussian", "ggx", "beckmann"), "bic", 2.0, settings, {})  # fmt: skip
+    width = {k: float(np.asarray(f.params.sigma_rad).reshape(-1)[0]) for k, f in fits.items()}
+    assert set(fits) == {"gaussian", "ggx", "beckmann"}
+    assert not np.any(np.isclose(fits["gaussian"].starts_sigma_rad, width["ggx"], rtol=1e-9))
+    for later, earlier in (("ggx", "gaussian"), ("beckmann", "gaussian"), ("beckmann", "ggx")):
+        assert np.any(np.isclose(fits[later].starts_sigma_rad, width[earlier], rtol=1e-9)), later
 
 
 @pytest.mark.slow  # three rounded lab fits compile (about a minute each on a loaded machine)
