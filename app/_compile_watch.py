@@ -19,7 +19,10 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 LOWERED_EVENT = "/jax/core/compile/jaxpr_to_mlir_module_duration"
 """JAX records this when a top-level program has been lowered: its compilation starts."""
@@ -57,10 +60,10 @@ class CompileStats:
     longest_s: float = 0.0
     longest: str = ""
     _running: tuple[str, float] | None = None
-    _bar: Any = None
+    _bar: tqdm | None = None
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
-    def record(self, event: str, duration: float, **kwargs: Any) -> None:
+    def record(self, event: str, duration: float, **kwargs: object) -> None:
         """The `jax.monitoring` duration listener."""
         name = program_name(str(kwargs.get("fun_name", "a program")))
         with self._lock:

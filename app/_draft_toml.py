@@ -13,7 +13,6 @@ import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
@@ -28,7 +27,7 @@ class Todo:
     stands in for it when init checks the rest of the file (`stand_in`)."""
 
     text: str
-    stand_in: Any
+    stand_in: object
 
     def __str__(self) -> str:
         return f"{TODO_PREFIX} {self.text}"
@@ -39,7 +38,7 @@ class Entry:
     """One `key = value` line and its comment ("" for none)."""
 
     key: str
-    value: Any
+    value: object
     comment: str = ""
 
 
@@ -55,7 +54,7 @@ class Table:
     children: tuple[Table, ...] = field(default=())
 
 
-def from_raw(path: str, raw: dict[str, Any], array: bool = False) -> Table:
+def from_raw(path: str, raw: dict[str, object], array: bool = False) -> Table:
     """A table (and its sub-tables) from a dict as `tomllib` read it: values first, then
     sub-tables (`[path.key]`), then arrays of tables (`[[path.key]]`)."""
     entries, children = [], []
@@ -126,7 +125,7 @@ def _string(s: str) -> str:
     return f'"{body}"'
 
 
-def value_text(v: Any) -> str:
+def value_text(v: object) -> str:
     """A value as TOML text, on one line."""
     if isinstance(v, Todo):
         return _string(str(v))
@@ -149,7 +148,7 @@ def value_text(v: Any) -> str:
     raise TypeError(f"no TOML form for {type(v).__name__}")
 
 
-def stand_ins(value: Any, todos: dict[str, Any]) -> Any:
+def stand_ins(value: object, todos: dict[str, object]) -> object:
     """`value` (as `tomllib` read the drafted text) with every TODO string replaced by its
     stand-in (`todos`: TODO text -> stand-in)."""
     if isinstance(value, str) and value in todos:
@@ -161,11 +160,11 @@ def stand_ins(value: Any, todos: dict[str, Any]) -> Any:
     return value
 
 
-def collect_todos(tables: Sequence[Table]) -> dict[str, Any]:
+def collect_todos(tables: Sequence[Table]) -> dict[str, object]:
     """Every Todo of the tables (including inside lists): its text -> its stand-in."""
-    found: dict[str, Any] = {}
+    found: dict[str, object] = {}
 
-    def visit(v: Any) -> None:
+    def visit(v: object) -> None:
         if isinstance(v, Todo):
             found[str(v)] = v.stand_in
         elif isinstance(v, list | tuple):

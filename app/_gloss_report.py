@@ -10,9 +10,13 @@ from __future__ import annotations
 import html
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from .errors import UserError
+
+if TYPE_CHECKING:
+    from ._jsontypes import Record
+    from .gloss import GlossRow
 
 REPORT_DRAWS = 16
 """Posterior draws whose gloss the report computes (`stairfit predict --gloss --fit` takes
@@ -26,7 +30,7 @@ downhill side, as the photographs' light (`stairfit predict --gloss --azimuth-de
 others)."""
 
 
-def gloss_record(results: dict[str, Any], out: Path) -> dict[str, Any]:
+def gloss_record(results: Record, out: Path) -> Record:
     """results.json's `gloss`: one row per fitted wedge and ISO 2813 geometry (the specimen's
     own angles and layer, across the layer lines), or `{"error": ...}` when it could not be
     computed. `out`: the fit folder (for chain.npz)."""
@@ -57,12 +61,12 @@ def gloss_record(results: dict[str, Any], out: Path) -> dict[str, Any]:
     }
 
 
-def _row(wedge: str, row: Any) -> dict[str, Any]:
+def _row(wedge: str, row: GlossRow) -> Record:
     """A `gloss.GlossRow` as a results.json record with its wedge's name."""
     return {"wedge": wedge, **{k: v for k, v in row._asdict().items() if k != "uncertainty"}}
 
 
-def _cell(row: dict[str, Any]) -> str:
+def _cell(row: Record) -> str:
     """`12.31 [12.10, 12.62]` (posterior) or `12.31 ± 0.21` (delta method) or `12.31`: two
     decimals, a glossmeter's 0.1 GU and one more."""
     value = f"{row['gloss']:.2f}"
@@ -73,14 +77,14 @@ def _cell(row: dict[str, Any]) -> str:
     return value
 
 
-def gloss_html(record: dict[str, Any]) -> str:
+def gloss_html(record: Record) -> str:
     """The report's section: a table of wedges x geometries and what it assumes."""
     e = html.escape
     head = "<h2>Gloss units (ISO 2813)</h2>"
     if "error" in record:
         return f"{head}<p>Not computed: {e(record['error'])}.</p>"
     angles = sorted({r["angle_deg"] for r in record["rows"]})
-    by_wedge: dict[str, dict[float, dict[str, Any]]] = {}
+    by_wedge: dict[str, dict[float, Record]] = {}
     for r in record["rows"]:
         by_wedge.setdefault(r["wedge"], {})[r["angle_deg"]] = r
     rows = "".join(

@@ -1,5 +1,5 @@
 """Failed allocations: how `stairfit` recognises them and says them in one line (app/cli.py,
-the accuracy check's refit in app/commands/_accuracy_check.py)."""
+the accuracy check's refit in app/accuracy.py)."""
 
 from __future__ import annotations
 

@@ -11,13 +11,18 @@ from __future__ import annotations
 
 import html
 import textwrap
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.figure import Figure
 
 from .figures import fixed_layout
 from .outcome import FitOutcome
+
+if TYPE_CHECKING:
+    from stairfit import fitting
+
+    from ._jsontypes import Record
 
 
 def _photo_label(outcome: FitOutcome, label: str) -> str:
@@ -30,7 +35,7 @@ def _photo_label(outcome: FitOutcome, label: str) -> str:
     return f"{name} (view {photos[k].view_deg:g} deg)"
 
 
-def _group_line(g: Any, what: str) -> str:
+def _group_line(g: fitting.ResidualGroup, what: str) -> str:
     """One line describing a residual group (measurement errors alone)."""
     where = "above" if g.mean < 0 else "below"
     return (
@@ -49,7 +54,7 @@ def pattern_lines(outcome: FitOutcome) -> list[str]:
     return lines
 
 
-def assessment_record(outcome: FitOutcome) -> dict[str, Any] | None:
+def assessment_record(outcome: FitOutcome) -> Record | None:
     """results.json's `assessment`: whether the chosen fit describes the data, with chi^2 with
     and without the model-error term and the residual pattern (docs/fitting.md §4)."""
     a = outcome.selection.assessment
@@ -94,7 +99,7 @@ def rounding_sentence(outcome: FitOutcome) -> str:
     return text + _fillet_clause(r)
 
 
-def _fillet_clause(r: Any) -> str:
+def _fillet_clause(r: fitting.Rounding) -> str:
     """The fillet rungs' part of `rounding_sentence` ("" when the ladder has none)."""
     if not r.fillet_n_variants:
         return ""
@@ -106,7 +111,7 @@ def _fillet_clause(r: Any) -> str:
     return f"; the {r.fillet_n_variants} fillet variants were not fitted: {r.fillet_reason}"
 
 
-def rounding_record(outcome: FitOutcome) -> dict[str, Any] | None:
+def rounding_record(outcome: FitOutcome) -> Record | None:
     """results.json's `rounding` (`fitting.Rounding`), or None when the ladder had none."""
     r = outcome.selection.rounding
     if r is None:
@@ -155,7 +160,7 @@ def residual_pattern_figure(outcome: FitOutcome) -> Figure:
     photo (left), and model / measured against the face-frame viewing angle per wedge (right)."""
     from stairfit import fitting
 
-    fit, obs = outcome.selection.fit, outcome.observations
+    fit, obs = outcome.selection.fit, outcome.observations.data
     used = np.asarray(obs.use, bool)
     z = fitting.measurement_residuals(fit)
     wedges, photos = outcome.scene.specimen.wedges, outcome.scene.photos
@@ -173,7 +178,7 @@ def residual_pattern_figure(outcome: FitOutcome) -> Figure:
     a1.set_xticks(range(len(photos)), [f"{p.view_deg:g}" for p in photos], fontsize="small")
     a1.set(xlabel="photo: view (deg)", title="mean whitened residual (measurement errors)")
     fig.colorbar(im, ax=a1, shrink=0.8)
-    theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
+    theta_o = np.array([r.theta_o_deg for r in outcome.observations.labels])
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.asarray(fit.model) / np.asarray(obs.value)
     for k, wedge in enumerate(wedges):

@@ -25,7 +25,6 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import FrameType
-from typing import Any
 
 HANDLED = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
 """The signals turned into `Terminated` (SIGINT raises KeyboardInterrupt)."""
@@ -83,11 +82,13 @@ def _raise(signum: int, frame: FrameType | None) -> None:
     raise Terminated(signum)
 
 
-def _redeliver(previous: Callable[[Any], Any]) -> Callable[[Any], None]:
+def _redeliver(
+    previous: Callable[[sys.UnraisableHookArgs], object],
+) -> Callable[[sys.UnraisableHookArgs], None]:
     """An unraisable-exception hook that sends a dropped interruption again (module docstring)
     instead of printing it; anything else goes to `previous`."""
 
-    def hook(info: Any) -> None:
+    def hook(info: sys.UnraisableHookArgs) -> None:
         exc = info.exc_value
         if isinstance(exc, Terminated):
             _send_again(exc.signum)

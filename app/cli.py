@@ -16,7 +16,7 @@ from . import __version__
 from ._jaxcache import start_jax
 from ._memory import first_line, is_out_of_memory
 from ._signals import Terminated, terminate_by_exception
-from .errors import StairfitWarning, UserError
+from .errors import StairfitWarning, UserError, one_line
 
 COMMANDS = ("predict", "simulate", "init", "fit", "measure", "demo", "study", "render")
 """The subcommands, each the module `stairfit.commands.<name>` with `add_parser(sub)` and
@@ -62,29 +62,6 @@ EXIT_USER_ERROR = 2
 """Exit status for a mistake in the input (scene file, photos, options), as argparse uses."""
 EXIT_OS_ERROR = 1
 """Exit status for a file the system would not read or write (permissions, a full disk)."""
-
-
-MAX_WORD = 200
-"""A longer run of characters without a space in a message (a value echoed back, e.g. a 5 MB
-illuminant name) is shortened to its start and end."""
-MAX_MESSAGE = 2000
-"""A longer message keeps its start (file, field) and end (the fix), with the middle cut."""
-
-
-def _short_word(word: str) -> str:
-    if len(word) <= MAX_WORD:
-        return word
-    return f"{word[:120]}...{word[-40:]} ({len(word)} characters)"
-
-
-def one_line(message: str) -> str:
-    """A message on one line: line breaks and runs of spaces become single spaces; echoed
-    values longer than `MAX_WORD` and messages longer than `MAX_MESSAGE` are shortened."""
-    text = " ".join(_short_word(w) for w in str(message).split())
-    if len(text) <= MAX_MESSAGE:
-        return text
-    cut = len(text) - MAX_MESSAGE
-    return f"{text[:1200]} [... {cut} characters left out ...] {text[-(MAX_MESSAGE - 1200) :]}"
 
 
 def _is_imaging_error(e: BaseException) -> bool:

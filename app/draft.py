@@ -26,14 +26,25 @@ import tomllib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from . import _draft_pose as pose
 from . import _draft_survey as survey
 from ._draft_toml import Entry, Table, Todo, collect_todos, from_raw, render, stand_ins
 from .errors import UserError
 from .fileio import FileTooLargeError, describe, read_bytes
-from .scene import SCENE_FILE, SCENE_VERSION, Layout, parse_layout, parse_scene, todo_fields
+from .scene import (
+    SCENE_FILE,
+    SCENE_VERSION,
+    Layout,
+    RawTable,
+    parse_layout,
+    parse_scene,
+    todo_fields,
+)
+
+if TYPE_CHECKING:
+    from stairfit import imaging
 
 DRAFT_FILE = "scene.draft.toml"
 """Where the draft goes when the folder already has a scene.toml."""
@@ -108,7 +119,7 @@ def _read_text(path: Path, what: str) -> str:
         ) from None
 
 
-def read_layout(path: Path) -> tuple[dict[str, Any], Layout]:
+def read_layout(path: Path) -> tuple[RawTable, Layout]:
     """A layout file's tables as written (for the draft) and validated (`scene.parse_layout`)."""
     text = _read_text(path, "layout file (TOML: [specimen], [markers], [light], [camera])")
     try:
@@ -314,7 +325,7 @@ def _angles_per_view(
 # --- markers and view angles ---------------------------------------------------------------
 
 
-def _marker_layout(layout: Layout) -> Any:
+def _marker_layout(layout: Layout) -> imaging.MarkerLayout:
     from stairfit import imaging
 
     m = layout.markers
@@ -324,7 +335,9 @@ def _marker_layout(layout: Layout) -> Any:
     )
 
 
-def _detect(folder: Path, view: survey.View, layout: Any) -> tuple[Any, str]:
+def _detect(
+    folder: Path, view: survey.View, layout: imaging.MarkerLayout
+) -> tuple[imaging.MarkerDetection, str]:
     """The markers of a view: of its exposures, the detection with most layout markers."""
     from stairfit import imaging
 
@@ -356,7 +369,10 @@ def _edges(folder: Path, view: survey.View) -> Callable[[], list[pose.EdgeImage]
 
 
 def _focal(
-    layout: Layout, views: Sequence[survey.View], detections: Sequence[Any], marker_layout: Any
+    layout: Layout,
+    views: Sequence[survey.View],
+    detections: Sequence[imaging.MarkerDetection],
+    marker_layout: imaging.MarkerLayout,
 ) -> pose.Focal:
     """The focal length: the layout's, the tags', or the markers' (`_draft_pose`)."""
     if layout.camera.focal_length_px is not None:
@@ -467,7 +483,7 @@ def _skeleton(name: str) -> Table:
     )
 
 
-def _camera_table(raw: dict[str, Any], focal: pose.Focal | None) -> Table:
+def _camera_table(raw: RawTable, focal: pose.Focal | None) -> Table:
     """The layout's [camera] (or a skeleton), with the estimated focal length added."""
     table = from_raw("camera", raw["camera"]) if "camera" in raw else _skeleton("camera")
     if focal is None or focal.from_layout:
@@ -687,24 +703,16 @@ def draft_scene(
 def write_draft(folder: Path, draft: Draft) -> Path:
     """Write the draft to scene.toml, or to scene.draft.toml beside an existing scene.toml;
     never over an existing file (created by a hard link of a finished temporary file, which
-    fails if the name exists)."""
-    import tempfile
+    fails if the name exists: `fileio.create_text`)."""
+    from .fileio import create_text
 
     target = _target(folder)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=".scene.", suffix=".tmp", dir=folder)
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(draft.text)
-        try:
-            os.link(tmp, target)
-        except FileExistsError:
-            raise UserError(
-                f"{target}: appeared while init ran; init never replaces a file, run it again"
-            ) from None
-        finally:
-            os.unlink(tmp)
-    except UserError:
-        raise
+        create_text(target, draft.text)
+    except FileExistsError:
+        raise UserError(
+            f"{target}: appeared while init ran; init never replaces a file, run it again"
+        ) from None
     except OSError as e:
         raise UserError(
             f"{folder}: cannot write {target.name} ({e.strerror or e}); check the "

@@ -19,9 +19,24 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+from .results_file import OLDER_RESULTS as OLDER_RESULTS
+from .results_file import OlderResultsError as OlderResultsError
+from .results_file import check_parameter_records as check_parameter_records
+from .results_file import covariance_from_results as covariance_from_results
+from .results_file import parameter_key as parameter_key
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.cm import ScalarMappable
+
+    from stairfit import fitting, model
+
+    from ._jsontypes import JSONObject, Record
+    from .scene import Scene
 
 DEG = np.pi / 180
 
@@ -42,37 +57,6 @@ OBSERVATION_COLUMNS: dict[str, type] = {
 }
 """The columns of observations.csv (`stairfit.report.write_observations`) and their types."""
 
-OLDER_RESULTS = "was written by an older stairfit (no parameter records): re-run `stairfit fit`"
-"""Why a results.json without the `parameter` and `wedge` fields is refused: a parameter's
-identity is never parsed back from its display name."""
-
-
-class OlderResultsError(ValueError):
-    """A results.json written before its parameter records had `parameter` and `wedge`."""
-
-
-def parameter_key(rec: dict[str, Any]) -> tuple[str, int | None]:
-    """`(param, wedge)` of a results.json parameter record: the fitting layer's identity of the
-    parameter (`("sigma_rad", 2)` for wedge 2's own width, shown as `sigma_deg[2: ...]`).
-
-    Raises:
-        OlderResultsError: the record has no `parameter` or `wedge` field.
-    """
-    if "parameter" not in rec or "wedge" not in rec:
-        raise OlderResultsError(f"results.json {OLDER_RESULTS} (record {rec.get('name')!r})")
-    return str(rec["parameter"]), None if rec["wedge"] is None else int(rec["wedge"])
-
-
-def check_parameter_records(results: dict[str, Any], fit_dir: str | Path) -> None:
-    """Every parameter record of results.json names its `parameter` and `wedge`.
-
-    Raises:
-        OlderResultsError: one line naming the folder and the fix (re-run `stairfit fit`).
-    """
-    if any("parameter" not in r or "wedge" not in r for r in results.get("parameters", [])):
-        raise OlderResultsError(f"results.json in {fit_dir} {OLDER_RESULTS}")
-
-
 # --- the folder -----------------------------------------------------------------------------
 
 
@@ -86,7 +70,7 @@ class FitFolder:
     """
 
     path: Path
-    results: dict[str, Any]
+    results: JSONObject
     observations: dict[str, np.ndarray]
     photo_folder: Path | None
 
@@ -123,7 +107,7 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def find_photo_folder(fit_dir: str | Path, results: dict[str, Any]) -> Path | None:
+def find_photo_folder(fit_dir: str | Path, results: JSONObject) -> Path | None:
     """The photo folder of a fit: `<fit>/../photos` (demo) or `DIR` for `DIR-fit`.
 
     A candidate counts only if its scene file has the SHA-256 recorded in results.json, so a
@@ -172,7 +156,7 @@ def run_demo(out: str | Path, *extra: str) -> Path:
 # --- tables ---------------------------------------------------------------------------------
 
 
-def parameter_table(results: dict[str, Any]) -> list[dict[str, Any]]:
+def parameter_table(results: JSONObject) -> list[Record]:
     """One row per free parameter: least-squares value and standard error, posterior median
     and 68 % / 95 % intervals (None when not sampled), relative uncertainty. Display units."""
     rows = []
@@ -198,19 +182,19 @@ def parameter_table(results: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
-def selection_table(results: dict[str, Any]) -> list[dict[str, Any]]:
+def selection_table(results: JSONObject) -> list[Record]:
     """The model-selection table of results.json, the chosen variant marked."""
     sel = results["model_selection"]
     return [{"chosen": r["variant"] == sel["chosen"], **r} for r in sel["table"]]
 
 
-def format_table(rows: Sequence[dict[str, Any]], columns: Sequence[str] | None = None) -> str:
+def format_table(rows: Sequence[Record], columns: Sequence[str] | None = None) -> str:
     """A plain-text table (numbers to 5 significant digits, None as '-')."""
     if not rows:
         return "(empty)"
     cols = list(columns or rows[0].keys())
 
-    def cell(v: Any) -> str:
+    def cell(v: object) -> str:
         if v is None:
             return "-"
         if isinstance(v, bool):
@@ -240,16 +224,6 @@ def strong_correlations(
         if abs(m[i, j]) >= threshold
     ]
     return sorted(pairs, key=lambda p: -abs(p[2]))
-
-
-def covariance_from_results(results: dict[str, Any]) -> np.ndarray | None:
-    """The least-squares covariance (display units) from stderr and correlation, or None."""
-    corr = results["correlation"]["matrix"]
-    se = [p["least_squares"]["stderr"] for p in results["parameters"]]
-    if corr is None or any(s is None for s in se):
-        return None
-    s = np.asarray(se, float)
-    return np.asarray(corr, float) * np.outer(s, s)
 
 
 # --- chains ---------------------------------------------------------------------------------
@@ -297,22 +271,22 @@ class FitModel:
     (same row order as observations.csv), spectral setup, aperture, best-fit parameters, the
     names of the free parameters (display units) and their `(param, wedge)` keys."""
 
-    scene: Any
-    observations: Any
-    spectral: Any
-    aperture: Any
-    params: Any
+    scene: Scene
+    observations: fitting.Observations
+    spectral: fitting.Spectral
+    aperture: model.Aperture
+    params: fitting.Params
     free: tuple[str, ...]
-    resolution: Any  # a fitting.Resolution (rounded resolution, fillet rays)
+    resolution: fitting.Resolution  # rounded resolution, fillet rays
     uncertainty: np.ndarray
     keys: tuple[tuple[str, int | None], ...] = ()
 
 
-def params_from_results(results: dict[str, Any]) -> Any:
+def params_from_results(results: JSONObject) -> fitting.Params:
     """The least-squares `fitting.Params` of results.json (sigma back in radians)."""
     from stairfit import fitting
 
-    values: dict[str, Any] = {}
+    values: dict[str, float | np.ndarray] = {}
     per_wedge: dict[int, float] = {}
     for name, v in results["fixed_parameters"].items():
         if name == "sigma_deg":
@@ -336,7 +310,7 @@ def fit_model(fit: FitFolder) -> FitModel:
     """Rebuild the fitted model from the folder and its photo folder (needs scene.toml)."""
     from stairfit import fitting, imaging
 
-    from .commands.fit import fit_setup, to_observations
+    from .pipeline import fit_setup, observations
     from .presets import get_preset
     from .scene import load_scene
 
@@ -348,15 +322,15 @@ def fit_model(fit: FitFolder) -> FitModel:
     results = fit.results
     scene = load_scene(fit.photo_folder / results["inputs"]["scene"]["file"])
     table = imaging.MeasurementTable.read_csv(fit.path / results["files"]["measurements"])
-    obs, _info, _notes = to_observations(scene, table)
+    obs = observations(scene, table).data
     preset = get_preset(results["settings"]["preset"]["name"])
-    spectral, aperture = fit_setup(scene, preset)
+    setup = fit_setup(scene, preset)
     free = tuple(p["name"] for p in results["parameters"])
     return FitModel(
         scene,
         obs,
-        spectral,
-        aperture,
+        setup.spectral,
+        setup.aperture,
         params_from_results(results),
         free,
         fitting.Resolution(preset.rounded_resolution, preset.fillet_rays),
@@ -365,7 +339,11 @@ def fit_model(fit: FitFolder) -> FitModel:
     )
 
 
-def predict(m: FitModel, observations: Any = None, params: Any = None) -> np.ndarray:
+def predict(
+    m: FitModel,
+    observations: fitting.Observations | None = None,
+    params: fitting.Params | None = None,
+) -> np.ndarray:
     """Model radiance of `observations` (default: the fit's) for `params` (default: best fit)."""
     from stairfit import fitting
 
@@ -379,7 +357,9 @@ def predict(m: FitModel, observations: Any = None, params: Any = None) -> np.nda
 
 
 def jacobian(
-    m: FitModel, observations: Any = None, names: Sequence[str] | None = None
+    m: FitModel,
+    observations: fitting.Observations | None = None,
+    names: Sequence[str] | None = None,
 ) -> tuple[tuple[str, ...], np.ndarray]:
     """d(model)/d(parameter) in display units (per degree for a width); (names, (n_rows, p)).
 
@@ -414,7 +394,7 @@ def fisher_matrix(
 
 def candidate_observations(
     m: FitModel, view_deg: float, light_deg: float | None = None
-) -> tuple[Any, list[str]]:
+) -> tuple[fitting.Observations | None, list[str]]:
     """Rows one more photo at `view_deg` (base frame, like scene.toml) would add: every wedge
     it can see x every channel. `light_deg` defaults to the light of most existing photos.
     Values are placeholders (1.0); returns (Observations, wedge name per row)."""
@@ -459,7 +439,7 @@ def relative_uncertainty(fit: FitFolder) -> float:
     return float(np.median(o["uncertainty"][used] / o["model"][used]))
 
 
-def _concat(parts: Sequence[Any]) -> Any:
+def _concat(parts: Sequence[fitting.Observations]) -> fitting.Observations:
     """One `fitting.Observations` from several (rows in order)."""
     from stairfit import fitting
 
@@ -485,7 +465,7 @@ def view_gain(
     views_deg: Sequence[float],
     relative_error: float,
     light_deg: float | None = None,
-) -> list[dict[str, Any]]:
+) -> list[Record]:
     """What one more photo at each base-frame view angle would teach (Fisher information).
 
     New rows get the uncertainty `relative_error x model`. For each view: `n_rows`, the
@@ -506,7 +486,7 @@ def view_gain(
     out = []
     start = 0  # into the candidate rows
     for v, obs in zip(views_deg, cands, strict=True):
-        row: dict[str, Any] = {"view_deg": float(v), "n_rows": 0, "gain_nats": 0.0}
+        row: Record = {"view_deg": float(v), "n_rows": 0, "gain_nats": 0.0}
         ratios = dict.fromkeys(names, 1.0)
         if obs is not None:
             rows = slice(start, start + obs.n_rows)
@@ -558,13 +538,13 @@ def wedge_residuals(fit: FitFolder, photo: str, channel: str | None = None) -> d
 
 
 def draw_residuals(
-    ax: Any,
+    ax: Axes,
     image: np.ndarray,
     polygons: dict[str, np.ndarray],
     residuals: dict[str, float],
     limit: float = 3.0,
     title: str = "",
-) -> Any:
+) -> ScalarMappable:
     """Draw `image` with each ROI filled by its whitened residual (blue < 0 < red, clipped at
     +-limit) and labelled; returns the colour mapping for a colour bar."""
     import matplotlib as mpl
@@ -588,10 +568,10 @@ def draw_residuals(
 # --- speed and accuracy ---------------------------------------------------------------------
 
 
-def read_table(path: str | Path) -> list[dict[str, Any]]:
+def read_table(path: str | Path) -> list[dict[str, float | str | None]]:
     """A CSV file as a list of dicts; numeric cells become floats, empty cells None."""
 
-    def parse(text: str) -> Any:
+    def parse(text: str) -> float | str | None:
         if text.strip() == "":
             return None
         try:
@@ -620,7 +600,7 @@ def pareto_front(time_s: Sequence[float], error: Sequence[float]) -> np.ndarray:
     return np.asarray(front, dtype=int)
 
 
-def preset_table() -> list[dict[str, Any]]:
+def preset_table() -> list[Record]:
     """Every preset of `stairfit.presets.PRESETS` as a row (README: Speed and accuracy)."""
     from .presets import PRESETS
 

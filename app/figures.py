@@ -20,13 +20,16 @@ import functools
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.ticker import LogFormatterSciNotation, LogLocator
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    import jax
 
 from .fileio import named_error
 
@@ -111,8 +114,8 @@ def log_y(ax: Axes) -> None:
 
 
 def _spectra_at(
-    theta_o: Any, beta2: Any, n: Any, sigma: Any, diffuse_nodes: int
-) -> Any:  # traced by `_compiled`
+    theta_o: jax.Array, beta2: jax.Array, n: jax.Array, sigma: jax.Array, diffuse_nodes: int
+) -> jax.Array:  # traced by `_compiled`
     """(wedges + 1, angles, len(n)): `diffuse_broadened` per wedge, then the flat material."""
     import jax.numpy as jnp
 
@@ -126,8 +129,13 @@ def _spectra_at(
 
 
 def _curves_at(
-    theta_o: Any, beta2: Any, n: Any, sigma: Any, broadened: bool, cosine_weighted: bool
-) -> Any:  # traced by `_compiled`
+    theta_o: jax.Array,
+    beta2: jax.Array,
+    n: jax.Array,
+    sigma: jax.Array,
+    broadened: bool,
+    cosine_weighted: bool,
+) -> jax.Array:  # traced by `_compiled`
     """(wedges + 1, angles): the diffuse integral per wedge (`diffuse_broadened` if `broadened`,
     else `diffuse_sharp`), then the flat material (times cos theta_o if `cosine_weighted`)."""
     import jax.numpy as jnp
@@ -146,7 +154,7 @@ def _curves_at(
 
 
 @functools.cache
-def _compiled(name: str) -> Callable[..., Any]:
+def _compiled(name: str) -> Callable[..., Any]:  # an array, or a NamedTuple of them
     """The compiled model evaluations of the figures, built once per process (eager JAX would
     compile every operation separately)."""
     import jax
@@ -161,7 +169,7 @@ def _compiled(name: str) -> Callable[..., Any]:
 
 
 @functools.lru_cache(maxsize=16)
-def _compiled_index(kind: type, dispersion: object) -> Callable[..., Any]:
+def _compiled_index(kind: type, dispersion: object) -> Callable[..., jax.Array]:
     """`model.refractive_index` compiled for one dispersion model (keyed by its type too:
     NamedTuples of different types can compare equal)."""
     import jax

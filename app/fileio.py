@@ -238,6 +238,21 @@ def atomic_bytes(path: str | Path, data: bytes, *, shown: str | Path | None = No
     return Path(path)
 
 
+def create_text(path: str | Path, text: str) -> Path:
+    """Write `text` (UTF-8, `_TEXT`) to `path`, which must not exist: a finished temporary
+    sibling is hard-linked to `path`, which fails with `FileExistsError` if the name appeared
+    meanwhile (never over a file the user made), and the temporary is removed either way."""
+    path = Path(path)
+    fd, tmp = _create_sibling(path)
+    try:
+        with os.fdopen(fd, "w", **_TEXT) as fh:
+            fh.write(text)
+        os.link(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
 @contextmanager
 def writing(path: str | Path) -> Iterator[TextIO]:
     """A text file (UTF-8) opened for writing where no temporary is needed (inside a staging

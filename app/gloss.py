@@ -19,11 +19,19 @@ import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from .errors import UserError
+
+if TYPE_CHECKING:
+    import jax
+    from jax.typing import ArrayLike
+
+    from stairfit import model as m
+
+    from ._jsontypes import JSONObject, JSONValue
 
 DEG = np.pi / 180
 
@@ -114,7 +122,7 @@ class GlossRow(NamedTuple):
 # --- the parameters -------------------------------------------------------------------------
 
 
-def index_at(model: GlossModel, wavelength_nm: Any) -> np.ndarray:
+def index_at(model: GlossModel, wavelength_nm: ArrayLike) -> np.ndarray:
     """The material's index (without `delta_n`) at `wavelength_nm`: linear between the samples
     of `model`, held at the end values outside them."""
     lam = np.asarray(wavelength_nm, float)
@@ -146,7 +154,7 @@ def given_gloss_model(
                       source="given parameters")  # fmt: skip
 
 
-def _read_json(path: Path) -> dict[str, Any]:
+def _read_json(path: Path) -> JSONObject:
     try:
         return json.loads(path.read_text())
     except FileNotFoundError:
@@ -157,9 +165,9 @@ def _read_json(path: Path) -> dict[str, Any]:
         ) from None
 
 
-def _field(results: dict[str, Any], path: Path, *keys: str) -> Any:
+def _field(results: JSONObject, path: Path, *keys: str) -> JSONValue:
     """`results[k1][k2]...`, or a one-line UserError naming the missing field."""
-    node: Any = results
+    node: JSONValue = results
     for k in keys:
         if not isinstance(node, dict) or k not in node:
             raise UserError(
@@ -170,7 +178,7 @@ def _field(results: dict[str, Any], path: Path, *keys: str) -> Any:
     return node
 
 
-def _material_index(results: dict[str, Any], path: Path) -> tuple[np.ndarray, np.ndarray]:
+def _material_index(results: JSONObject, path: Path) -> tuple[np.ndarray, np.ndarray]:
     """The material's index (without `delta_n`) sampled in wavelength: results.json's
     `specimen.index` (every 10 nm), or from a folder written without it the `spectral`
     record's index at the camera channels' effective wavelengths."""
@@ -188,7 +196,7 @@ def _material_index(results: dict[str, Any], path: Path) -> tuple[np.ndarray, np
     return lam, n + 1j * k
 
 
-def _draws(fit_dir: Path, results: dict[str, Any], keys: Sequence[tuple[str, int | None]],
+def _draws(fit_dir: Path, results: JSONObject, keys: Sequence[tuple[str, int | None]],
            limit: int) -> np.ndarray | None:  # fmt: skip
     """Up to `limit` evenly spaced draws of the thinned chain (chain.npz), columns in the order
     of `keys`, display units (widths in degrees); None without a posterior."""
@@ -236,11 +244,11 @@ def fitted_gloss_model(fit_dir: str | Path, draws: int = GLOSS_DRAWS) -> GlossMo
 
 
 def gloss_model_from_results(
-    results: dict[str, Any], fit_dir: Path, draws: int = GLOSS_DRAWS
+    results: JSONObject, fit_dir: Path, draws: int = GLOSS_DRAWS
 ) -> GlossModel:
     """`fitted_gloss_model` of results.json's content `results` (the chain file, if any, in
     `fit_dir`)."""
-    from .explore import (
+    from .results_file import (
         OlderResultsError,
         check_parameter_records,
         covariance_from_results,
@@ -289,7 +297,9 @@ def gloss_model_from_results(
 # --- the surface of a parameter vector ------------------------------------------------------
 
 
-def _value(model: GlossModel, vector: Any, param: str, display: str, default: float) -> Any:
+def _value(
+    model: GlossModel, vector: jax.Array, param: str, display: str, default: float
+) -> jax.Array | float:
     """A shared parameter from the vector (free) or `fixed` (display name), else `default`."""
     key = (param, None)
     if key in model.keys:
@@ -297,7 +307,7 @@ def _value(model: GlossModel, vector: Any, param: str, display: str, default: fl
     return model.fixed.get(display, default)
 
 
-def _width_deg(model: GlossModel, vector: Any, wedge_deg: Any) -> Any:
+def _width_deg(model: GlossModel, vector: jax.Array, wedge_deg: ArrayLike) -> jax.Array | float:
     """The facets' width (deg) for a surface at `wedge_deg`: the shared width, or the per-wedge
     widths interpolated linearly in the wedge angle (held at the outermost wedges' values)."""
     import jax.numpy as jnp
@@ -312,7 +322,9 @@ def _width_deg(model: GlossModel, vector: Any, wedge_deg: Any) -> Any:
     return jnp.interp(wedge_deg, xs, ys)
 
 
-def surface_of(model: GlossModel, vector: Any, wedge_deg: Any, layer_um: Any) -> Any:
+def surface_of(
+    model: GlossModel, vector: jax.Array, wedge_deg: ArrayLike, layer_um: ArrayLike
+) -> m.GlossSurface:
     """The `stairfit.model.GlossSurface` of a parameter vector (display units, in the order of
     `model.keys`) for a surface at `wedge_deg` with layers `layer_um`; traceable by JAX.
 
@@ -392,7 +404,7 @@ def _combos(wedge_deg: Sequence[float], azimuth_deg: Sequence[float],
 
 
 def _table_function(model: GlossModel, combos: _Combos, layer_um: float
-                    ) -> Callable[[Any], Any]:  # fmt: skip
+                    ) -> Callable[[jax.Array], jax.Array]:  # fmt: skip
     """`f(vector) -> (C, 3)`: gloss (total, specular, body) of one parameter vector at every
     combination, a few combinations at a time (`COMBO_BATCH`)."""
     import jax
@@ -405,7 +417,7 @@ def _table_function(model: GlossModel, combos: _Combos, layer_um: float
                                  for f in m.GlossGeometry._fields))  # fmt: skip
     wedge, azimuth = jnp.asarray(combos.wedge_deg), jnp.asarray(combos.azimuth_deg * DEG)
 
-    def one(vector: Any, w: Any, az: Any, geo: Any) -> Any:
+    def one(vector: jax.Array, w: jax.Array, az: jax.Array, geo: m.GlossGeometry) -> jax.Array:
         s = surface_of(model, vector, w, jnp.asarray(layer_um, float))
         g = m.gloss(s, geo, az, model.kind, rounded=model.rounded)
         return jnp.stack([g.total, g.specular, g.body])

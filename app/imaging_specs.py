@@ -12,12 +12,15 @@ import warnings
 from collections.abc import Mapping
 from contextlib import suppress
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from . import fileio
 from .errors import StairfitWarning, UserError
 from .fileio import read_bytes
-from .scene import Photo, Scene, visible
+from .scene import Photo, Polygon, Scene, visible
+
+if TYPE_CHECKING:
+    from stairfit import imaging
 
 CACHE_DIR = ".stairfit-cache"
 MEASUREMENT_CACHE = "measurements.csv"
@@ -90,7 +93,7 @@ def cache_secret(environ: Mapping[str, str] | None = None) -> bytes | None:
     return None
 
 
-def photo_specs(scene: Scene) -> list[Any]:
+def photo_specs(scene: Scene) -> list[imaging.PhotoSpec]:
     """One `imaging.PhotoSpec` per photo: the ROIs of the wedges it can see."""
     from stairfit import imaging
 
@@ -101,8 +104,8 @@ def photo_specs(scene: Scene) -> list[Any]:
     specs = []
     for photo in scene.photos:
         per_photo = dict(photo.roi_px)
-        rois: dict[str, Any] = {}
-        faces: dict[str, Any] = {}
+        rois: dict[str, Polygon] = {}
+        faces: dict[str, Polygon] = {}
         for wedge in scene.specimen.wedges:
             if not visible(scene, photo, wedge):
                 continue
@@ -138,7 +141,9 @@ def photo_specs(scene: Scene) -> list[Any]:
     return specs
 
 
-def radiometry_fields(scene: Scene, photo: Photo, calibration: Any) -> dict[str, Any]:
+def radiometry_fields(
+    scene: Scene, photo: Photo, calibration: imaging.CalibrationSpec | None
+) -> dict[str, object]:
     """A photo's `imaging.PhotoSpec` fields for its HDR bracket members and the calibration
     frames (`calibration_spec(scene)`, shared by every photo)."""
     from stairfit import imaging
@@ -150,7 +155,7 @@ def radiometry_fields(scene: Scene, photo: Photo, calibration: Any) -> dict[str,
     return {"bracket": bracket, "calibration": calibration}
 
 
-def calibration_spec(scene: Scene) -> Any:
+def calibration_spec(scene: Scene) -> imaging.CalibrationSpec | None:
     """The scene's `[calibration]` frames as an `imaging.CalibrationSpec` (None without any).
 
     Reads each file's SHA-256 (the cache key depends on the frames' contents).
@@ -178,7 +183,7 @@ def calibration_spec(scene: Scene) -> Any:
         raise UserError(f"{scene.path}: {err}") from None
 
 
-def extraction_settings(scene: Scene) -> Any:
+def extraction_settings(scene: Scene) -> imaging.ExtractionSettings:
     """The scene's [extraction] as `imaging.ExtractionSettings`."""
     from stairfit import imaging
 

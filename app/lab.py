@@ -173,7 +173,7 @@ def nodes(scene: Scene, face: FaceGeometry, tilt_deg: float) -> tuple[np.ndarray
 
 def lab_geometry(scene: Scene, rows: Sequence[MeasurementRow]) -> fitting.LabGeometry:
     """The lab geometry of the observation table built from `rows` (one per table row, in its
-    order; `app.commands.fit.to_observations`): one key per photo x wedge, its nodes padded
+    order; `stairfit.pipeline.observations`): one key per photo x wedge, its nodes padded
     to the largest count with zero weight."""
     assert scene.specimen is not None
     wedges = {w.name: (k, w) for k, w in enumerate(scene.specimen.wedges)}

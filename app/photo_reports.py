@@ -10,10 +10,13 @@ import html
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from .fileio import writing
 from .scene import Scene
+
+if TYPE_CHECKING:
+    from stairfit import imaging
 
 NEAR_LIMIT = 1.5
 """Markers with cells under this many times the detection limit get a note."""
@@ -36,7 +39,9 @@ class PhotoReport:
     note: str
 
 
-def photo_reports(scene: Scene, specs: Sequence[Any], table: Any) -> list[PhotoReport]:
+def photo_reports(
+    scene: Scene, specs: Sequence[imaging.PhotoSpec], table: imaging.MeasurementTable
+) -> list[PhotoReport]:
     """One `PhotoReport` per photo, in scene order (failed photos included)."""
     failed = dict(table.failed)
     layout_ids = [m.id for m in scene.markers.markers] if scene.markers else []
@@ -52,7 +57,9 @@ def photo_reports(scene: Scene, specs: Sequence[Any], table: Any) -> list[PhotoR
     return reports
 
 
-def _report(photo: str, rows: Sequence[Any], layout_ids: list[int]) -> PhotoReport:
+def _report(
+    photo: str, rows: Sequence[imaging.MeasurementRow], layout_ids: list[int]
+) -> PhotoReport:
     from stairfit import imaging
 
     placed = next((r for r in rows if r.roi_source == "markers"), None)
@@ -88,7 +95,7 @@ PHOTO_COLUMNS = ("photo", "status", "rois", "flagged", "exposure_source", *MARKE
 
 
 def _cells(report: PhotoReport, columns: Sequence[str]) -> list[str]:
-    def text(v: Any) -> str:
+    def text(v: object) -> str:
         if v is None:
             return ""
         if isinstance(v, float):
@@ -116,8 +123,9 @@ def html_table(reports: Sequence[PhotoReport], columns: Sequence[str]) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def fit_marker_reports(scene: Scene, table: Any) -> list[PhotoReport]:
-    """The per-photo reports of a fit's measurement table (for its markers.csv and report)."""
-    from .imaging_specs import photo_specs
-
-    return photo_reports(scene, photo_specs(scene), table)
+def fit_marker_reports(
+    scene: Scene, specs: Sequence[imaging.PhotoSpec], table: imaging.MeasurementTable
+) -> list[PhotoReport]:
+    """The per-photo reports of a fit's measurement table (for its markers.csv and report),
+    from the photo specs the fit measured with."""
+    return photo_reports(scene, specs, table)

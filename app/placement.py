@@ -8,13 +8,16 @@ every wedge with a `face_mm` may hide another from the camera.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 from .errors import UserError
-from .scene import Photo, Scene
+from .scene import Photo, Polygon, Scene
+
+if TYPE_CHECKING:
+    from stairfit import imaging
 
 
-def marker_layout(scene: Scene) -> Any:
+def marker_layout(scene: Scene) -> imaging.MarkerLayout | None:
     """The scene's `[markers]` as an `imaging.MarkerLayout` (None without markers)."""
     from stairfit import imaging
 
@@ -27,7 +30,7 @@ def marker_layout(scene: Scene) -> Any:
     )
 
 
-def pinhole_camera(scene: Scene) -> Any:
+def pinhole_camera(scene: Scene) -> imaging.PinholeCamera | None:
     """The `[camera]` intrinsics as an `imaging.PinholeCamera`, or None (an affine camera)."""
     from stairfit import imaging
 
@@ -60,7 +63,7 @@ def base_view_deg(scene: Scene, photo: Photo, wedges: list[str]) -> float | None
     return views.pop() if views else photo.view_deg
 
 
-def placement_fields(scene: Scene, photo: Photo, faces: dict[str, Any]) -> dict[str, Any]:
+def placement_fields(scene: Scene, photo: Photo, faces: dict[str, Polygon]) -> dict[str, object]:
     """The `imaging.PhotoSpec` fields that place `faces` (name -> face_mm) of `photo` in 3-D:
     face_angles_deg, view_deg, camera and occluders_mm (every wedge with a face_mm)."""
     angles = {w.name: w.angle_deg for w in scene.specimen.wedges}

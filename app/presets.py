@@ -39,7 +39,6 @@ accuracy) is not measured by the benchmark.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Any
 
 from .errors import UserError
 
@@ -88,7 +87,7 @@ class Preset:
     float32_figures: bool
     ladder_budget_s: float | None = None
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, object]:
         """For results.json."""
         return asdict(self)
 

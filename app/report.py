@@ -15,7 +15,7 @@ import platform
 import sys
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -44,6 +44,14 @@ from .figures import (
 from .fileio import write_file, writing
 from .outcome import FitOutcome, sha256_of
 
+if TYPE_CHECKING:
+    from collections.abc import Iterable
+
+    from stairfit import fitting
+    from stairfit.model.materials import Dispersion
+
+    from ._jsontypes import JSONValue, Record
+
 DEG = np.pi / 180
 PACKAGES = (
     "jax",
@@ -71,25 +79,25 @@ def display_param(param: str) -> str:
     return "sigma_deg" if param == "sigma_rad" else param
 
 
-def display_name(p: Any) -> tuple[str, float]:
+def display_name(p: fitting.Estimate | fitting.Parameter) -> tuple[str, float]:
     """Name and factor for files and screens of a parameter (a `fitting.Estimate` or
     `fitting.Parameter`): widths become degrees (`sigma_deg`, `sigma_deg[2: 30 deg]`)."""
     return p.label(display_param(p.param)), 1.0 / DEG if p.param == "sigma_rad" else 1.0
 
 
-def display_unit(p: Any) -> str:
+def display_unit(p: fitting.Estimate | fitting.Parameter) -> str:
     """Unit for files and screens of a parameter (see `display_name`)."""
     return "deg" if p.param == "sigma_rad" else p.unit
 
 
-def parameter_records(outcome: FitOutcome) -> list[dict[str, Any]]:
+def parameter_records(outcome: FitOutcome) -> list[Record]:
     """One record per free parameter: least-squares and posterior estimates, display units."""
     fit, post = outcome.selection.fit, outcome.posterior
     records = []
     sampled = [] if post is None else [(p.param, p.wedge) for p in post.parameters]
     for i, e in enumerate(fit.estimates):
         name, f = display_name(e)
-        rec: dict[str, Any] = {
+        rec: Record = {
             "name": name,
             "parameter": e.param,
             "wedge": e.wedge,
@@ -116,7 +124,7 @@ def parameter_records(outcome: FitOutcome) -> list[dict[str, Any]]:
     return records
 
 
-def chain_checks(post: Any, j: int) -> dict[str, Any]:
+def chain_checks(post: fitting.PosteriorResult, j: int) -> Record:
     """Parameter `j`'s convergence diagnostics for results.json: split R-hat, bulk and tail
     ESS, and whether they pass the thresholds (R-hat < 1.01, ESS >= 400; docs/fitting.md §5)."""
     rhat, bulk, tail = float(post.rhat[j]), float(post.ess_bulk[j]), float(post.ess_tail[j])
@@ -128,11 +136,11 @@ def chain_checks(post: Any, j: int) -> dict[str, Any]:
     }
 
 
-def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
+def fixed_parameters(outcome: FitOutcome) -> Record:
     """Parameters the chosen variant kept fixed, with their values (display units)."""
     fit = outcome.selection.fit
     free = set(fit.variant.free)
-    out: dict[str, Any] = {}
+    out: Record = {}
     for name in ("delta_n", "edge_radius_um", "fillet_radius_um", "floor", "model_error_frac"):
         if name not in free:
             out[name] = float(getattr(fit.params, name))
@@ -141,7 +149,48 @@ def fixed_parameters(outcome: FitOutcome) -> dict[str, Any]:
     return out
 
 
-def truth_records(outcome: FitOutcome, records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def compare_table(outcome: FitOutcome, truth: dict[str, float]) -> str:
+    """Recovered against true values, the 95% interval, and the deviation in standard deviations.
+
+    A truth outside its 95% interval happens for about 1 parameter in 20 by chance; the last
+    column says how far off it is (|pull| > 3 would point to a bias, not to chance).
+    """
+    lines = [
+        f"  {'parameter':<16} {'true':>12} {'recovered':>12} {'95% interval':>26}  "
+        f"{'inside?':>7}  {'(rec - true) / sd':>17}"
+    ]
+    records = parameter_records(outcome)
+    for rec in records:  # matched by identity: each wedge's own width against the one truth
+        name, key = rec["name"], display_param(rec["parameter"])
+        if key not in truth:
+            continue
+        true = truth[key]
+        po, ls = rec.get("posterior"), rec["least_squares"]
+        if po is not None:
+            val, lo, hi = po["median"], po["p2_5"], po["p97_5"]
+        elif ls["stderr"] is not None:
+            val, lo, hi = (
+                ls["value"],
+                ls["value"] - 2 * ls["stderr"],
+                ls["value"] + 2 * ls["stderr"],
+            )
+        else:
+            val, lo, hi = ls["value"], np.nan, np.nan
+        inside = "yes" if lo <= true <= hi else "NO"
+        sd = 0.25 * (hi - lo)  # the interval spans about +-2 standard deviations
+        pull = f"{(val - true) / sd:+.2f}" if sd > 0 else "-"
+        interval = f"[{lo:.6g}, {hi:.6g}]"
+        lines.append(
+            f"  {name:<16} {true:>12.6g} {val:>12.6g} {interval:>26}  {inside:>7}  {pull:>17}"
+        )
+    fitted = {display_param(r["parameter"]) for r in records}
+    fixed = [k for k in truth if k not in fitted]
+    for k in fixed:
+        lines.append(f"  {k:<16} {truth[k]:>12.5g} {'(not fitted: the chosen model fixes it)':>40}")
+    return "\n".join(lines)
+
+
+def truth_records(outcome: FitOutcome, records: list[Record]) -> list[Record]:
     """The scene's `[truth]` beside the fit (results.json's `truth`; [] without a truth table).
 
     One record per fitted parameter that has a true value (each wedge's own width against the
@@ -153,7 +202,7 @@ def truth_records(outcome: FitOutcome, records: list[dict[str, Any]]) -> list[di
     if truth is None:
         return []
     given = dict(truth.items())
-    out: list[dict[str, Any]] = []
+    out: list[Record] = []
     for rec in records:
         key = display_param(rec["parameter"])
         if key in given:
@@ -207,7 +256,7 @@ def write_outputs(
 
     out.mkdir(parents=True, exist_ok=True)
     outcome.table.write_csv(out / "measurements.csv")
-    markers = fit_marker_reports(outcome.scene, outcome.table)
+    markers = fit_marker_reports(outcome.scene, outcome.photo_specs, outcome.table)
     write_table(out / "markers.csv", markers, MARKER_COLUMNS)
     write_observations(outcome, out / "observations.csv")
     figures = write_figures(outcome, out / "figures", drawn, draw)
@@ -248,17 +297,17 @@ def write_observations(outcome: FitOutcome, path: Path) -> None:
                 "view_spread",
             ]
         )
-        obs = outcome.observations
-        for i, info in enumerate(outcome.row_info):
+        obs = outcome.observations.data
+        for i, info in enumerate(outcome.observations.labels):
             w.writerow(
                 [
-                    info["photo"],
-                    info["wedge"],
-                    info["channel"],
-                    info["light_deg"],
-                    info["view_deg"],
-                    f"{info['theta_i_deg']:.6g}",
-                    f"{info['theta_o_deg']:.6g}",
+                    info.photo,
+                    info.wedge,
+                    info.channel,
+                    info.light_deg,
+                    info.view_deg,
+                    f"{info.theta_i_deg:.6g}",
+                    f"{info.theta_o_deg:.6g}",
                     f"{obs.value[i]:.8g}",
                     f"{obs.stderr[i]:.6g}",
                     int(bool(obs.use[i])),
@@ -274,7 +323,7 @@ def write_observations(outcome: FitOutcome, path: Path) -> None:
             )
 
 
-def _jsonable(x: Any) -> Any:
+def _jsonable(x: object) -> JSONValue:
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
@@ -290,7 +339,7 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
-def table_records_of(rows: Any) -> list[dict[str, Any]]:
+def table_records_of(rows: Iterable[fitting.ComparisonRow]) -> list[Record]:
     """`table_records` of any comparison rows (e.g. the facet kernels' probe fits)."""
     return [
         {"variant": r.name, "n_free": r.n_free, "chi2": r.chi2, "bic": r.bic, "delta": r.delta,
@@ -299,7 +348,7 @@ def table_records_of(rows: Any) -> list[dict[str, Any]]:
     ]  # fmt: skip
 
 
-def table_records(sel: Any) -> list[dict[str, Any]]:
+def table_records(sel: fitting.Selection) -> list[Record]:
     """results.json's `model_selection.table`: one record per ladder variant."""
     return [
         {
@@ -322,7 +371,7 @@ def table_records(sel: Any) -> list[dict[str, Any]]:
     ]
 
 
-def posterior_diagnostics(post: Any) -> dict[str, Any] | None:
+def posterior_diagnostics(post: fitting.PosteriorResult | None) -> Record | None:
     """results.json's `diagnostics.posterior` (None without a posterior)."""
     if post is None:
         return None
@@ -350,7 +399,7 @@ def posterior_diagnostics(post: Any) -> dict[str, Any] | None:
     }
 
 
-def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> dict[str, Any]:
+def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> Record:
     """The content of results.json (see the README's "Outputs")."""
     sel, fit, post = outcome.selection, outcome.selection.fit, outcome.posterior
     names = [display_name(e)[0] for e in fit.estimates]
@@ -412,13 +461,13 @@ SPECIMEN_INDEX_NM = np.arange(380.0, 781.0, 10.0)
 """Where results.json's `specimen.index` samples the material's index (every 10 nm)."""
 
 
-def specimen_record(outcome: FitOutcome) -> dict[str, Any]:
+def specimen_record(outcome: FitOutcome) -> Record:
     """results.json's `specimen`: the layer thickness, each wedge's name and angle (deg) in the
     order of the fit's wedge indices, and the material's index without `delta_n` every 10 nm
     (what `stairfit predict --gloss --fit` reads; a per-channel index through its channels'
     effective wavelengths)."""
     spec = outcome.scene.specimen
-    n = np.asarray(refractive_index(_along_wavelength(outcome.scene), SPECIMEN_INDEX_NM, 0.0))
+    n = np.asarray(refractive_index(_along_wavelength(outcome), SPECIMEN_INDEX_NM, 0.0))
     return {
         "layer_um": spec.layer_um,
         "wedges": [{"name": w.name, "angle_deg": w.angle_deg} for w in spec.wedges],
@@ -430,7 +479,7 @@ def specimen_record(outcome: FitOutcome) -> dict[str, Any]:
     }
 
 
-def directions_record(outcome: FitOutcome) -> dict[str, Any]:
+def directions_record(outcome: FitOutcome) -> Record:
     """How the fit modelled the directions (docs/fitting.md §10): `model` ("lab" or
     "in_plane"), why, the facets' kernel and how it was chosen, the roughness `alpha` of
     microfacet facets (`tan` of the fitted width, with its delta-method error), and each
@@ -441,7 +490,7 @@ def directions_record(outcome: FitOutcome) -> dict[str, Any]:
     fit, sel = outcome.selection.fit, outcome.selection
     lab = fit.problem is not None and fit.problem.lab is not None
     kernel = fit.requested.kernel
-    record: dict[str, Any] = {
+    record: Record = {
         "model": "lab" if lab else "in_plane",
         "reason": outcome.lab_reason,
         "facets": kernel if lab else "gaussian",
@@ -478,7 +527,7 @@ def package_versions() -> dict[str, str | None]:
     return versions
 
 
-def inputs_record(outcome: FitOutcome) -> dict[str, Any]:
+def inputs_record(outcome: FitOutcome) -> Record:
     """results.json's `inputs`: SHA-256 of the scene file, every photo and calibration frame;
     for each photo whether its values were measured now or read from the measurement cache."""
     scene = outcome.scene
@@ -501,7 +550,7 @@ def inputs_record(outcome: FitOutcome) -> dict[str, Any]:
     }
 
 
-def least_squares_diagnostics(fit: Any) -> dict[str, Any]:
+def least_squares_diagnostics(fit: fitting.FitResult) -> Record:
     """results.json's `diagnostics.least_squares` of the chosen fit (a `fitting.FitResult`)."""
     return {
         "solver": fit.solver,
@@ -524,20 +573,18 @@ def least_squares_diagnostics(fit: Any) -> dict[str, Any]:
     }
 
 
-def spectral_record(outcome: FitOutcome) -> dict[str, Any]:
+def spectral_record(outcome: FitOutcome) -> Record:
     """The camera model's channels for results.json [conventions §7, §8]: each channel's
     effective wavelength (its sensitivity x illuminant weighted mean, `ChannelWeights.
     effective_nm`; what the "effective" sampling evaluates) and the material's index there,
     without `delta_n` (`index_n`, `index_k`)."""
-    from stairfit.model import materials, spectral
+    from stairfit.model import materials
 
     from .scene import CHANNELS
 
     scene = outcome.scene
-    eff = spectral.channel_weights(scene.camera.sensitivity, scene.light.illuminant).effective_nm
-    index = np.asarray(materials.index_per_channel(scene.specimen.index.build(), eff[:, None]))[
-        :, 0
-    ]
+    eff = outcome.setup.effective_nm
+    index = np.asarray(materials.index_per_channel(outcome.setup.index, eff[:, None]))[:, 0]
     return {
         "camera": scene.camera.sensitivity,
         "illuminant": scene.light.illuminant,
@@ -593,7 +640,7 @@ def fit_figures(outcome: FitOutcome, folder: Path, draw: SaveFigure = save) -> d
     wedges = [w.angle_deg for w in outcome.scene.specimen.wedges]
     pick = sorted({min(wedges), max(wedges)})
     sigma_deg = float(np.mean(p.sigma_rad)) / DEG
-    disp = _along_wavelength(outcome.scene)
+    disp = _along_wavelength(outcome)
     lam = VISIBLE_NM  # the grid of reflected_colours: one compilation serves both figures
     n_lam = refractive_index(disp, lam, float(p.delta_n))
     n550 = complex(np.interp(550.0, lam, n_lam.real), np.interp(550.0, lam, np.imag(n_lam)))
@@ -628,16 +675,15 @@ def fit_figures(outcome: FitOutcome, folder: Path, draw: SaveFigure = save) -> d
     return figs
 
 
-def _along_wavelength(scene: Any) -> Any:
-    """The scene's index as a function of wavelength for the figures: a dispersion model as
-    it is, a per-channel index through its channels' effective wavelengths."""
-    from stairfit.model import materials, spectral
+def _along_wavelength(outcome: FitOutcome) -> Dispersion:
+    """The fit's index as a function of wavelength for the figures: a dispersion model as it
+    is, a per-channel index through its channels' effective wavelengths."""
+    from stairfit.model import materials
 
-    index = scene.specimen.index.build()
+    index = outcome.setup.index
     if not isinstance(index, materials.PerChannel):
         return index
-    cw = spectral.channel_weights(scene.camera.sensitivity, scene.light.illuminant)
-    return index.along_wavelength(cw.effective_nm)
+    return index.along_wavelength(outcome.setup.effective_nm)
 
 
 def _rel(path: Path, folder: Path) -> str:
@@ -648,7 +694,7 @@ LINE_STYLES = ("-", "--", ":", "-.")
 """The model curves' styles, one per light angle of a wedge (in the order of the angles)."""
 
 
-def model_curves_of(outcome: FitOutcome) -> list[Any] | None:
+def model_curves_of(outcome: FitOutcome) -> list[fitting.ModelCurve] | None:
     """The chosen fit's dense model curves (`fitting.model_curves`), or None when the fit
     carries no prepared problem (a result assembled by hand)."""
     from stairfit import fitting
@@ -659,13 +705,13 @@ def model_curves_of(outcome: FitOutcome) -> list[Any] | None:
     return fitting.model_curves(fit)
 
 
-def fit_per_wedge(outcome: FitOutcome, curves: list[Any] | None = None) -> Figure:
+def fit_per_wedge(outcome: FitOutcome, curves: list[fitting.ModelCurve] | None = None) -> Figure:
     """Measured (error bars) and fitted radiance against the face-frame viewing angle, one
     panel per wedge and one colour per channel (like the paper's Fig. 9). The model is drawn as
     a dense curve over the viewing angle (`curves`: `fitting.model_curves`, computed here when
     None), one line style per light angle, so that the lobes between the measured views show;
     without a prepared fit, as lines through the model at the measured views."""
-    fit, obs = outcome.selection.fit, outcome.observations
+    fit, obs = outcome.selection.fit, outcome.observations.data
     if curves is None:
         curves = model_curves_of(outcome)
     wedges = outcome.scene.specimen.wedges
@@ -674,7 +720,7 @@ def fit_per_wedge(outcome: FitOutcome, curves: list[Any] | None = None) -> Figur
     fig = Figure(figsize=(4.3 * ncol, 3.2 * nrow))  # no pyplot: no global state (app/figures.py)
     axes = fig.subplots(nrow, ncol, squeeze=False)
     colours = ("tab:red", "tab:green", "tab:blue")
-    theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
+    theta_o = np.array([r.theta_o_deg for r in outcome.observations.labels])
     for k, wedge in enumerate(wedges):
         ax = axes.flat[k]
         lights = sorted({round(c.theta_i_rad / DEG, 6) for c in curves or () if c.wedge == k})
@@ -730,8 +776,8 @@ def fit_per_wedge(outcome: FitOutcome, curves: list[Any] | None = None) -> Figur
 
 def residual_figure(outcome: FitOutcome) -> Figure:
     """Whitened residuals against viewing angle per wedge, and their histogram vs N(0, 1)."""
-    fit, obs = outcome.selection.fit, outcome.observations
-    theta_o = np.array([r["theta_o_deg"] for r in outcome.row_info])
+    fit, obs = outcome.selection.fit, outcome.observations.data
+    theta_o = np.array([r.theta_o_deg for r in outcome.observations.labels])
     used = np.asarray(obs.use, bool)
     fig = Figure(figsize=(11, 3.6))
     a1, a2 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [2, 1]})
@@ -802,7 +848,7 @@ def value_with_errors(value: float, minus: float, plus: float) -> str:
 # --- report and summary ---------------------------------------------------------------------
 
 
-def _parameter_rows_html(results: dict[str, Any]) -> list[str]:
+def _parameter_rows_html(results: Record) -> list[str]:
     """The rows of the report's parameter table."""
     e = html.escape
     rows = []
@@ -823,7 +869,7 @@ def _parameter_rows_html(results: dict[str, Any]) -> list[str]:
     return rows
 
 
-def _truth_html(results: dict[str, Any]) -> str:
+def _truth_html(results: Record) -> str:
     """The report's truth table (the scene's `[truth]` beside the fit); "" without one."""
     e = html.escape
     rows = []
@@ -851,7 +897,7 @@ def _truth_html(results: dict[str, Any]) -> str:
 
 
 def report_html(
-    outcome: FitOutcome, results: dict[str, Any], figures: dict[str, str], out: Path
+    outcome: FitOutcome, results: Record, figures: dict[str, str], out: Path
 ) -> str:
     """A single self-explaining HTML page (figures referenced by relative path)."""
     e = html.escape
@@ -927,7 +973,7 @@ also in results.json.</p></body></html>
 """
 
 
-def _directions_html(d: dict[str, Any]) -> str:
+def _directions_html(d: Record) -> str:
     """The report's section on how the directions were modelled, the facets, and each wedge's
     largest out-of-plane angles."""
     e = html.escape
@@ -982,7 +1028,7 @@ def _misfits(outcome: FitOutcome) -> bool:
     return a is not None and a.misfits
 
 
-def _checks_html(po: dict[str, Any] | None) -> str:
+def _checks_html(po: Record | None) -> str:
     """The R-hat and ESS cells of a parameter row (red outside the thresholds)."""
     if not po:
         return "<td></td><td></td>"
@@ -997,15 +1043,16 @@ def _markers_html(outcome: FitOutcome) -> str:
     """The per-photo marker table (app/commands/measure.py), as in markers.csv."""
     from .photo_reports import MARKER_COLUMNS, fit_marker_reports, html_table
 
-    return html_table(fit_marker_reports(outcome.scene, outcome.table), MARKER_COLUMNS)
+    reports = fit_marker_reports(outcome.scene, outcome.photo_specs, outcome.table)
+    return html_table(reports, MARKER_COLUMNS)
 
 
-def _fmt(x: Any, spec: str) -> str:
+def _fmt(x: object, spec: str) -> str:
     """Format a number, or an empty cell for None (skipped variants)."""
     return "" if x is None else format(x, spec)
 
 
-def _checks_text(po: dict[str, Any] | None) -> str:
+def _checks_text(po: Record | None) -> str:
     """`1.0032  1893/2410` (R-hat, bulk / tail ESS) for the summary, `!` past a threshold."""
     if not po:
         return ""
@@ -1015,7 +1062,7 @@ def _checks_text(po: dict[str, Any] | None) -> str:
     return f"{rhat:>6.4f} {bulk:>5.0f}/{tail:<5.0f}{flag}"
 
 
-def posterior_warning_lines(post: Any) -> list[str]:
+def posterior_warning_lines(post: fitting.PosteriorResult | None) -> list[str]:
     """The posterior's warnings for the summary: the step limit and the acceptance as they
     are, R-hat and ESS one line each naming every parameter concerned."""
     if post is None:
@@ -1131,11 +1178,11 @@ def renders_html(folder: Path) -> str:
     return "".join(parts)
 
 
-def _green(values: Any) -> float | None:
+def _green(values: object) -> float | None:
     return None if not values else float(values[1])
 
 
-def _ratio(face: dict[str, Any]) -> str:
+def _ratio(face: Record) -> str:
     p, r = _green(face.get("photo")), _green(face.get("render"))
     return "" if not p or r is None else f"{r / p:.3f}"
 

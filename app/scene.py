@@ -15,15 +15,24 @@ import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from types import EllipsisType
+from typing import TYPE_CHECKING, TypeVar, overload
 
 from .errors import UserError
 from .fileio import FileTooLargeError, describe, read_bytes, resolved
+
+if TYPE_CHECKING:
+    from stairfit.model.materials import Dispersion, PerChannel
 
 SCENE_FILE = "scene.toml"
 SCENE_VERSION = 1
 Polygon = tuple[tuple[float, float], ...]
 MetadataValue = str | int | float
+IndexParam = float | tuple[float, ...]
+RawTable = dict[str, object]
+"""A table of a scene file as read from TOML, before validation (values of any TOML type)."""
+T = TypeVar("T")
+D = TypeVar("D")
 CHANNELS = ("R", "G", "B")
 """The camera channels, in the order of per-channel fields: `imaging.CHANNELS`, restated so that
 reading a scene file does not import the imaging stack (cv2, rawpy)."""
@@ -35,9 +44,9 @@ class IndexSpec:
 
     model: str  # "named", "constant", "cauchy", "sellmeier", "tabulated", "per_channel"
     name: str = "pla"
-    params: tuple[tuple[str, Any], ...] = ()
+    params: tuple[tuple[str, IndexParam], ...] = ()
 
-    def build(self) -> Any:
+    def build(self) -> Dispersion | PerChannel:
         """The `stairfit.model.materials` object this spec describes."""
         from stairfit.model import materials
 
@@ -404,7 +413,7 @@ def load_scene(path: Path, measure_only: bool = False) -> Scene:
     return parse_scene(raw, path, measure_only)
 
 
-def todo_fields(raw: Any, where: str = "") -> list[tuple[str, str]]:
+def todo_fields(raw: object, where: str = "") -> list[tuple[str, str]]:
     """Every (field, text) of a scene (or layout) dict whose value is still a TODO string that
     `stairfit init` wrote (`TODO_PREFIX`), in the file's order."""
     if isinstance(raw, str):
@@ -416,7 +425,7 @@ def todo_fields(raw: Any, where: str = "") -> list[tuple[str, str]]:
     return []
 
 
-def _refuse_todos(raw: dict[str, Any], path: Path) -> None:
+def _refuse_todos(raw: object, path: Path) -> None:
     """A one-line error naming the first TODO left in the file (and how many more)."""
     todos = todo_fields(raw)
     if not todos:
@@ -433,7 +442,7 @@ def _refuse_todos(raw: dict[str, Any], path: Path) -> None:
     )
 
 
-def parse_scene(raw: dict[str, Any], path: Path, measure_only: bool = False) -> Scene:
+def parse_scene(raw: RawTable, path: Path, measure_only: bool = False) -> Scene:
     """Validate a scene given as a dict (as read from TOML); see `load_scene`. A value still
     marked as a TODO by `stairfit init` is refused first."""
     _refuse_todos(raw, path)
@@ -504,7 +513,7 @@ class Layout:
     markers: Markers | None
 
 
-def parse_layout(raw: dict[str, Any], path: Path) -> Layout:
+def parse_layout(raw: RawTable, path: Path) -> Layout:
     """Validate a layout given as a dict (as read from TOML): its tables are checked as in a
     scene file, and every wedge needs roi_px, or face_mm and a [markers] table."""
     _refuse_todos(raw, path)
@@ -538,7 +547,7 @@ class _Reader:
     def fail(self, where: str, what: str) -> None:
         raise UserError(f"{self.path}: {where}: {what}")
 
-    def table(self, d: Any, where: str, allowed: list[str]) -> dict[str, Any]:
+    def table(self, d: object, where: str, allowed: list[str]) -> RawTable:
         if not isinstance(d, dict):
             self.fail(where or "top level", "must be a table")
         for key in d:
@@ -550,24 +559,38 @@ class _Reader:
                 self.fail(_join(where, key), f"unknown field{hint}")
         return d
 
-    def need_table(self, d: dict[str, Any], key: str, where: str) -> dict[str, Any]:
+    def need_table(self, d: RawTable, key: str, where: str) -> RawTable:
         if key not in d:
             self.fail(_join(where, key), "missing; add this table (see docs/scene.md)")
         return d[key]
 
-    def opt_table(self, d: dict[str, Any], key: str, where: str) -> dict[str, Any]:
+    def opt_table(self, d: RawTable, key: str, where: str) -> RawTable:
         return d.get(key, {})
+
+    @overload
+    def get(
+        self, d: RawTable, key: str, kind: type[T], where: str, default: EllipsisType = ...,
+        lo: float | None = None, hi: float | None = None,
+    ) -> T: ...  # fmt: skip
+
+    @overload
+    def get(
+        self, d: RawTable, key: str, kind: type[T], where: str, default: D,
+        lo: float | None = None, hi: float | None = None,
+    ) -> T | D: ...  # fmt: skip
 
     def get(
         self,
-        d: dict[str, Any],
+        d: RawTable,
         key: str,
-        kind: type,
+        kind: type[T],
         where: str,
-        default: Any = ...,
+        default: object = ...,
         lo: float | None = None,
         hi: float | None = None,
-    ) -> Any:
+    ) -> object:
+        """Field `key` of `d`, of type `kind` (an int is taken as a float) within [lo, hi];
+        `default` when absent (missing is an error without one)."""
         name = _join(where, key)
         if key not in d:
             if default is ...:
@@ -584,7 +607,7 @@ class _Reader:
             self.fail(name, f"{v!r} is outside [{lo}, {hi}]; fix the value")
         return v
 
-    def name(self, d: dict[str, Any], where: str, default: Any = ...) -> str:
+    def name(self, d: RawTable, where: str, default: str | EllipsisType = ...) -> str:
         """A `name` field (of a wedge, a patch, the reference): a non-empty string, at most
         `MAX_NAME` characters (it names columns, files and lines of a report)."""
         v = self.get(d, "name", str, where, default=default)
@@ -594,7 +617,7 @@ class _Reader:
             self.fail(_join(where, "name"), f"has {len(v)} characters; keep it to {MAX_NAME}")
         return v
 
-    def choice(self, d: dict[str, Any], key: str, where: str, choices: dict[str, str]) -> str:
+    def choice(self, d: RawTable, key: str, where: str, choices: dict[str, str]) -> str:
         """A string field that must be one of `choices` (value -> meaning; the first is the
         default); the error lists each with its meaning."""
         v = self.get(d, key, str, where, default=next(iter(choices)))
@@ -603,7 +626,7 @@ class _Reader:
             self.fail(_join(where, key), f"{v!r} is not one of: {listed}")
         return v
 
-    def polygon(self, d: dict[str, Any], key: str, where: str) -> Polygon | None:
+    def polygon(self, d: RawTable, key: str, where: str) -> Polygon | None:
         if key not in d:
             return None
         name = _join(where, key)
@@ -623,7 +646,7 @@ class _Reader:
         return tuple((float(p[0]), float(p[1])) for p in v)
 
 
-def _specimen(r: _Reader, d: dict[str, Any]) -> Specimen:
+def _specimen(r: _Reader, d: RawTable) -> Specimen:
     w = "specimen"
     r.table(d, w, ["layer_um", "material", "index", "wedges", "metadata"])
     layer = r.get(d, "layer_um", float, w, lo=1.0, hi=10_000.0)
@@ -668,7 +691,7 @@ def _specimen(r: _Reader, d: dict[str, Any]) -> Specimen:
     return Specimen(layer, index, tuple(wedges), metadata)
 
 
-def _truth(r: _Reader, d: Any, specimen: Specimen | None) -> SceneTruth:
+def _truth(r: _Reader, d: object, specimen: Specimen | None) -> SceneTruth:
     """`[truth]`: known parameter values, each optional and checked like the simulator's
     options; the radii must fit every wedge of the specimen (docs/rounded.md §1)."""
     w = "truth"
@@ -721,7 +744,7 @@ def _check_truth_radii(r: _Reader, specimen: Specimen, tip_um: float, fillet_um:
         )
 
 
-def _metadata(r: _Reader, d: Any, w: str) -> tuple[tuple[str, MetadataValue], ...]:
+def _metadata(r: _Reader, d: object, w: str) -> tuple[tuple[str, MetadataValue], ...]:
     """`[specimen.metadata]`: free key = value pairs, each a string or a finite number."""
     if not isinstance(d, dict):
         r.fail(w, 'must be a table of key = value, e.g. printer = "MK4", nozzle_c = 215')
@@ -741,7 +764,7 @@ def _metadata(r: _Reader, d: Any, w: str) -> tuple[tuple[str, MetadataValue], ..
     return tuple(items)
 
 
-def _index(r: _Reader, d: dict[str, Any], w: str) -> IndexSpec:
+def _index(r: _Reader, d: RawTable, w: str) -> IndexSpec:
     models = {
         "constant": (["n"], ["k"]),
         "cauchy": (["a"], ["b_um2", "c_um4", "k"]),
@@ -756,7 +779,7 @@ def _index(r: _Reader, d: dict[str, Any], w: str) -> IndexSpec:
         r.fail(f"{w}.model", f"is {model!r}; use one of {', '.join(models)}")
     need, optional = models[model]
     r.table(d, w, ["model", *need, *optional])
-    params: dict[str, Any] = {}
+    params: dict[str, IndexParam] = {}
     for key in need + optional:
         if key not in d:
             if key in need:
@@ -793,7 +816,7 @@ def _check_physical_index(r: _Reader, spec: IndexSpec, where: str) -> None:
         r.fail(where, f"{problem}; fix the {spec.model} coefficients")
 
 
-def _per_channel_index(r: _Reader, params: dict[str, Any], w: str) -> IndexSpec:
+def _per_channel_index(r: _Reader, params: dict[str, IndexParam], w: str) -> IndexSpec:
     """One index per camera channel, in R, G, B order; `k` one for all or one per channel
     [conventions §6, §7]."""
     n, k = params["n"], params.get("k", 0.0)
@@ -813,7 +836,7 @@ def _per_channel_index(r: _Reader, params: dict[str, Any], w: str) -> IndexSpec:
     return IndexSpec("per_channel", params=(("k", k), ("n", n)))
 
 
-def _light(r: _Reader, d: dict[str, Any]) -> Light:
+def _light(r: _Reader, d: RawTable) -> Light:
     r.table(d, "light", ["illuminant", "angular_diameter_deg", "shape", "diameter_mm",
                          "distance_mm", "position_mm"])  # fmt: skip
     ill = r.get(d, "illuminant", str, "light", default="D65")
@@ -850,9 +873,7 @@ def _light(r: _Reader, d: dict[str, Any]) -> Light:
     return Light(ill, diameter, shape, size, distance, position)
 
 
-def _point_mm(
-    r: _Reader, d: dict[str, Any], key: str, where: str
-) -> tuple[float, float, float] | None:
+def _point_mm(r: _Reader, d: RawTable, key: str, where: str) -> tuple[float, float, float] | None:
     """An optional [x, y, z] point in base-frame millimetres, above the base (z > 0)."""
     if key not in d:
         return None
@@ -872,7 +893,7 @@ def _norm(p: tuple[float, float, float] | None) -> float | None:
     return None if p is None else math.sqrt(sum(c * c for c in p))
 
 
-def _camera(r: _Reader, d: dict[str, Any]) -> Camera:
+def _camera(r: _Reader, d: RawTable) -> Camera:
     fields = ["sensitivity", "angular_extent_deg", "focal_length_px", "principal_point_px",
               "plane_of_incidence"]  # fmt: skip
     r.table(d, "camera", fields)
@@ -900,7 +921,7 @@ def _camera(r: _Reader, d: dict[str, Any]) -> Camera:
     return Camera(sens, ext, focal, centre, plane)
 
 
-def _markers(r: _Reader, d: Any, w: str) -> Markers:
+def _markers(r: _Reader, d: object, w: str) -> Markers:
     r.table(d, w, ["dictionary", "min_markers", "marker"])
     items = d.get("marker")
     if not isinstance(items, list) or not items:
@@ -941,7 +962,7 @@ def _dictionary_size(r: _Reader, name: str, where: str) -> int:
     return int(cv2.aruco.getPredefinedDictionary(code).bytesList.shape[0])
 
 
-def _reference(r: _Reader, d: Any, w: str) -> Reference:
+def _reference(r: _Reader, d: object, w: str) -> Reference:
     r.table(d, w, ["name", "roi_px", "face_mm"])
     ref = Reference(
         r.name(d, w, default="reference"),
@@ -953,12 +974,12 @@ def _reference(r: _Reader, d: Any, w: str) -> Reference:
     return ref
 
 
-def _fit_settings(r: _Reader, d: dict[str, Any]) -> FitSettings:
+def _fit_settings(r: _Reader, d: RawTable) -> FitSettings:
     r.table(d, "fit", ["geometry"])
     return FitSettings(r.choice(d, "geometry", "fit", GEOMETRIES))
 
 
-def _extraction(r: _Reader, d: dict[str, Any]) -> Extraction:
+def _extraction(r: _Reader, d: RawTable) -> Extraction:
     w = "extraction"
     r.table(d, w, ["erode_px", "block_px", "saturation_level", "max_saturated_fraction"])
     from stairfit.imaging import MAX_ERODE_PX  # erosion time grows as radius^2 x ROI area
@@ -975,7 +996,7 @@ def _extraction(r: _Reader, d: dict[str, Any]) -> Extraction:
 
 def _patches(
     r: _Reader,
-    top: dict[str, Any],
+    top: RawTable,
     specimen: Specimen | None,
     reference: Reference | None,
     markers: Markers | None,
@@ -1004,7 +1025,7 @@ def _patches(
 
 
 def _photos(
-    r: _Reader, top: dict[str, Any], specimen: Specimen | None, patches: tuple[str, ...] = ()
+    r: _Reader, top: RawTable, specimen: Specimen | None, patches: tuple[str, ...] = ()
 ) -> tuple[Photo, ...]:
     items = top.get("photos")
     if not isinstance(items, list) or not items:
@@ -1062,7 +1083,7 @@ def _photos(
 _OVERRIDES = (("exposure_time_s", 1e-6, 3600.0), ("f_number", 0.5, 256.0), ("iso", 1.0, 1e7))
 
 
-def _file_list(r: _Reader, d: dict[str, Any], key: str, where: str) -> tuple[str, ...]:
+def _file_list(r: _Reader, d: RawTable, key: str, where: str) -> tuple[str, ...]:
     """A file name, or a non-empty list of them (an HDR bracket of one view)."""
     name = _join(where, key)
     if key not in d:
@@ -1077,7 +1098,7 @@ def _file_list(r: _Reader, d: dict[str, Any], key: str, where: str) -> tuple[str
 
 
 def _exposure_overrides(
-    r: _Reader, d: dict[str, Any], where: str, n_files: int
+    r: _Reader, d: RawTable, where: str, n_files: int
 ) -> list[tuple[float | None, float | None, float | None]]:
     """Per file (exposure_time_s, f_number, iso) overrides: a number applies to every file of
     a bracket, a list gives one value per file."""
@@ -1097,7 +1118,7 @@ def _exposure_overrides(
     return list(zip(*per_key, strict=True))
 
 
-def _calibration(r: _Reader, d: Any) -> CalibrationFrames:
+def _calibration(r: _Reader, d: object) -> CalibrationFrames:
     w = "calibration"
     r.table(d, w, ["flat_field", "dark_frames", "flat_degree"])
     flat = _file_list(r, d, "flat_field", w) if "flat_field" in d else ()
@@ -1221,12 +1242,12 @@ def _join(where: str, key: str) -> str:
     return f"{where}.{key}" if where else key
 
 
-def _is_real(x: Any) -> bool:
+def _is_real(x: object) -> bool:
     """A number (finite or not; `_check_polygon` says which coordinate is not finite)."""
     return isinstance(x, int | float) and not isinstance(x, bool)
 
 
-def _is_num(x: Any) -> bool:
+def _is_num(x: object) -> bool:
     return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
 
 

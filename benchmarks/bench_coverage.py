@@ -28,9 +28,8 @@ All datasets of one design share their shapes, so every fit reuses one compiled 
 **Photo level** (tests/independent_photos.py, the second renderer, which imports nothing of
 `stairfit.imaging.synthetic`): `--photos` folders (seeds 100, 101, ...) of 10 views (+-25..65
 deg) at 2 MP with its 15% vignetting and flat-field photo, for each of two lights (its round
-0.6-deg light, and a point light as a control), measured and fitted by the
-functions `stairfit fit` runs (app/commands/fit.py: `measure`, `to_observations`, `fit_setup`,
-`select`,
+0.6-deg light, and a point light as a control), measured and fitted by the functions
+`stairfit fit` runs (`stairfit.pipeline`: `measure`, `observations`, `fit_setup`, `select`,
 `refine`; balanced preset, model-error term on, variant `sharp+floor` forced, no posterior), and
 the intervals of sigma, scale and floor (and the model-error term's value) against the
 renderer's truth. The standard errors are those of the CLI as of this run (per-ROI
@@ -387,20 +386,21 @@ def photo_options() -> Any:
 
 
 def fit_photo_folder(folder: Path, out: Path) -> Any:
-    """The stages of `stairfit fit` (app/commands/fit.py `fit_scene` without writing outputs):
-    measure,
-    observations, selection (forced variant), accuracy check; the chosen fit and the table."""
-    from stairfit.commands import fit as app_fit
+    """The stages of `stairfit fit` (`stairfit.pipeline.fit_scene` without writing outputs):
+    measure, observations, selection (forced variant), accuracy check; the chosen fit and the
+    table."""
+    from stairfit import pipeline
     from stairfit.scene import load_scene
 
     options = photo_options()
     scene = load_scene(folder)
     out.mkdir(parents=True, exist_ok=True)
-    table = app_fit.measure(scene, out, options)
-    observations, _, notes = app_fit.to_observations(scene, table)
-    spectral, aperture = app_fit.fit_setup(scene, options.preset)
-    selection = app_fit.select(observations, spectral, aperture, options)
-    selection, _ = app_fit.refine(scene, observations, selection, options)
+    table = pipeline.measure(scene, out, options)
+    observed = pipeline.observations(scene, table)
+    observations, notes = observed.data, list(observed.notes)
+    setup = pipeline.fit_setup(scene, options.preset)
+    selection = pipeline.select(observations, setup, options)
+    selection, _ = pipeline.refine(scene, observations, selection, options, setup)
     flags = [str(r.flag) for r in table if r.flag]
     info = {"rows": len(list(table)), "flagged": len(flags), "notes": notes}
     return selection.fit, {**info, "flags": {f: flags.count(f) for f in sorted(set(flags))}}
@@ -561,7 +561,7 @@ def photo_section(light: str, ph: dict[str, Any]) -> list[str]:
     mef = ph["model_error_frac"]
     return [
         *coverage_table(
-            f"## Photo level, {light} (tests/independent_photos.py, app/commands/fit.py)",
+            f"## Photo level, {light} (tests/independent_photos.py, app/pipeline.py)",
             [(light, ph["ls"])],
         ),
         "| cell | n | dof | mean | sd (expected) | 5% / 50% / 95% | KS p |",
@@ -676,9 +676,9 @@ def settings_from(args: argparse.Namespace) -> Settings:
 
 def photo_error_model() -> str:
     """Which per-ROI error treatment the CLI of this checkout applies."""
-    from stairfit.commands import fit as app_fit
+    from stairfit import pipeline
 
-    if hasattr(app_fit, "channel_inflation"):
+    if hasattr(pipeline, "channel_inflation"):
         return "standard errors with the CLI's per-ROI channel_inflation"
     return "standard errors whitened per ROI (3x3 channel covariance)"
 

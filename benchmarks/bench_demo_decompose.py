@@ -101,7 +101,7 @@ def render_recording(seed: int, photos: Path) -> tuple[dict[str, Any], list[dict
     """Render the demo's photos of `seed` into `photos` (one process), recording each view's
     renderer expectations: (truth.json, [{face name: (expected, expected_untextured)}] in
     photo order)."""
-    from stairfit.commands import simulate
+    from stairfit import simulation as simulate
     from stairfit.imaging import synthetic
 
     records: list[dict[str, Any]] = []
@@ -201,9 +201,8 @@ def whitener(groups: list[tuple[np.ndarray, np.ndarray]], n: int) -> Any:
 
 
 def decompose(seed: int, work: Path, fit: bool = False) -> dict[str, Any]:
-    from stairfit import fitting
-    from stairfit.commands import fit as app_fit
-    from stairfit.commands import simulate
+    from stairfit import fitting, pipeline
+    from stairfit import simulation as simulate
     from stairfit.presets import PRESETS
     from stairfit.scene import load_scene
 
@@ -211,9 +210,9 @@ def decompose(seed: int, work: Path, fit: bool = False) -> dict[str, Any]:
     truth_json, records, centre = render_recording(seed, photos)
     options = demo_options()
     scene = load_scene(photos)
-    table = app_fit.measure(scene, work / f"fit{seed}", options)
-    obs, _, _ = app_fit.to_observations(scene, table)
-    spectral, aperture = app_fit.fit_setup(scene, PRESETS["accurate"])
+    table = pipeline.measure(scene, work / f"fit{seed}", options)
+    obs = pipeline.observations(scene, table).data
+    spectral, aperture = pipeline.fit_setup(scene, PRESETS["accurate"])[1:3]
     truth = truth_params(truth_json["parameters"])
     mu = np.asarray(fitting.model_radiance(truth, obs, spectral, aperture=aperture), float)
 
@@ -335,7 +334,7 @@ def decompose(seed: int, work: Path, fit: bool = False) -> dict[str, Any]:
         "groups_not_positive_definite": n_groups - len(groups),
     }
     if fit:  # the demo's own fit of these photos (its preset; sharp+floor forced)
-        fit_spectral, fit_aperture = app_fit.fit_setup(scene, options.preset)
+        fit_spectral, fit_aperture = pipeline.fit_setup(scene, options.preset)[1:3]
         try:
             out["fit"] = fit_pulls(obs, fit_spectral, fit_aperture, options, truth)
         except fitting.FitError as err:  # counted and listed, not hidden

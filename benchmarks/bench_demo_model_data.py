@@ -1,15 +1,15 @@
 """Benchmark: the demo's Observations refilled from the model itself (issue 13, fitting vs
 measurement).
 
-`bench_demo_calibration.py` fits the demo's photos. To separate what the fit does from what
-the measurement does, this script takes the demo's own Observations (`stairfit demo
---megapixels 2 --views 9 --seed S`'s photos, measured by the functions `stairfit fit` runs:
-`measure`, `to_observations`, `fit_setup`) and replaces every value by the model at the truth
-(the fit's own spectral setup and aperture) plus Gaussian noise drawn with the demo's errors:
-each ROI's channels with their standard errors and 3 x 3 correlation (`C = S R S`, the
-covariance the fit whitens with). These `--draws` datasets per seed are fitted like the demo
-(`fitting.select_model`, variant `sharp+floor` forced, model-error term free, the balanced
-preset's starts) and the pulls of sigma, scale and floor summarised as in
+`bench_demo_calibration.py` fits the demo's photos. To separate what the fit does from what the
+measurement does, this script takes the demo's own Observations (`stairfit demo --megapixels 2
+--views 9 --seed S`'s photos, measured by the functions `stairfit fit` runs:
+`stairfit.pipeline`'s `measure`, `observations`, `fit_setup`) and replaces every value by the
+model at the truth (the fit's own spectral setup and aperture) plus Gaussian noise drawn with
+the demo's errors: each ROI's channels with their standard errors and 3 x 3 correlation (`C = S
+R S`, the covariance the fit whitens with). These `--draws` datasets per seed are fitted like
+the demo (`fitting.select_model`, variant `sharp+floor` forced, model-error term free, the
+balanced preset's starts) and the pulls of sigma, scale and floor summarised as in
 bench_demo_calibration.py. Honest fitting gives pull mean 0 and sd 1 here whatever the photos
 do; a bias that shows on photos but not here is the measurement's.
 
@@ -50,21 +50,28 @@ PARAMS = ("sigma_rad", "scale", "floor")
 
 
 def demo_options() -> Any:
-    """The FitOptions `stairfit demo --megapixels 2 --views 9` uses (parsed by its own parser),
-    without posterior."""
-    from stairfit.cli import build_parser
-    from stairfit.commands import fit as app_fit
+    """The FitOptions of `stairfit demo --megapixels 2 --views 9 --no-posterior --quiet` (the
+    fit options' defaults: balanced preset, model-error term, seed 0, one decoding process)."""
+    from stairfit.outcome import FitOptions
+    from stairfit.presets import get_preset
 
-    argv = ["demo", "x", "--megapixels", f"{MEGAPIXELS:g}", "--views", str(VIEWS)]
-    args = build_parser().parse_args([*argv, "--no-posterior", "--quiet"])
-    return app_fit.options_from_args(args)
+    return FitOptions(
+        preset=get_preset("balanced"),
+        posterior=False,
+        model=None,
+        model_error=True,
+        seed=0,
+        workers=1,
+        cache=True,
+        progress=False,
+    )
 
 
 def demo_observations(seed: int, work: Path) -> tuple[Any, Any, Any, Any, dict[str, float]]:
     """Render the demo's photos of `seed`, measure them like `stairfit fit`: (observations,
     spectral, aperture, options, truth.json parameters)."""
-    from stairfit.commands import fit as app_fit
-    from stairfit.commands import simulate
+    from stairfit import pipeline
+    from stairfit import simulation as simulate
     from stairfit.scene import load_scene
 
     views = tuple(float(v) for v in np.linspace(-80.0, 20.0, VIEWS))
@@ -73,9 +80,9 @@ def demo_observations(seed: int, work: Path) -> tuple[Any, Any, Any, Any, dict[s
     simulate.simulate(photos, settings, progress=False)
     options = demo_options()
     scene = load_scene(photos)
-    table = app_fit.measure(scene, work / f"fit{seed}", options)
-    observations, _, _ = app_fit.to_observations(scene, table)
-    spectral, aperture = app_fit.fit_setup(scene, options.preset)
+    table = pipeline.measure(scene, work / f"fit{seed}", options)
+    observations = pipeline.observations(scene, table).data
+    spectral, aperture = pipeline.fit_setup(scene, options.preset)[1:3]
     truth = json.loads((photos / simulate.TRUTH_FILE).read_text())["parameters"]
     return observations, spectral, aperture, options, truth
 

@@ -36,8 +36,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import zoo  # noqa: E402
 
 from stairfit import fitting, model  # noqa: E402
-from stairfit.commands.fit import fit_setup  # noqa: E402
 from stairfit.fitting import _forward, _problem  # noqa: E402
+from stairfit.pipeline import fit_setup  # noqa: E402
 from stairfit.presets import PRESETS  # noqa: E402
 
 DEG = np.pi / 180
@@ -56,7 +56,7 @@ def scene(spread_deg: float) -> SimpleNamespace:
 
 def setup(preset: str, spread_deg: float = 1.0) -> tuple:
     """(grid, widths per key, cfg) of the standard scene at a preset's knobs."""
-    spectral, aperture = fit_setup(scene(spread_deg), PRESETS[preset])
+    spectral, aperture = fit_setup(scene(spread_deg), PRESETS[preset])[1:3]
     s = zoo.standard(TRUTH, seed=0, noise=0.01)
     data = _problem.prepare(s.obs, spectral, aperture=aperture).data
     p = PRESETS[preset]

@@ -20,7 +20,7 @@ levels (`NOISE_LEVELS`: 2%, 0.5%, 0.05% relative; the absolute part scaled with 
 level x the peak, which is `fitting.Noise`'s default 1e-3 x the peak at 2%): the preset's
 numerical error at its optimum against the converged reference (5 nm, 12 aperture nodes) as
 `fitting.numerical_error` computes it (rms over the rows of `(model - reference) / stderr`, the
-figure the accuracy refine of app/_accuracy_check.py compares with `fitting.ACCURACY_LIMIT`),
+figure the accuracy refine of app/accuracy.py compares with `fitting.ACCURACY_LIMIT`),
 its largest difference over the median standard error, the fit's bias in standard errors on
 noiseless data with that noise level's errors, and whether `stairfit fit`'s check (against
 the accurate preset's knobs) would refit (`balanced`), warn (`fast`) or do nothing.
@@ -712,7 +712,7 @@ def noise_observations(rel: float, seed: int = 2000) -> tuple[Any, Any]:
 
 
 def refine_action(preset: str, exceeds: bool) -> str:
-    """What app/_accuracy_check.py does with a numerical error beyond the limit."""
+    """What app/accuracy.py does with a numerical error beyond the limit."""
     if preset == "accurate":
         return "none (reference)"
     if not exceeds:

@@ -143,6 +143,14 @@ class Selection:
     assessment: Assessment | None = field(default=None, repr=False)
     facets: Facets | None = None
 
+    def with_fit(self, fit: FitResult) -> Selection:
+        """This selection with the chosen variant's fit replaced by `fit` (the same variant fitted
+        again, e.g. with finer quadrature knobs): its fit, its assessment and its entry in
+        `fits`; the comparison table and the reason stay those of the selection."""
+        return dataclasses.replace(
+            self, fit=fit, assessment=describe_fit(fit), fits={**self.fits, self.chosen: fit}
+        )
+
     def report(self) -> str:
         """The comparison table and the reason, as plain text."""
         crit = "BIC" if self.criterion == "bic" else "-2 ln Z"

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 import tifffile
 
-from stairfit.fileio import temporary_sibling
+from stairfit.fileio import atomic_path
 
 from ._decode import CHANNELS
 from ._errors import ImagingError
@@ -519,8 +519,7 @@ def write_dng(
         *_ifd0_exposure_tags(ifd0_exposure),
     ]
     path = Path(path)
-    tmp = temporary_sibling(path)
-    try:
+    with atomic_path(path) as tmp:
         tifffile.imwrite(
             tmp,
             mosaic,
@@ -533,10 +532,6 @@ def write_dng(
         )
         if exposure is not None:
             _append_exif_ifd(tmp, exposure)
-        tmp.replace(path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return path
 
 

@@ -21,8 +21,8 @@ layer lines (y), so `view_deg` is the face-frame theta_o of every wedge and the 
 Independent means: its own geometry (camera pose, projection, the plane-to-pixel mapping by ray
 casting), its own conversion of BRDF values into radiance and DN (conventions §9, docs/imaging.md
 §Units), its own noise, texture (NumPy FFT), vignetting and its own DNG writer (tifffile). It
-imports nothing from `stairfit.imaging.synthetic`, `stairfit.commands.simulate` or
-`stairfit.commands._layout`. It does use `stairfit.model.brdf` for the BRDF values (the physics
+imports nothing from `stairfit.imaging.synthetic`, `stairfit.simulation` or
+`stairfit._specimen_layout`. It does use `stairfit.model.brdf` for the BRDF values (the physics
 under test), and nothing else of stairfit.
 
 A second layout, `standing_setup()`, stands the wedges on the plate instead (each face rising

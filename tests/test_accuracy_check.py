@@ -1,4 +1,4 @@
-"""`stairfit fit`'s accuracy check (issue 13, app/commands/_accuracy_check.py): the preset's
+"""`stairfit fit`'s accuracy check (issue 13, app/accuracy.py): the preset's
 numerical error at the optimum against the accurate preset's knobs; precise data make `balanced`
 refit the chosen variant with those knobs and `fast` warn; ordinary data change nothing."""
 
@@ -12,8 +12,8 @@ import pytest
 import zoo
 
 from stairfit import fitting
-from stairfit.commands._accuracy_check import check_accuracy
-from stairfit.commands.fit import fit_setup
+from stairfit.accuracy import check_accuracy
+from stairfit.pipeline import fit_setup
 from stairfit.presets import PRESETS
 
 DEG = np.pi / 180
@@ -26,10 +26,10 @@ SCENE = SimpleNamespace(  # what fit_setup reads of a scene: a dispersive index,
 
 def _selection(noise: float, preset: str) -> tuple[fitting.Selection, fitting.Observations]:
     """Data made with the accurate knobs (5 nm), selected with the preset's."""
-    full, _ = fit_setup(SCENE, PRESETS["accurate"])
+    full = fit_setup(SCENE, PRESETS["accurate"]).spectral
     s = zoo.scene(fitting.Params(sigma_rad=3 * DEG, scale=1.0), zoo.small_design(), full,
                   fitting.Noise(noise, absolute=1e-12), 3)  # fmt: skip
-    spectral, aperture = fit_setup(SCENE, PRESETS[preset])
+    spectral, aperture = fit_setup(SCENE, PRESETS[preset])[1:3]
     sel = fitting.select_model(s.obs, spectral, (zoo.LADDER["sharp"],), aperture=aperture)
     return sel, s.obs
 
@@ -45,7 +45,7 @@ def test_precise_data_make_balanced_refit_with_the_accurate_knobs(precise):
     assert check.error.exceeds and check.action == "refitted", check.message
     assert refined.fit is not sel.fit and refined.chosen == sel.chosen
     # the refit's model is the reference's, and it describes data made with those knobs better
-    full, aperture = fit_setup(SCENE, PRESETS["accurate"])
+    full, aperture = fit_setup(SCENE, PRESETS["accurate"])[1:3]
     again = fitting.numerical_error(refined.fit, full, aperture=aperture)
     assert again.rms < 1e-6, again
     assert refined.fit.chi2 < sel.fit.chi2
@@ -69,7 +69,7 @@ def test_a_refit_that_raises_chi2_says_the_reference_is_not_converged(precise, m
     """A finer model must not describe the data worse: when the accurate refit's chi^2 exceeds
     the preset fit's by more than 5%, the message says the accurate knobs are not converged for
     these data either (docs/fitting.md §3, "Known limitation")."""
-    from stairfit.commands import _accuracy_check as ac
+    from stairfit import accuracy as ac
 
     sel, obs = precise
     real = fitting.fit_least_squares
@@ -91,7 +91,7 @@ def test_a_refit_that_runs_out_of_memory_keeps_the_preset_fit_and_says_so(precis
     sampling and 4096 rays asked XLA for 86 GB on a 2 MP x 9-view folder): such a refit keeps
     the preset's fit, with action "refit failed" and a sentence, not a traceback; any other
     runtime error still propagates."""
-    from stairfit.commands import _accuracy_check as ac
+    from stairfit import accuracy as ac
 
     sel, obs = precise
 
@@ -117,7 +117,7 @@ def test_a_refit_that_runs_out_of_memory_keeps_the_preset_fit_and_says_so(precis
 def test_a_filleted_fit_is_not_refitted_automatically_but_warned(precise, monkeypatch):
     """A filleted variant's refit with the accurate knobs takes many minutes: balanced warns with
     the way to refine it instead."""
-    from stairfit.commands import _accuracy_check as ac
+    from stairfit import accuracy as ac
 
     sel, obs = precise
     filleted = fitting.FILLET_RUNGS[0]

@@ -2,7 +2,7 @@
 
 A multiplicative texture is shared by R, G and B, so the three means of one ROI err together;
 pixel noise is independent per channel. `channel_corr` must tell the two apart, and
-`stairfit.commands.fit.roi_correlations` must hand the ROI's `corr_*` to the fit (docs/fitting.md
+`stairfit.pipeline.roi_correlations` must hand the ROI's `corr_*` to the fit (docs/fitting.md
 §Correlated channels; the whitening itself: tests/test_fitting_whiten.py).
 """
 
@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from stairfit import imaging
-from stairfit.commands.fit import roi_correlations
 from stairfit.imaging import synthetic
+from stairfit.pipeline import roi_correlations
 
 EXPOSURE = imaging.Exposure(exposure_time_s=1 / 50, f_number=4.0, iso=400)
 FACES = {"a": [(40, 40), (359, 40), (359, 359), (40, 359)]}

@@ -463,7 +463,7 @@ def test_running_out_of_memory_is_one_line_with_what_to_do_and_leaves_no_output(
 ) -> None:
     """XLA's failed allocation (seen: 86 GB asked for by the accurate knobs' filleted program)
     is not a bug report: one line naming it and what to do, status 1, no results folder."""
-    from stairfit.commands import fit as fit_command
+    from stairfit import pipeline
 
     def oom(*args, **kwargs):
         raise RuntimeError(
@@ -471,7 +471,7 @@ def test_running_out_of_memory_is_one_line_with_what_to_do_and_leaves_no_output(
             "bytes.\nmore XLA detail"
         )
 
-    monkeypatch.setattr(fit_command, "fit_scene", oom)
+    monkeypatch.setattr(pipeline, "fit_scene", oom)
     out = tmp_path / "results"
     status, err = run(capsys, "fit", str(photos), "-o", str(out), "--quiet")
     lines = [x for x in err.strip().splitlines() if x.strip()]

@@ -536,15 +536,15 @@ def test_non_physical_index_is_refused(
 
 
 def test_fit_outside_the_validity_range_warns_and_notes_it(photos: Path) -> None:
-    from stairfit.commands.fit import fit_setup, index_notes
+    from stairfit.pipeline import fit_setup, index_notes
     from stairfit.presets import get_preset
     from stairfit.scene import load_scene
 
     cli_errors.edit_scene(photos, lambda s: s["specimen"].update(material="pla-bodurov2016"))
     scene = load_scene(photos)
-    spectral, _ = fit_setup(scene, get_preset("accurate"))  # 5 nm samples over 380-780 nm
+    setup = fit_setup(scene, get_preset("accurate"))  # 5 nm samples over 380-780 nm
     with pytest.warns(UserWarning, match="valid over 405-635 nm") as record:
-        notes = index_notes(scene, spectral)
+        notes = index_notes(scene, setup)
     message = str(record[0].message)
     assert notes == [message]
     assert "380-400 nm and 640-780 nm" in message
@@ -553,7 +553,7 @@ def test_fit_outside_the_validity_range_warns_and_notes_it(photos: Path) -> None
     constant = load_scene(photos)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert index_notes(constant, fit_setup(constant, get_preset("accurate"))[0]) == []
+        assert index_notes(constant, fit_setup(constant, get_preset("accurate"))) == []
 
 
 @pytest.mark.parametrize(
@@ -1020,7 +1020,7 @@ def test_a_filesystem_without_locks_warns_and_still_runs(
 
 def test_no_failed_previews_are_promised_inside_a_staging_folder(tmp_path: Path) -> None:
     # the demo fits photos inside its own staging folder, which a failed run removes
-    from stairfit.commands._failed_previews import keep_previews
+    from stairfit._failed_previews import keep_previews
 
     with outputs.staged_folder(tmp_path / "demo", force=False, command="demo") as tmp:
         assert outputs.in_staging(tmp / "photos" / ".stairfit-cache" / "failed-previews")

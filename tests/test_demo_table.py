@@ -1,6 +1,6 @@
-"""`stairfit demo`'s table of recovered against true values matches parameters by identity
-(`parameter`, `wedge`), not by display name: with one width per wedge, every wedge's
-`sigma_deg[k: ...]` is compared with the one true `sigma_deg`."""
+"""`stairfit demo`'s table of recovered against true values (`report.compare_table`) matches
+parameters by identity (`parameter`, `wedge`), not by display name: with one width per wedge,
+every wedge's `sigma_deg[k: ...]` is compared with the one true `sigma_deg`."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from stairfit import fitting
-from stairfit.commands.demo import compare_table
+from stairfit.report import compare_table
 
 DEG = np.pi / 180
 TRUTH = {"sigma_deg": 6.0, "delta_n": 0.0, "scale": 1.0, "floor": 0.01}

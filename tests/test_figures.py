@@ -251,9 +251,10 @@ def test_fit_per_wedge_labels_a_narrow_45_deg_panel_by_its_values():
     )
     outcome = SimpleNamespace(
         selection=SimpleNamespace(fit=fit, chosen="sharp"),
-        observations=obs,
+        observations=SimpleNamespace(
+            data=obs, labels=[SimpleNamespace(theta_o_deg=theta[k]) for _, _, k in rows]
+        ),
         scene=SimpleNamespace(specimen=SimpleNamespace(wedges=wedges)),
-        row_info=[{"theta_o_deg": theta[k]} for _, _, k in rows],
     )
     fig = fit_per_wedge(outcome)
     FigureCanvasAgg(fig).draw()

@@ -30,7 +30,7 @@ DEG = np.pi / 180
 
 
 def _outcome(sel: fitting.Selection, s: zoo.Scene) -> SimpleNamespace:
-    """The parts of `stairfit.commands.fit.FitOutcome` the summary and the report read."""
+    """The parts of `stairfit.pipeline.FitOutcome` the summary and the report read."""
     obs = s.obs
     n_photos = int(np.max(obs.photo_index)) + 1
     views = [float(np.rad2deg(obs.theta_o_rad[obs.photo_index == j][0])) for j in range(n_photos)]
@@ -43,9 +43,10 @@ def _outcome(sel: fitting.Selection, s: zoo.Scene) -> SimpleNamespace:
             wedges=[SimpleNamespace(name=f"w{d:g}", angle_deg=d) for d in wedge_deg]
         ),
     )
-    rows = [{"theta_o_deg": float(t)} for t in np.rad2deg(obs.theta_o_rad)]
-    return SimpleNamespace(scene=scene, observations=obs, row_info=rows, selection=sel,
-                           posterior=None, notes=[])  # fmt: skip
+    labels = [SimpleNamespace(theta_o_deg=float(t)) for t in np.rad2deg(obs.theta_o_rad)]
+    observations = SimpleNamespace(data=obs, labels=labels)
+    return SimpleNamespace(scene=scene, observations=observations, selection=sel,
+                           posterior=None, notes=())  # fmt: skip
 
 
 def _photo_residuals(sel: fitting.Selection, s: zoo.Scene) -> list[tuple[int, np.ndarray]]:

@@ -88,9 +88,10 @@ def test_fit_per_wedge_draws_the_dense_curves(in_plane_fit):
     wedges = tuple(SimpleNamespace(name=f"w{b:g}", angle_deg=b) for b in WEDGES_DEG)
     outcome = SimpleNamespace(
         selection=SimpleNamespace(fit=fit, chosen="sharp+floor"),
-        observations=obs,
+        observations=SimpleNamespace(
+            data=obs, labels=[SimpleNamespace(theta_o_deg=t / DEG) for t in obs.theta_o_rad]
+        ),
         scene=SimpleNamespace(specimen=SimpleNamespace(wedges=wedges)),
-        row_info=[{"theta_o_deg": t / DEG} for t in obs.theta_o_rad],
     )
     fig = fit_per_wedge(outcome)
     FigureCanvasAgg(fig).draw()

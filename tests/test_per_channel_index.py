@@ -14,6 +14,8 @@ import tomli_w
 from stairfit import fitting
 from stairfit.errors import UserError
 from stairfit.model import materials, spectral
+from stairfit.pipeline import fit_setup
+from stairfit.presets import PRESETS
 from stairfit.report import spectral_record
 from stairfit.scene import load_scene
 
@@ -103,12 +105,13 @@ def test_results_record_the_effective_wavelengths_and_the_index_there():
     cw = spectral.channel_weights(CAMERA, "A")
     disp = materials.PLA_BODUROV_2016
     scene = SimpleNamespace(
-        camera=SimpleNamespace(sensitivity=CAMERA),
-        light=SimpleNamespace(illuminant="A"),
+        camera=SimpleNamespace(sensitivity=CAMERA, angular_extent_deg=0.0),
+        light=SimpleNamespace(illuminant="A", angular_diameter_deg=0.0, shape="uniform"),
         specimen=SimpleNamespace(index=SimpleNamespace(build=lambda: disp)),
     )
+    preset = PRESETS["accurate"]  # "full" spectral sampling
     outcome = SimpleNamespace(
-        scene=scene, options=SimpleNamespace(preset=SimpleNamespace(spectral="full"))
+        scene=scene, options=SimpleNamespace(preset=preset), setup=fit_setup(scene, preset)
     )
     rec = spectral_record(outcome)
     assert rec["channels"] == ["R", "G", "B"] and rec["illuminant"] == "A"
@@ -126,7 +129,8 @@ def test_figures_draw_a_per_channel_index_through_the_effective_wavelengths(tmp_
     from stairfit.report import _along_wavelength
 
     path = _scene_with(tmp_path, {"model": "per_channel", "n": [1.47, 1.46, 1.45]})
-    curve = _along_wavelength(load_scene(path))
+    setup = fit_setup(load_scene(path), PRESETS["balanced"])
+    curve = _along_wavelength(SimpleNamespace(setup=setup))
     eff = spectral.channel_weights(CAMERA, "D65").effective_nm  # R > G > B in wavelength
     np.testing.assert_allclose(np.asarray(curve(eff)), [1.47, 1.46, 1.45], rtol=1e-12)
     np.testing.assert_allclose(np.asarray(curve(np.array([380.0, 780.0]))), [1.45, 1.47])

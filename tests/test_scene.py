@@ -151,8 +151,8 @@ def test_simulated_scene_reads_back(tmp_path):
     # the scene writer (simulate) and the reader agree; no photos are rendered here
     import tomli_w
 
-    from stairfit.commands._layout import SpecimenLayout
-    from stairfit.commands.simulate import SimulationSettings, _compact_arrays, _scene_dict
+    from stairfit._specimen_layout import SpecimenLayout
+    from stairfit.simulation import SimulationSettings, _compact_arrays, _scene_dict
 
     s = SimulationSettings()
     layout = SpecimenLayout(s.wedges_deg)

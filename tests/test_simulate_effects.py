@@ -146,7 +146,7 @@ def test_dark_views_get_the_longest_exposure_not_an_absurd_one() -> None:
     faces are all but black (1e-24, or 0) asked for a 1e29 s exposure. Every exposure is now at
     most MAX_EXPOSURE_S, a bracket keeps its 4x steps, and a normal view still puts its
     brightest face between a third of a stop below half of the raw range and half of it."""
-    from stairfit.commands.simulate import (
+    from stairfit.simulation import (
         MAX_EXPOSURE_S,
         SessionEffects,
         SimulationSettings,
@@ -192,7 +192,7 @@ def test_exposure_tags_that_do_not_fit_a_rational_are_one_line_errors(tmp_path: 
 def test_simulate_with_no_floor_writes_a_folder(tmp_path: Path) -> None:
     """The reported command, `stairfit simulate --floor 0`, at a small size: exit 0, and the
     darkest views at the longest exposure."""
-    from stairfit.commands.simulate import MAX_EXPOSURE_S
+    from stairfit.simulation import MAX_EXPOSURE_S
 
     folder = tmp_path / "photos"
     argv = ["simulate", str(folder), "--floor", "0", "--megapixels", "0.3", "--views", "3"]

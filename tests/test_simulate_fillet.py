@@ -20,9 +20,9 @@ import pytest
 import tomli_w
 from test_scene import GOOD
 
-from stairfit import fitting
+from stairfit import fitting, simulation
 from stairfit.cli import build_parser, main
-from stairfit.commands import simulate
+from stairfit.commands import _simulate_options as simulate
 from stairfit.errors import UserError
 from stairfit.report import _truth_html, truth_records
 from stairfit.scene import TRUTH_FIELDS, load_scene
@@ -42,24 +42,24 @@ def _room_um(beta2_deg: float, layer_um: float = LAYER_UM) -> float:
     return min(layer_um, layer_um / math.tan(math.radians(beta2_deg)))
 
 
-def _settings(*flags: str) -> simulate.SimulationSettings:
+def _settings(*flags: str) -> simulation.SimulationSettings:
     args = build_parser("simulate").parse_args(["simulate", "OUT", *flags])
     return simulate.settings_from_args(args)
 
 
 def test_truth_fields_match_the_simulator():
     # one list of truth parameters: what simulate renders from is what [truth] may hold
-    assert tuple(f.name for f in dataclasses.fields(simulate.Truth)) == TRUTH_FIELDS
+    assert tuple(f.name for f in dataclasses.fields(simulation.Truth)) == TRUTH_FIELDS
 
 
 def test_fillet_flag_lands_in_the_scene_truth(tmp_path):
-    from stairfit.commands._layout import SpecimenLayout
+    from stairfit._specimen_layout import SpecimenLayout
 
     s = _settings("--edge-radius-um", "20", "--fillet-radius-um", "12.5")
     assert s.truth.fillet_radius_um == 12.5
     layout = SpecimenLayout(s.wedges_deg)
     photos = [{"file": f"p{k}.dng", "view_deg": v, "roi_px": {}} for k, v in enumerate(s.views_deg)]
-    text = simulate._compact_arrays(tomli_w.dumps(simulate._scene_dict(s, layout, photos)))
+    text = simulation._compact_arrays(tomli_w.dumps(simulation._scene_dict(s, layout, photos)))
     (tmp_path / "scene.toml").write_text(text)
     truth = load_scene(tmp_path).truth
     assert truth is not None

@@ -25,6 +25,8 @@ HEAVY = (
     "stairfit.commands.fit",
     "stairfit.commands.simulate",
     "stairfit.commands.demo",
+    "stairfit.pipeline",
+    "stairfit.simulation",
     "stairfit.fitting",
     "stairfit.imaging",
 )

@@ -470,7 +470,7 @@ def test_no_usable_measurement_names_the_cause_and_fixes_that_apply() -> None:
     """`few_blocks` on faces placed from markers with the default block_px: neither "enlarge
     the ROIs" nor "lower extraction.block_px" (neither applies); both when they do; `thin`
     names the grazing view."""
-    from stairfit.commands import _exclusions
+    from stairfit import _exclusions
 
     placed = [SimpleNamespace(flag="few_blocks", roi_source="markers")] * 3
     text = _exclusions.nothing_usable(3, Counter(few_blocks=3), placed, block_px=2)

@@ -203,7 +203,7 @@ def test_the_fit_takes_a_pinhole_rois_own_spread() -> None:
     deg: 4); without one, the eroded ROI's share; an undefined share: the whole face."""
     from types import SimpleNamespace
 
-    from stairfit.commands.fit import _spread
+    from stairfit.pipeline import view_spread as _spread
 
     def row(share: float, half_width: float | None) -> SimpleNamespace:
         return SimpleNamespace(view_spread=share, view_half_width_deg=half_width)

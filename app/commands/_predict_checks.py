@@ -11,8 +11,8 @@ from __future__ import annotations
 import argparse
 import cmath
 import math
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Iterable, Sequence
+from typing import Protocol
 
 from ..errors import UserError
 
@@ -23,6 +23,12 @@ larger request into several."""
 
 SIGMA_MAX_DEG = 90.0
 """Broadening beyond this is no longer a lobe: the truncated Gaussian is flat over +-90 deg."""
+
+
+class RowWriter(Protocol):
+    """What `csv.writer` returns, as far as `predict` uses it."""
+
+    def writerow(self, row: Iterable[object], /) -> object: ...
 
 
 class Given(argparse.Action):
@@ -36,7 +42,7 @@ class Given(argparse.Action):
         self,
         parser: argparse.ArgumentParser,
         namespace: argparse.Namespace,
-        values: Any,
+        values: object,
         option_string: str | None = None,
     ) -> None:
         setattr(namespace, self.dest, values)

@@ -10,13 +10,16 @@ import argparse
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .. import _ranges
 from ..errors import StairfitWarning, UserError
-from ._predict_checks import Given, check_number
+from ._predict_checks import Given, RowWriter, check_number
+
+if TYPE_CHECKING:
+    from ..gloss import GlossModel
 
 FACETS = ("gaussian", "ggx", "beckmann")
 """The facets `--facets` offers (`stairfit.model.LAB_KERNELS`)."""
@@ -148,7 +151,9 @@ def _grids(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return wedges, azimuths, angles
 
 
-def _given_model(args: argparse.Namespace, index_of: Callable[[np.ndarray], np.ndarray]) -> Any:
+def _given_model(
+    args: argparse.Namespace, index_of: Callable[[np.ndarray], np.ndarray]
+) -> GlossModel:
     """The gloss model of the parameters given on the command line; `index_of(nm)`: the given
     material's index with `--delta-n` added (predict's own lookup and checks)."""
     from stairfit import model
@@ -167,7 +172,7 @@ def _given_model(args: argparse.Namespace, index_of: Callable[[np.ndarray], np.n
                                    args.body_albedo)  # fmt: skip
 
 
-def _layer(args: argparse.Namespace, model: Any) -> float:
+def _layer(args: argparse.Namespace, model: GlossModel) -> float:
     """The layer thickness: as given, else the fit's specimen's, else `--layer-um`'s default
     (refused for a rounded fit, whose gloss depends on it)."""
     given = getattr(args, "given", frozenset())
@@ -182,7 +187,7 @@ def _layer(args: argparse.Namespace, model: Any) -> float:
 
 
 def run_gloss(
-    args: argparse.Namespace, writer: Any, index_of: Callable[[np.ndarray], np.ndarray]
+    args: argparse.Namespace, writer: RowWriter, index_of: Callable[[np.ndarray], np.ndarray]
 ) -> None:
     """Compute the gloss table and write it with `writer` (a csv writer). `index_of(nm)`: the
     given material's index with `--delta-n` (predict's own lookup and checks)."""

@@ -28,10 +28,15 @@ import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict
 
 from .. import __version__
 from ..errors import UserError
+
+if TYPE_CHECKING:
+    from .._jsontypes import JSONObject, JSONValue, Record
+    from ..outcome import FitOptions
+    from ..scene import Scene
 
 LEDGER_DIR = ".stairfit-study"
 """Folder of OUT holding one ledger file per finished folder (its inputs' fingerprint)."""
@@ -41,10 +46,21 @@ FITTED, SKIPPED, FAILED, INTERRUPTED = "fitted", "skipped", "failed", "interrupt
 """A folder's status in the study table: fitted now, skipped (up to date), failed (with its
 one-line error), or interrupted (not finished when the study was stopped)."""
 
-FolderReport = dict[str, Any]
-"""What a task returns: `folder`, `output`, `status`, `error`, `note`, `scene` (layer_um,
-material, metadata, ...), `results` (the folder's results.json, or None) and `run` (timing
-and worker diagnostics)."""
+
+class FolderReport(TypedDict, total=False):
+    """What a task returns: `folder`, `output`, `status`, `error`, `note`, `scene` (layer_um,
+    material, metadata, ...), `results` (the folder's results.json, or None) and `run` (timing
+    and worker diagnostics)."""
+
+    folder: str
+    output: str
+    status: str
+    error: str | None
+    note: str | None
+    scene: Record | None
+    results: JSONObject | None
+    run: Record
+
 
 log = logging.getLogger("stairfit.study")
 
@@ -62,7 +78,7 @@ class FolderTask:
     folder: Path
     out: Path
     name: str
-    options: Any  # fit.FitOptions
+    options: FitOptions
     refit: bool
     jax_cache: str | None
     version: str
@@ -114,8 +130,8 @@ def prepare_worker(task: FolderTask) -> str | None:
 def fit_or_skip(task: FolderTask) -> FolderReport:
     """The folder's status, scene summary and results (the fit runs only when needed)."""
     from ..outputs import staged_folder
+    from ..pipeline import check_photos, fit_scene
     from ..scene import load_scene
-    from .fit import check_photos, fit_scene
 
     scene = load_scene(task.folder)
     summary = scene_summary(scene)
@@ -136,7 +152,7 @@ def fit_or_skip(task: FolderTask) -> FolderReport:
     return {"status": FITTED, "scene": summary, "results": read_results(dest), "note": note}
 
 
-def scene_summary(scene: Any) -> dict[str, Any]:
+def scene_summary(scene: Scene) -> Record:
     """What the study table shows of a scene besides the fit: layer, material, metadata."""
     spec = scene.specimen
     material = spec.index.name if spec.index.model == "named" else spec.index.model
@@ -149,7 +165,7 @@ def scene_summary(scene: Any) -> dict[str, Any]:
     }
 
 
-def options_fingerprint(options: Any) -> dict[str, Any]:
+def options_fingerprint(options: FitOptions) -> Record:
     """The fit options that change a result (not: progress bars, decoding processes, cache)."""
     return {
         "preset": options.preset.as_dict(),
@@ -160,7 +176,7 @@ def options_fingerprint(options: Any) -> dict[str, Any]:
     }
 
 
-def input_fingerprint(scene: Any, options: Any) -> dict[str, Any]:
+def input_fingerprint(scene: Scene, options: FitOptions) -> JSONObject:
     """SHA-256 of the scene file and every input file, the stairfit version and the options.
 
     Input files are named relative to the photo folder where they lie inside it (so that a
@@ -184,7 +200,7 @@ def input_fingerprint(scene: Any, options: Any) -> dict[str, Any]:
     return json.loads(json.dumps(fingerprint))  # tuples -> lists, as read back from a ledger
 
 
-def read_json(path: Path) -> Any:
+def read_json(path: Path) -> JSONValue:
     """The parsed JSON file, or None when it is absent or unreadable."""
     try:
         return json.loads(path.read_text(encoding="utf-8"))
@@ -192,7 +208,7 @@ def read_json(path: Path) -> Any:
         return None
 
 
-def up_to_date(dest: Path, ledger: Path, fingerprint: dict[str, Any]) -> bool:
+def up_to_date(dest: Path, ledger: Path, fingerprint: JSONObject) -> bool:
     """Whether `dest` holds a complete result of exactly these inputs (module docstring)."""
     results = read_json(dest / RESULTS)
     recorded = read_json(ledger)
@@ -202,7 +218,7 @@ def up_to_date(dest: Path, ledger: Path, fingerprint: dict[str, Any]) -> bool:
     return recorded.get("fingerprint") == fingerprint and scene_sha == fingerprint["scene_sha256"]
 
 
-def replaced_note(dest: Path, ledger: Path, fingerprint: dict[str, Any], refit: bool) -> str | None:
+def replaced_note(dest: Path, ledger: Path, fingerprint: JSONObject, refit: bool) -> str | None:
     """Why an existing result is replaced (said in the table, never silently), or None."""
     if not dest.exists():
         return None
@@ -217,7 +233,7 @@ def replaced_note(dest: Path, ledger: Path, fingerprint: dict[str, Any], refit: 
     return f"replaced an out-of-date result ({what} changed)"
 
 
-def write_ledger(ledger: Path, task: FolderTask, fingerprint: dict[str, Any]) -> None:
+def write_ledger(ledger: Path, task: FolderTask, fingerprint: JSONObject) -> None:
     """Record the fingerprint of the inputs `task.name` was fitted from (atomically)."""
     from ..outputs import atomic_text
 
@@ -226,7 +242,7 @@ def write_ledger(ledger: Path, task: FolderTask, fingerprint: dict[str, Any]) ->
         json.dump(record, fh, indent=2)
 
 
-def read_results(dest: Path) -> dict[str, Any] | None:
+def read_results(dest: Path) -> JSONObject | None:
     """The folder's results.json (None if it cannot be read)."""
     results = read_json(dest / RESULTS)
     return results if isinstance(results, dict) else None
@@ -235,7 +251,7 @@ def read_results(dest: Path) -> dict[str, Any] | None:
 def describe_error(err: BaseException, task: FolderTask) -> str:
     """The one-line error of a failed folder, as `stairfit fit` would print it; the traceback
     of an internal error goes to a file beside the ledger (never to the study's terminal)."""
-    from ..cli import one_line
+    from ..errors import one_line
 
     imaging = sys.modules.get("stairfit.imaging")
     if isinstance(err, UserError) or (imaging and isinstance(err, imaging.ImagingError)):
@@ -256,7 +272,7 @@ def describe_error(err: BaseException, task: FolderTask) -> str:
     return one_line(f"internal error ({type(err).__name__}: {err}); {kept}; please report it")
 
 
-def run_info(started: float) -> dict[str, Any]:
+def run_info(started: float) -> Record:
     """Where and how long the task ran, and the worker process's peak memory so far."""
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
     return {

@@ -15,7 +15,7 @@ import dataclasses
 import html
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from .. import _ranges
 from ..errors import UserError
@@ -37,6 +37,9 @@ from ..photo_reports import (
     write_table,
 )
 from ..scene import Scene, load_scene
+
+if TYPE_CHECKING:
+    from stairfit import imaging
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -74,7 +77,7 @@ def default_output(folder: Path) -> Path:
 def run(args: argparse.Namespace) -> int:
     """`stairfit measure DIR`."""
     from ..outputs import staged_folder
-    from .fit import check_photos
+    from ..pipeline import check_photos
 
     _ranges.check_workers(args.workers)
     scene = load_scene(args.folder, measure_only=True)
@@ -98,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def measure_specs(scene: Scene) -> list[Any]:
+def measure_specs(scene: Scene) -> list[imaging.PhotoSpec]:
     """One `imaging.PhotoSpec` per photo: its wedges (as `stairfit fit` measures them) and the
     scene's patches (pixel polygons, or outlines on the base placed by the markers)."""
     from stairfit import imaging
@@ -133,7 +136,9 @@ def measure_specs(scene: Scene) -> list[Any]:
     return out
 
 
-def measure_table(scene: Scene, specs: Sequence[Any], out: Path, args: argparse.Namespace) -> Any:
+def measure_table(
+    scene: Scene, specs: Sequence[imaging.PhotoSpec], out: Path, args: argparse.Namespace
+) -> imaging.MeasurementTable:
     """The measurement table of every photo that could be measured (failures in `.failed`)."""
     from stairfit import imaging
 
@@ -153,7 +158,9 @@ def measure_table(scene: Scene, specs: Sequence[Any], out: Path, args: argparse.
         raise UserError(f"{scene.path}: {err}") from None
 
 
-def write_outputs(scene: Scene, table: Any, reports: Sequence[PhotoReport], out: Path) -> None:
+def write_outputs(
+    scene: Scene, table: imaging.MeasurementTable, reports: Sequence[PhotoReport], out: Path
+) -> None:
     """measurements.csv, photos.csv, markers.csv and report.html into `out`."""
     table.write_csv(out / "measurements.csv")
     write_table(out / "photos.csv", reports, PHOTO_COLUMNS)

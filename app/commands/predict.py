@@ -8,10 +8,10 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Protocol, TextIO
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -19,17 +19,18 @@ from .. import _ranges
 from .._index_checks import extrapolation_warning
 from ..errors import UserError
 from ..outputs import staged_file
-from ._predict_checks import Given, check_combination, check_scalars, check_size, parse_index
+from ._predict_checks import (
+    Given,
+    RowWriter,
+    check_combination,
+    check_scalars,
+    check_size,
+    parse_index,
+)
 from ._predict_gloss import add_gloss_options, check_gloss, check_not_gloss, run_gloss
 
 CSV_START = b"wedge_deg,wavelength_nm,n,"
 """How every CSV `predict` writes begins (its header); `--force` replaces only such a file."""
-
-
-class _RowWriter(Protocol):
-    """What `csv.writer` returns, as far as this module uses it."""
-
-    def writerow(self, row: Iterable[object], /) -> object: ...
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -201,7 +202,7 @@ def _check_table_size(
 
 
 def _write_lobes(
-    w: _RowWriter, b2: np.ndarray, lam: np.ndarray, n_lam: np.ndarray, theta_i: np.ndarray
+    w: RowWriter, b2: np.ndarray, lam: np.ndarray, n_lam: np.ndarray, theta_i: np.ndarray
 ) -> None:
     """The three sharp lobes of every (wedge, wavelength, theta_i) [conventions §3]."""
     from stairfit import model
@@ -240,7 +241,7 @@ def _write_lobes(
 
 
 def _write_diffuse(
-    w: _RowWriter,
+    w: RowWriter,
     b2: np.ndarray,
     lam: np.ndarray,
     n_lam: np.ndarray,
@@ -285,7 +286,7 @@ def _write_diffuse(
 
 
 def _write_density(
-    w: _RowWriter,
+    w: RowWriter,
     b2: np.ndarray,
     lam: np.ndarray,
     n_lam: np.ndarray,
@@ -427,7 +428,7 @@ def _rounded_density(
 
 
 def _write_rounded_paths(
-    w: _RowWriter,
+    w: RowWriter,
     b2: np.ndarray,
     lam: np.ndarray,
     n_lam: np.ndarray,

@@ -21,7 +21,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from .. import __version__
 from .._signals import Terminated
@@ -29,6 +29,9 @@ from ..errors import UserError
 from ..fileio import resolved
 from ..scene import SCENE_FILE
 from ._study_task import FAILED, FITTED, INTERRUPTED, LEDGER_DIR, SKIPPED, FolderReport, FolderTask
+
+if TYPE_CHECKING:
+    from distributed import Client, Future, LocalCluster
 
 CONNECT_TIMEOUT_S = 20
 """How long to wait for an existing scheduler to answer."""
@@ -50,7 +53,7 @@ SKIP_DIRS = frozenset({".stairfit-cache", LEDGER_DIR})
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the `study` command (with every option of `fit`, which pass through)."""
-    from .fit import add_fit_options
+    from ._fit_options import add_fit_options
 
     shared = argparse.ArgumentParser(add_help=False)
     add_fit_options(shared)
@@ -149,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
 
 def plan_study(args: argparse.Namespace) -> StudyPlan:
     """Options, folders and tasks, every user mistake caught before a cluster starts."""
-    from .fit import options_from_args
+    from ._fit_options import options_from_args
 
     options = options_from_args(args)
     if args.workers != 1:
@@ -353,7 +356,7 @@ def prepare_output(out: Path) -> None:
 
 
 @contextmanager
-def connect(plan: StudyPlan) -> Iterator[Any]:
+def connect(plan: StudyPlan) -> Iterator[Client]:
     """A Dask client: of the given scheduler, or of a local cluster made (and closed) here."""
     from distributed import Client
 
@@ -379,7 +382,7 @@ def connect(plan: StudyPlan) -> Iterator[Any]:
 
 
 @contextmanager
-def local_cluster(n_workers: int, quiet: bool = False) -> Iterator[Any]:
+def local_cluster(n_workers: int, quiet: bool = False) -> Iterator[LocalCluster]:
     """`n_workers` spawned worker processes of one thread each, no dashboard, quiet logs (only
     errors; with `quiet` only critical ones)."""
     import dask
@@ -399,7 +402,7 @@ def local_cluster(n_workers: int, quiet: bool = False) -> Iterator[Any]:
         cluster.close()
 
 
-def run_tasks(client: Any, plan: StudyPlan, reports: list[FolderReport]) -> None:
+def run_tasks(client: Client, plan: StudyPlan, reports: list[FolderReport]) -> None:
     """Submit every task and append the reports to `reports` as they finish (a bar of folders).
 
     The caller owns `reports`, so that on Ctrl-C (`KeyboardInterrupt` carries on up) it still
@@ -434,8 +437,11 @@ def where(plan: StudyPlan) -> str:
 
 
 def completed(
-    client: Any, futures: dict[Any, FolderTask], cluster: str, worker_loss_s: float | None = None
-) -> Iterator[Any]:
+    client: Client,
+    futures: dict[Future, FolderTask],
+    cluster: str,
+    worker_loss_s: float | None = None,
+) -> Iterator[Future]:
     """The futures as they finish; `WorkersLostError` once the cluster has had no worker for
     `worker_loss_s` (default `WORKER_LOSS_S`) while some are still pending."""
     from distributed import as_completed
@@ -461,7 +467,7 @@ def completed(
             time.sleep(POLL_S)
 
 
-def _worker_count(client: Any) -> int:
+def _worker_count(client: Client) -> int:
     """How many workers the scheduler knows now (0 when it cannot be asked)."""
     try:
         return len(client.scheduler_info().get("workers", {}))
@@ -469,7 +475,7 @@ def _worker_count(client: Any) -> int:
         return 0
 
 
-def collect(future: Any, task: FolderTask) -> FolderReport:
+def collect(future: Future, task: FolderTask) -> FolderReport:
     """The task's report, or a failure report when the task could not run at all."""
     if future.status == "finished":
         return future.result()

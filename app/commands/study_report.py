@@ -16,9 +16,14 @@ import math
 import re
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from ._study_task import FAILED, FITTED, INTERRUPTED, SKIPPED, FolderReport
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from .._jsontypes import JSONObject, Record
 
 Z95 = 1.959963984540054
 """The 97.5% quantile of the standard normal: a least-squares 95% interval is +- Z95 stderr."""
@@ -61,9 +66,9 @@ P_hi95 (the interval), P_stderr (least squares) and P_from (posterior, least_squ
 # --- rows -----------------------------------------------------------------------------------
 
 
-def parameter_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
+def parameter_cells(results: JSONObject) -> dict[str, Record]:
     """{name: {value, lo95, hi95, stderr, from}} of every free and fixed parameter."""
-    cells: dict[str, dict[str, Any]] = {}
+    cells: dict[str, Record] = {}
     for rec in results.get("parameters", []):
         ls, po = rec["least_squares"], rec.get("posterior")
         se = ls.get("stderr")
@@ -83,7 +88,7 @@ def parameter_cells(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
     return cells
 
 
-def study_row(report: FolderReport) -> dict[str, Any]:
+def study_row(report: FolderReport) -> Record:
     """One row of the study table: the folder, its status, fit, scene, metadata and run."""
     results = report.get("results") or {}
     scene = report.get("scene") or {}
@@ -92,7 +97,7 @@ def study_row(report: FolderReport) -> dict[str, Any]:
     ls = diagnostics.get("least_squares", {})
     # an up-to-date result's timings are those of the earlier run that fitted it
     timings = diagnostics.get("timings_s", {}) if report["status"] == FITTED else {}
-    row: dict[str, Any] = {
+    row: Record = {
         "folder": report["folder"],
         "output": report["output"] if results else "",
         "status": report["status"],
@@ -121,7 +126,7 @@ def study_row(report: FolderReport) -> dict[str, Any]:
     return row
 
 
-def columns(rows: Sequence[dict[str, Any]]) -> list[str]:
+def columns(rows: Sequence[Record]) -> list[str]:
     """Base columns, then metadata, then parameters (first appearance order), then the run."""
     seen = dict.fromkeys(key for row in rows for key in row)  # ordered, unique
     fixed = set(BASE_COLUMNS) | set(RUN_COLUMNS)
@@ -130,12 +135,12 @@ def columns(rows: Sequence[dict[str, Any]]) -> list[str]:
     return [*BASE_COLUMNS, *meta, *params, *RUN_COLUMNS]
 
 
-def sort_rows(reports: Sequence[FolderReport]) -> list[dict[str, Any]]:
+def sort_rows(reports: Sequence[FolderReport]) -> list[Record]:
     """The rows of the table, in the order of the folders' paths."""
     return [study_row(r) for r in sorted(reports, key=lambda r: r["folder"])]
 
 
-def csv_text(rows: Sequence[dict[str, Any]]) -> str:
+def csv_text(rows: Sequence[Record]) -> str:
     """The study table as CSV text (empty cells for missing values)."""
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=columns(rows), restval="", lineterminator="\n")
@@ -145,7 +150,7 @@ def csv_text(rows: Sequence[dict[str, Any]]) -> str:
     return buf.getvalue()
 
 
-def _cell(v: Any) -> Any:
+def _cell(v: object) -> object:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return ""
     return v  # floats as repr: the shortest text that reads back exactly
@@ -167,14 +172,14 @@ def write_study(out: Path, reports: Sequence[FolderReport]) -> None:
         fh.write(study_html(rows, figures))
 
 
-def parameters_of(rows: Sequence[dict[str, Any]]) -> list[str]:
+def parameters_of(rows: Sequence[Record]) -> list[str]:
     """Parameters that some row fitted (not only fixed), in column order."""
     cols = columns(rows)
     names = [c for c in cols if f"{c}_from" in cols]
     return [n for n in names if any(r.get(f"{n}_from") not in (None, "fixed") for r in rows)]
 
 
-def plot_axes(rows: Sequence[dict[str, Any]]) -> list[tuple[str, bool]]:
+def plot_axes(rows: Sequence[Record]) -> list[tuple[str, bool]]:
     """The x axes worth a figure: (column, numeric) for layer_um and every metadata key whose
     values differ between specimens (strings: at most MAX_CATEGORIES groups)."""
     keys = ["layer_um", *[c for c in columns(rows) if c.startswith("meta.")]]
@@ -188,7 +193,7 @@ def plot_axes(rows: Sequence[dict[str, Any]]) -> list[tuple[str, bool]]:
     return axes
 
 
-def write_figures(rows: Sequence[dict[str, Any]], folder: Path) -> list[tuple[str, str]]:
+def write_figures(rows: Sequence[Record], folder: Path) -> list[tuple[str, str]]:
     """Every parameter per specimen, and against each varying x axis; [(title, file)]."""
     from ..figures import save
 
@@ -216,12 +221,12 @@ def write_figures(rows: Sequence[dict[str, Any]], folder: Path) -> list[tuple[st
 
 
 def parameter_figure(
-    rows: Sequence[dict[str, Any]],
+    rows: Sequence[Record],
     params: Sequence[str],
     x: Sequence[float],
     ticks: Sequence[str] | None,
     xlabel: str,
-) -> Any:
+) -> Figure:
     """One panel per parameter: value with its 95% interval against x (hollow = fixed)."""
     import matplotlib.pyplot as plt
     import numpy as np
@@ -252,11 +257,11 @@ def parameter_figure(
     return fig
 
 
-def _num(v: Any) -> float:
+def _num(v: object) -> float:
     return float(v) if isinstance(v, int | float) and not isinstance(v, bool) else math.nan
 
 
-def study_html(rows: Sequence[dict[str, Any]], figures: Sequence[tuple[str, str]]) -> str:
+def study_html(rows: Sequence[Record], figures: Sequence[tuple[str, str]]) -> str:
     """One page: the counts, the figures and the table with links to every folder's report."""
     e = html.escape
     params = parameters_of([r for r in rows if r["status"] in (FITTED, SKIPPED)])
@@ -279,7 +284,7 @@ least squares) with the 95% interval; every column in study.csv; rules in docs/s
 """
 
 
-def _html_row(row: dict[str, Any], params: Sequence[str], meta: Sequence[str]) -> str:
+def _html_row(row: Record, params: Sequence[str], meta: Sequence[str]) -> str:
     e = html.escape
     folder = e(row["folder"])
     link = f"<a href='{e(row['output'])}/report.html'>{folder}</a>" if row["output"] else folder

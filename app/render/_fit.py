@@ -11,19 +11,23 @@ import json
 import math
 import warnings
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 from stairfit.errors import StairfitWarning, UserError
 
 from ._material import Material
+
+if TYPE_CHECKING:
+    from stairfit._jsontypes import JSONObject
+    from stairfit.scene import Scene
 
 
 class FitFolder(NamedTuple):
     """A fit folder read for rendering: its results, the scene and the material."""
 
     folder: Path
-    results: dict[str, Any]
-    scene: Any  # stairfit.scene.Scene
+    results: JSONObject
+    scene: Scene
     material: Material
 
 
@@ -41,7 +45,7 @@ def photo_folder(fit: Path, photos: Path | None) -> Path:
     )
 
 
-def read_results(fit: Path) -> dict[str, Any]:
+def read_results(fit: Path) -> JSONObject:
     """`fit/results.json`, or UserError naming what is wrong."""
     path = fit / "results.json"
     if not path.is_file():
@@ -73,11 +77,11 @@ def read_fit(fit: str | Path, photos: str | Path | None = None) -> FitFolder:
     return FitFolder(fit, results, scene, material_from_results(results, scene))
 
 
-def _value(record: dict[str, Any]) -> float:
+def _value(record: JSONObject) -> float:
     return float(record["least_squares"]["value"])
 
 
-def material_from_results(results: dict[str, Any], scene: Any) -> Material:
+def material_from_results(results: JSONObject, scene: Scene) -> Material:
     """The material a fit found (docs/render.md, "From a fit"): the kernel of
     `directions.facets` ("gaussian" for an in-plane fit), the widths (per wedge when fitted per
     wedge), the edge radius, the index per channel (`spectral.index_n`, `index_k`) plus

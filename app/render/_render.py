@@ -16,7 +16,8 @@ import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NamedTuple
+from types import ModuleType
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,6 +30,11 @@ from ._material import Material
 from ._mesh import bounding_sphere, printed_parts, read_obj
 from ._rgl import DEFAULT_RESOLUTION, Resolution, description, write_bsdf
 from ._tensorfile import read_tensor_file
+
+if TYPE_CHECKING:
+    from stairfit._jsontypes import Record
+    from stairfit.imaging import RawFrame
+    from stairfit.scene import Scene
 
 Progress = Callable[[str], None]
 
@@ -109,7 +115,7 @@ def _description(path: Path) -> str | None:
 # --- images ------------------------------------------------------------------------------------
 
 
-def develop(frame: Any, scale: float) -> NDArray:
+def develop(frame: RawFrame, scale: float) -> NDArray:
     """A photo as `(H/2, W/2, 3)` relative radiance (docs/imaging.md §Units, without the flat
     field): each 2 x 2 block of the colour mosaic one pixel (its red, the mean of its greens,
     its blue), `(DN - black) * scale`; a linear (demosaiced) file is averaged in 2 x 2 blocks."""
@@ -145,7 +151,7 @@ def to_png(img: NDArray, white: float, path: Path) -> Path:
     return atomic_bytes(path, data.tobytes())
 
 
-def to_exr(mi: Any, img: NDArray, path: Path) -> Path:
+def to_exr(mi: ModuleType, img: NDArray, path: Path) -> Path:
     """A float32 OpenEXR of an image (Mitsuba's writer)."""
     mi.Bitmap(np.ascontiguousarray(img, np.float32)).write(str(path))
     return path
@@ -175,10 +181,11 @@ def polygon_mean(img: NDArray, polygon: NDArray, erode_px: int = 2) -> list[floa
 
 
 def specimen_shapes(
-    mi: Any, scene: Any, tables: dict[float, Path], material: Material, plate_albedo: float,
-) -> dict[str, Any]:  # fmt: skip
+    mi: ModuleType, scene: Scene, tables: dict[float, Path], material: Material,
+    plate_albedo: float,
+) -> sc.MitsubaDict:  # fmt: skip
     """The wedges, plate and markers of the scene (no lamp)."""
-    shapes: dict[str, Any] = {}
+    shapes: sc.MitsubaDict = {}
     for w in scene.specimen.wedges:
         if w.face_mm is None:
             continue
@@ -198,7 +205,7 @@ def specimen_shapes(
     return shapes
 
 
-def check_specimen(scene: Any) -> None:
+def check_specimen(scene: Scene) -> None:
     """UserError unless the scene can be rendered as a specimen: wedges with `face_mm`,
     angles relative to the base, markers and a pinhole camera to place each photo."""
     where = f"{scene.path}"
@@ -216,7 +223,7 @@ def check_specimen(scene: Any) -> None:
 def render_specimen(
     fit: FitFolder, out: Path, options: RenderOptions = DEFAULT_OPTIONS,
     progress: Progress = lambda _: None, reuse: Path | None = None,
-) -> dict[str, Any]:  # fmt: skip
+) -> Record:  # fmt: skip
     """Render the fitted material on the photographed specimen from every photo's camera pose
     (from its markers, as `stairfit measure` finds it) under its lamp, next to the photo
     developed the same way; write everything into `out` (see the module's docstring) and
@@ -297,14 +304,14 @@ def _block_mean(img: NDArray, k: int) -> NDArray:
     return img[:h, :w].reshape(h // k, k, w // k, k, -1).mean(axis=(1, 3))
 
 
-def _options_record(options: RenderOptions) -> dict[str, Any]:
+def _options_record(options: RenderOptions) -> Record:
     rec = options._asdict()
     rec["resolution"] = options.resolution._asdict()
     rec["views"] = list(options.views)
     return rec
 
 
-def _write_json(path: Path, record: dict[str, Any]) -> None:
+def _write_json(path: Path, record: Record) -> None:
     from stairfit.fileio import atomic_bytes
 
     atomic_bytes(path, (json.dumps(record, indent=1) + "\n").encode("utf8"))
@@ -335,7 +342,7 @@ def render_mesh(
     material: Material, obj: Path, build_axis: NDArray, out: Path,
     options: RenderOptions = DEFAULT_OPTIONS, progress: Progress = lambda _: None,
     reuse: Path | None = None,
-) -> dict[str, Any]:  # fmt: skip
+) -> Record:  # fmt: skip
     """Render a printed object: the mesh `obj` (mm), each point with the staircase of its wedge
     angle from the build axis (`printed_parts`: tables every `step_deg` at most, blended
     between the two nearest by each vertex's angle), seen from 30 deg above the layer plane

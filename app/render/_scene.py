@@ -19,7 +19,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from types import ModuleType
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,6 +28,13 @@ from numpy.typing import NDArray
 from stairfit.errors import UserError
 
 from ._mesh import Mesh
+
+if TYPE_CHECKING:
+    from stairfit.imaging import CameraPose
+    from stairfit.scene import Photo, Scene
+
+MitsubaDict = dict[str, object]
+"""A Mitsuba scene description (what `mi.load_dict` takes): plugin fields and nested dicts."""
 
 PAPER_ALBEDO = 0.8
 INK_ALBEDO = 0.03
@@ -71,7 +79,7 @@ class Lamp(NamedTuple):
     reference_mm: float
 
 
-def camera_from_pose(pose: Any, width: int, height: int) -> Camera:
+def camera_from_pose(pose: CameraPose, width: int, height: int) -> Camera:
     """A `Camera` from `stairfit.imaging.CameraPose` (pinhole) of a `width` x `height` photo."""
     import cv2
 
@@ -81,7 +89,7 @@ def camera_from_pose(pose: Any, width: int, height: int) -> Camera:
                   (float(k[0, 2]), float(k[1, 2])), width, height)  # fmt: skip
 
 
-def scene_lamp(scene: Any, photo: Any) -> Lamp:
+def scene_lamp(scene: Scene, photo: Photo) -> Lamp:
     """The photo's lamp from the scene (docs/scene.md "A near lamp"): its position and size, or
     a distant light along `light_deg` [conventions §1]."""
     from stairfit.lab import reference_distance_mm
@@ -143,7 +151,7 @@ def wedge_solid(outline_mm: Sequence[Sequence[float]], beta2_deg: float) -> tupl
     return face, walls
 
 
-def marker_quads(scene: Any) -> list[tuple[NDArray, NDArray]]:
+def marker_quads(scene: Scene) -> list[tuple[NDArray, NDArray]]:
     """Each marker as (corners (4, 3) of its paper, 2 um above the base, counter-clockwise
     from above; its image, albedo (n, n)): the ArUco pattern of `[markers]` with one cell of
     white quiet zone around the black square's `corners_mm` (ArUco order: the printed image's
@@ -171,7 +179,7 @@ def marker_quads(scene: Any) -> list[tuple[NDArray, NDArray]]:
 # --- Mitsuba -----------------------------------------------------------------------------------
 
 
-def mitsuba(variant: str = "scalar_rgb", threads: int | None = None) -> Any:
+def mitsuba(variant: str = "scalar_rgb", threads: int | None = None) -> ModuleType:
     """Mitsuba with `variant` selected; UserError when it is not installed."""
     try:
         import drjit as dr
@@ -189,7 +197,7 @@ def mitsuba(variant: str = "scalar_rgb", threads: int | None = None) -> Any:
     return mi
 
 
-def mitsuba_mesh(mi: Any, name: str, mesh: Mesh, bsdf: dict[str, Any]) -> Any:
+def mitsuba_mesh(mi: ModuleType, name: str, mesh: Mesh, bsdf: MitsubaDict) -> object:
     """A Mitsuba mesh of our arrays (vertex normals, and texture coordinates if any)."""
     props = mi.Properties()
     props["bsdf"] = mi.load_dict(bsdf)
@@ -208,13 +216,13 @@ def mitsuba_mesh(mi: Any, name: str, mesh: Mesh, bsdf: dict[str, Any]) -> Any:
     return out
 
 
-def blend(first: dict[str, Any], second: dict[str, Any]) -> dict[str, Any]:
+def blend(first: MitsubaDict, second: MitsubaDict) -> MitsubaDict:
     """Two BSDFs blended by the mesh's per-vertex `weight` (0: the first, 1: the second)."""
     return {"type": "blendbsdf", "weight": {"type": "mesh_attribute", "name": "vertex_weight"},
             "bsdf_0": first, "bsdf_1": second}  # fmt: skip
 
 
-def diffuse(albedo: float | NDArray, mi: Any | None = None) -> dict[str, Any]:
+def diffuse(albedo: float | NDArray, mi: ModuleType | None = None) -> MitsubaDict:
     """A Lambertian BSDF: a grey albedo, or an (n, m) albedo image (linear, nearest texels)."""
     if np.ndim(albedo) == 0:
         return {"type": "diffuse", "reflectance": {"type": "rgb", "value": [float(albedo)] * 3}}
@@ -224,7 +232,7 @@ def diffuse(albedo: float | NDArray, mi: Any | None = None) -> dict[str, Any]:
     return {"type": "diffuse", "reflectance": tex}
 
 
-def lamp_shapes(lamp: Lamp) -> dict[str, Any]:
+def lamp_shapes(lamp: Lamp) -> MitsubaDict:
     """The lamp: a sphere of `diameter_mm` whose radiance gives the irradiance 1 (normal to the
     beam) at the reference distance, `1 / (pi (r / d_ref)^2)`; a distant light, a directional
     emitter of irradiance 1."""
@@ -254,7 +262,7 @@ def quad_mesh(corners: NDArray, up: NDArray | None = None) -> Mesh:
     return Mesh(np.asarray(corners, float), faces, np.tile(n, (4, 1)), uv)
 
 
-def sensor(mi: Any, cam: Camera, spp: int, seed: int = 0) -> Any:
+def sensor(mi: ModuleType, cam: Camera, spp: int, seed: int = 0) -> object:
     """Mitsuba's perspective sensor for our pinhole (box-filtered pixels). Mitsuba's camera
     looks along its +z with +x to the image's left and +y up; a ray through the film position
     `p` (in film widths and heights, pixel edges at integers) leaves as if through `p + offset`,
@@ -279,7 +287,7 @@ def sensor(mi: Any, cam: Camera, spp: int, seed: int = 0) -> Any:
     })  # fmt: skip
 
 
-def render(mi: Any, shapes: dict[str, Any], cam: Camera, spp: int, max_depth: int,
+def render(mi: ModuleType, shapes: MitsubaDict, cam: Camera, spp: int, max_depth: int,
            seed: int = 0, hide_emitters: bool = False) -> NDArray:  # fmt: skip
     """`(H, W, 3)` float64: the path tracer's image of `shapes` through `cam` (with
     `hide_emitters`, the emitters themselves, a sky, are black where seen directly)."""
@@ -289,6 +297,6 @@ def render(mi: Any, shapes: dict[str, Any], cam: Camera, spp: int, max_depth: in
     return np.array(img, dtype=np.float64)
 
 
-def measured(path: Path) -> dict[str, Any]:
+def measured(path: Path) -> MitsubaDict:
     """Mitsuba's `measured` BSDF of an RGL file."""
     return {"type": "measured", "filename": str(path)}

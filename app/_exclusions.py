@@ -11,7 +11,10 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Iterable
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from stairfit.imaging import MeasurementRow
 
 ADVICE: dict[str, str] = {
     "saturated": "shorten the exposures (or bracket them)",
@@ -35,7 +38,7 @@ ADVICE: dict[str, str] = {
 """The fix for each reason a row is not fitted."""
 
 
-def reasons(row: Any) -> list[str]:
+def reasons(row: MeasurementRow) -> list[str]:
     """The reasons one measurement row is not fitted (empty when it is used)."""
     if row.flag:
         return sorted(
@@ -47,7 +50,7 @@ def reasons(row: Any) -> list[str]:
     return [] if ok else ["not finite"]
 
 
-def count_reasons(rows: Iterable[Any]) -> Counter[str]:
+def count_reasons(rows: Iterable[MeasurementRow]) -> Counter[str]:
     """How many rows each reason excludes (a row may have several)."""
     counts: Counter[str] = Counter()
     for row in rows:
@@ -60,7 +63,9 @@ def describe(counts: Counter[str]) -> str:
     return ", ".join(f"{n} {reason}" for reason, n in counts.most_common())
 
 
-def advice(counts: Counter[str], rows: Iterable[Any] = (), block_px: int | None = None) -> str:
+def advice(
+    counts: Counter[str], rows: Iterable[MeasurementRow] = (), block_px: int | None = None
+) -> str:
     """The fixes for the reasons present, each once, most frequent reason first.
 
     With the rows and the scene's `extraction.block_px`, the fix for `few_blocks` names only
@@ -78,7 +83,7 @@ DEFAULT_BLOCK_PX = 2
 """`extraction.block_px` by default (one Bayer tile), the smallest it can be."""
 
 
-def _few_blocks_fix(rows: Iterable[Any], block_px: int | None) -> str:
+def _few_blocks_fix(rows: Iterable[MeasurementRow], block_px: int | None) -> str:
     """The cause and the fixes of `few_blocks` that apply to these rows."""
     flagged = [r for r in rows if "few_blocks" in r.flag.split(";")]
     text = ADVICE["few_blocks"]
@@ -90,7 +95,10 @@ def _few_blocks_fix(rows: Iterable[Any], block_px: int | None) -> str:
 
 
 def nothing_usable(
-    n_rows: int, counts: Counter[str], rows: Iterable[Any] = (), block_px: int | None = None
+    n_rows: int,
+    counts: Counter[str],
+    rows: Iterable[MeasurementRow] = (),
+    block_px: int | None = None,
 ) -> str:
     """The error when no row can be fitted: each reason with its count, its cause and the fix
     that applies (`advice`)."""

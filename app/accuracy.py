@@ -1,19 +1,27 @@
-"""Accuracy that follows the data (issue 13): after the fit, the preset's numerical error at the
-optimum against the `accurate` preset's knobs (`fitting.numerical_error`, one evaluation); when
-it exceeds `fitting.ACCURACY_LIMIT` (0.2 measurement standard errors, rms over the rows), the
-chosen variant is fitted again with the accurate knobs, started from its optimum — or, with the
-`fast` preset, a warning says so. docs/fitting.md §3 ("Numerical error at the optimum").
+"""Accuracy that follows the data (issue 13; `stairfit.pipeline.refine`): after the fit, the
+preset's numerical error at the optimum against the `accurate` preset's knobs
+(`fitting.numerical_error`, one evaluation); when it exceeds `fitting.ACCURACY_LIMIT` (0.2
+measurement standard errors, rms over the rows), the chosen variant is fitted again with the
+accurate knobs, started from its optimum — or, with the `fast` preset, a warning says so.
+docs/fitting.md §3 ("Numerical error at the optimum").
 """
 
 from __future__ import annotations
 
-import dataclasses
-from typing import Any, NamedTuple
+import time
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from .._memory import first_line, is_out_of_memory
-from ..presets import PRESETS, Preset
+from ._memory import first_line, is_out_of_memory
+from .fit_setup import fit_setup
+from .presets import PRESETS, Preset
+
+if TYPE_CHECKING:
+    from stairfit import fitting, model
+
+    from .fit_setup import Material
+    from .scene import Scene
 
 DEG = np.pi / 180
 REFERENCE = "accurate"
@@ -47,12 +55,12 @@ class AccuracyCheck(NamedTuple):
     `refitted`, `refit failed`); `elapsed_s` of the refit; `message` in words."""
 
     preset: str
-    error: Any
+    error: fitting.NumericalError | None
     action: str
     elapsed_s: float
     message: str
 
-    def record(self) -> dict[str, Any]:
+    def record(self) -> dict[str, object]:
         """results.json's `accuracy`."""
         e = self.error
         return {
@@ -78,12 +86,15 @@ LAB_NOT_CHECKED = (
 
 
 def check_accuracy(
-    scene: Any, observations: Any, selection: Any, preset: Preset
-) -> tuple[Any, AccuracyCheck]:
-    """The selection (its chosen fit refined when needed) and what the check did (module doc)."""
+    scene: Scene,
+    observations: fitting.Observations,
+    selection: fitting.Selection,
+    preset: Preset,
+    index: Material | None = None,
+) -> tuple[fitting.Selection, AccuracyCheck]:
+    """The selection (its chosen fit refined when needed) and what the check did (module doc);
+    `index`: the scene's index when the fit built it already."""
     from stairfit import fitting
-
-    from .fit import fit_setup
 
     if preset.name == REFERENCE:
         return selection, AccuracyCheck(preset.name, None, "none", 0.0,
@@ -91,10 +102,11 @@ def check_accuracy(
     if selection.fit.problem is not None and selection.fit.problem.lab is not None:
         return selection, AccuracyCheck(preset.name, None, "none", 0.0, LAB_NOT_CHECKED)
     ref = PRESETS[REFERENCE]
-    spectral, aperture = fit_setup(scene, ref)
+    reference = fit_setup(scene, ref, index)
+    spectral = reference.spectral
     resolution = fitting.Resolution(ref.rounded_resolution, ref.fillet_rays)
-    knobs = {"aperture": aperture, "resolution": resolution}
-    error = fitting.numerical_error(selection.fit, spectral, **knobs)
+    knobs = _Knobs(reference.aperture, resolution)
+    error = fitting.numerical_error(selection.fit, spectral, **knobs._asdict())
     if not error.exceeds:
         return selection, AccuracyCheck(preset.name, error, "none", 0.0, error.sentence())
     if preset.name == "fast":
@@ -106,13 +118,18 @@ def check_accuracy(
     return _refit(selection, observations, spectral, knobs, preset, error)
 
 
-def _refit(
-    selection: Any, observations: Any, spectral: Any, knobs: dict[str, Any], preset: Preset,
-    error: Any,
-) -> tuple[Any, AccuracyCheck]:  # fmt: skip
-    """The chosen variant fitted again with the reference knobs, from its own optimum."""
-    import time
+class _Knobs(NamedTuple):
+    """The reference's quadrature knobs, as `numerical_error` and `fit_least_squares` take them."""
 
+    aperture: model.Aperture
+    resolution: fitting.Resolution
+
+
+def _refit(
+    selection: fitting.Selection, observations: fitting.Observations, spectral: fitting.Spectral,
+    knobs: _Knobs, preset: Preset, error: fitting.NumericalError,
+) -> tuple[fitting.Selection, AccuracyCheck]:  # fmt: skip
+    """The chosen variant fitted again with the reference knobs, from its own optimum."""
     from stairfit import fitting
 
     t0 = time.perf_counter()
@@ -120,7 +137,7 @@ def _refit(
         fit = fitting.fit_least_squares(
             observations, spectral, selection.fit.requested, start_from=(selection.fit,),
             sigma_starts_rad=tuple(s * DEG for s in preset.sigma_starts_deg),
-            on_failure="flag", emit_warnings=False, **knobs,
+            on_failure="flag", emit_warnings=False, **knobs._asdict(),
         )  # fmt: skip
     except (MemoryError, RuntimeError) as err:  # XLA's allocation failures are RuntimeErrors
         if not is_out_of_memory(err):
@@ -136,10 +153,7 @@ def _refit(
     if not fit.success:
         message = f"{error.sentence()}; the refit with the accurate knobs failed ({fit.message})"
         return selection, AccuracyCheck(preset.name, error, "refit failed", elapsed, message)
-    refined = dataclasses.replace(
-        selection, fit=fit, assessment=fitting.describe_fit(fit),
-        fits={**selection.fits, selection.chosen: fit},
-    )  # fmt: skip
+    refined = selection.with_fit(fit)
     message = (
         f"{error.sentence()}; {selection.chosen!r} was fitted again with the accurate preset's "
         f"knobs in {elapsed:.0f} s (chi^2 {selection.fit.chi2:.5g} -> {fit.chi2:.5g}); the "

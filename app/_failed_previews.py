@@ -13,7 +13,10 @@ from __future__ import annotations
 import shutil
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from stairfit.imaging import PhotoSpec
 
 FAILED_PREVIEWS = "failed-previews"
 """The folder, inside the photo folder's cache folder, of the failed photos' previews."""
@@ -26,7 +29,7 @@ FAILED_CONTENTS = "markers found, ROIs given, pixel grid in raw coordinates for 
 def keep_previews(
     folder: Path,
     preview_dir: Path,
-    specs: Sequence[Any],
+    specs: Sequence[PhotoSpec],
     names: Iterable[str],
     contents: str = FAILED_CONTENTS,
 ) -> str:
@@ -37,7 +40,7 @@ def keep_previews(
     """
     from stairfit import imaging
 
-    from ..outputs import in_staging
+    from .outputs import in_staging
 
     if in_staging(folder):  # e.g. the demo's photos: the folder goes with the failed run
         return ""
