@@ -422,7 +422,7 @@ def _table_function(model: GlossModel, combos: _Combos, layer_um: float
         g = m.gloss(s, geo, az, model.kind, rounded=model.rounded)
         return jnp.stack([g.total, g.specular, g.body])
 
-    def table(vector: Any) -> Any:
+    def table(vector: jax.Array) -> jax.Array:
         return jax.lax.map(lambda c: one(vector, *c), (wedge, azimuth, geometry),
                            batch_size=COMBO_BATCH)  # fmt: skip
 
