@@ -126,16 +126,21 @@ def _evaluate_correlated(z: Array, static: Static, data: Data) -> Evaluation:
 def _linear_scale(z0: Array, static: Static, data: Data) -> Array:
     """`z0` with the log-scale slot set to the best scale for the other start values.
 
-    The model is linear in `scale`: `model = scale * A + floor * cos(theta_i)`, so the weighted
-    least-squares scale is `sum(w A (v - floor cos)) / sum(w A^2)`, `w = use / stderr^2`
-    (correlated rows: the same sums of the whitened `A` and `v - floor cos`, with the
-    measurement covariance alone). Only applied when the scale is free.
+    The model is linear in `scale`: `model = scale * A + B` (B the body reflection, e.g.
+    `floor * cos(theta_i)` in the plane; the lab model's is its own), so the weighted
+    least-squares scale is `sum(w A (v - B)) / sum(w A^2)`, `w = use / stderr^2` (correlated
+    rows: the same sums of the whitened `A` and `v - B`, with the measurement covariance
+    alone). `A` and `B` come from the model itself at scale 1 and 0. Only applied when the
+    scale is free.
     """
     k = static.layout.slot("scale")
-    d1 = data._replace(free=data.free.at[k].set(False), x_fixed=data.x_fixed.at[k].set(1.0))
-    m1, p = model_values(z0, static, d1)
-    base = p.floor * jnp.cos(data.theta_i)
-    a = m1 - base
+
+    def at_scale(x: float) -> Array:
+        d = data._replace(free=data.free.at[k].set(False), x_fixed=data.x_fixed.at[k].set(x))
+        return model_values(z0, static, d)[0]
+
+    base = at_scale(0.0)
+    a = at_scale(1.0) - base
     if static.correlated:
         chol = cholesky(None, data)
         wa, wb = whitened(a, chol, data), whitened(data.value - base, chol, data)
