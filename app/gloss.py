@@ -384,9 +384,9 @@ def out_of_plane_note(model: GlossModel, azimuth_deg: Sequence[float],
 
 COMBO_BATCH = 3
 """Surface-and-geometry combinations evaluated at once (`jax.lax.map`'s batch), and parameter
-vectors one at a time: a rounded microfacet surface holds about 350 MB of arrays per
-combination, so that vectorising a six-wedge table (18 combinations) took 6.5 GB, and the
-delta method's forward Jacobian or a batch of draws multiplied that past the machine's memory."""
+vectors one at a time: a rounded microfacet surface holds hundreds of MB of arrays per
+combination, so that a whole table vectorised, times the delta method's forward Jacobian or a
+batch of draws, exceeds a small machine's memory (benchmarks/results/lab_fit.md)."""
 
 
 class _Combos(NamedTuple):
