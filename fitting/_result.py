@@ -290,9 +290,11 @@ def _estimates(
 
 
 def _fitted_variant(requested: Variant, spec: FreeSpec) -> Variant:
-    """The variant as finally fitted: the spec's free set, per-wedge widths if any are left."""
+    """The variant as finally fitted: the spec's free set, per-wedge widths if any are left, and
+    the requested facet kernel."""
     own = spec.own_sigma - {w for w, _ in spec.fixed_sigma}
-    return Variant(requested.name, frozenset(spec.free), bool(own) and "sigma_rad" in spec.free)
+    return Variant(requested.name, frozenset(spec.free), bool(own) and "sigma_rad" in spec.free,
+                   requested.kernel)  # fmt: skip
 
 
 def _fitted_params(problem: Problem, core: CoreFit) -> Params:

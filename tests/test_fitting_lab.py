@@ -162,6 +162,7 @@ def test_a_lab_fit_recovers_a_microfacet_truth_and_chooses_its_kernel(lab_arrays
     assert min(v for k, v in deltas.items() if "ggx" not in k) > 100
     fit = fitting.fit_least_squares(problem, variant=fitting.variant("sharp+floor", "floor")
                                     ._replace(kernel="ggx"))  # fmt: skip
+    assert fit.variant.kernel == "ggx"  # the fitted variant keeps the requested kernel
     est = {e.param: e for e in fit.estimates}
     for name, value in (("sigma_rad", truth), ("scale", 3e5), ("floor", 30.0)):
         assert abs(est[name].value - value) < 4 * est[name].stderr, name
