@@ -134,22 +134,30 @@ def test_in_plane_gaussian_lab_is_the_in_plane_model_times_the_out_of_plane_peak
     np.testing.assert_allclose(np.asarray(spec_v)[:12, 0], expect, rtol=1e-12)
 
 
+def _lab_observations(lab_arrays, kernel: str, width: float, body_weight: float,
+                      rng: np.random.Generator | None = None, **grid) -> fitting.Observations:
+    """Rows of the lab scene made by the lab model itself (`3e5 x specular + body_weight x
+    body`), errors 0.5% + 0.5, with noise drawn from `rng` (none without it); `grid`: further
+    `lab_grid` arguments (e.g. `radius_um`)."""
+    geo, _, ld = lab_arrays
+    sp, body = lab_grid(jnp.full(ld.b2.shape, width), 0.0, ld, kernel, **grid)
+    ch = np.tile(np.arange(3), geo.key.size // 3)
+    value = np.asarray(3e5 * sp[geo.key, ch] + body_weight * body[geo.key, ch])
+    err = 0.005 * value + 0.5
+    noisy = value if rng is None else value + err * rng.normal(size=value.shape)
+    return fitting.Observations.from_arrays(
+        theta_i_rad=0.0, theta_o_rad=0.0, beta2_rad=np.deg2rad(WEDGES_DEG)[geo.wedge][geo.key],
+        layer_um=150.0, wedge_index=geo.wedge[geo.key], channel_index=ch, value=noisy, stderr=err,
+    )  # fmt: skip
+
+
 def test_a_lab_fit_recovers_a_microfacet_truth_and_chooses_its_kernel(lab_arrays):
     """Data made by the lab model itself (GGX facets, alpha = tan(3.4 deg)), 0.5% noise: the
     probe prefers GGX by a wide margin and recovers its width, scale and floor. (The
     independent checks are against the 3-D tracer and Mitsuba; this one checks the fit.)"""
-    geo, spec, ld = lab_arrays
+    geo, spec, _ = lab_arrays
     truth = np.deg2rad(3.4)
-    sp, body = lab_grid(jnp.full(ld.b2.shape, truth), 0.0, ld, "ggx")
-    ch = np.tile(np.arange(3), geo.key.size // 3)
-    value = np.asarray(3e5 * sp[geo.key, ch] + 30.0 * body[geo.key, ch])
-    err = 0.005 * value + 0.5
-    rng = np.random.default_rng(11)
-    obs = fitting.Observations.from_arrays(
-        theta_i_rad=0.0, theta_o_rad=0.0, beta2_rad=np.deg2rad(WEDGES_DEG)[geo.wedge][geo.key],
-        layer_um=150.0, wedge_index=geo.wedge[geo.key], channel_index=ch,
-        value=value + err * rng.normal(size=value.shape), stderr=err,
-    )  # fmt: skip
+    obs = _lab_observations(lab_arrays, "ggx", truth, 30.0, np.random.default_rng(11))
     problem = fitting.prepare(obs, spec, lab=geo)
     settings = _Settings(fitting.LeastSquaresOptions(on_failure="flag", emit_warnings=False),
                          False, lambda name: None)  # fmt: skip
@@ -173,15 +181,8 @@ def test_each_kernel_is_also_started_from_the_kernels_fitted_before_it(lab_array
     """A microfacet probe started from the widths alone ran off to a flat lobe (alpha and scale
     near 1e26) on the polarised physically based set and lost the kernel comparison for it:
     each kernel's starts include the optima of the kernels fitted before it at the probe."""
-    geo, spec, ld = lab_arrays
-    sp, body = lab_grid(jnp.full(ld.b2.shape, np.deg2rad(3.4)), 0.0, ld, "ggx")
-    ch = np.tile(np.arange(3), geo.key.size // 3)
-    value = np.asarray(3e5 * sp[geo.key, ch] + 30.0 * body[geo.key, ch])
-    obs = fitting.Observations.from_arrays(
-        theta_i_rad=0.0, theta_o_rad=0.0, beta2_rad=np.deg2rad(WEDGES_DEG)[geo.wedge][geo.key],
-        layer_um=150.0, wedge_index=geo.wedge[geo.key], channel_index=ch,
-        value=value, stderr=0.005 * value + 0.5,
-    )  # fmt: skip
+    geo, spec, _ = lab_arrays
+    obs = _lab_observations(lab_arrays, "ggx", np.deg2rad(3.4), 30.0)
     settings = _Settings(fitting.LeastSquaresOptions(on_failure="flag", emit_warnings=False),
                          False, lambda name: None)  # fmt: skip
     probe = fitting.variant("sharp+floor", "floor")
@@ -200,17 +201,10 @@ def test_kernels_are_probed_again_rounded_when_the_sharp_probe_misfits(lab_array
     probe misfits, so it ranks the kernels by how they hide the missing arcs; the kernels are
     probed again at `rounded+floor`, where GGX must win (issue 40: Mitsuba's rounded GGX
     staircase was fitted with Gaussian facets by the sharp probe alone)."""
-    geo, spec, ld = lab_arrays
+    geo, spec, _ = lab_arrays
     truth = np.deg2rad(3.4)
-    sp, body = lab_grid(jnp.full(ld.b2.shape, truth), 0.0, ld, "ggx", radius_um=25.0)
-    ch = np.tile(np.arange(3), geo.key.size // 3)
-    value = np.asarray(3e5 * sp[geo.key, ch] + 30.0 * body[geo.key, ch])
-    err = 0.005 * value + 0.5
-    obs = fitting.Observations.from_arrays(
-        theta_i_rad=0.0, theta_o_rad=0.0, beta2_rad=np.deg2rad(WEDGES_DEG)[geo.wedge][geo.key],
-        layer_um=150.0, wedge_index=geo.wedge[geo.key], channel_index=ch,
-        value=value + err * np.random.default_rng(12).normal(size=value.shape), stderr=err,
-    )  # fmt: skip
+    obs = _lab_observations(lab_arrays, "ggx", truth, 30.0, np.random.default_rng(12),
+                            radius_um=25.0)  # fmt: skip
     ladder = (fitting.variant("sharp+floor", "floor"),
               fitting.variant("rounded+floor", "edge_radius_um", "floor"))  # fmt: skip
     sel = fitting.select_model(fitting.prepare(obs, spec, lab=geo), ladder=ladder,
@@ -236,16 +230,9 @@ def test_the_linear_scale_start_uses_the_lab_models_own_body_term(lab_arrays, ke
     from stairfit.fitting import _core
     from stairfit.fitting._least_squares import spec_for
 
-    geo, spec, ld = lab_arrays
+    geo, spec, _ = lab_arrays
     width = np.deg2rad(3.4)
-    sp, body = lab_grid(jnp.full(ld.b2.shape, width), 0.0, ld, kernel)
-    ch = np.tile(np.arange(3), geo.key.size // 3)
-    value = np.asarray(3e5 * sp[geo.key, ch] + 3e3 * body[geo.key, ch])
-    obs = fitting.Observations.from_arrays(
-        theta_i_rad=0.0, theta_o_rad=0.0, beta2_rad=np.deg2rad(WEDGES_DEG)[geo.wedge][geo.key],
-        layer_um=150.0, wedge_index=geo.wedge[geo.key], channel_index=ch,
-        value=value, stderr=0.005 * value + 0.5,
-    )  # fmt: skip
+    obs = _lab_observations(lab_arrays, kernel, width, 3e3)
     fixed = fitting.Params(sigma_rad=width, floor=3e3)
     problem = fitting.prepare(obs, spec, lab=geo, fixed=fixed)
     v = fitting.variant("sharp+floor", "floor")._replace(kernel=kernel)
