@@ -31,7 +31,7 @@ from .fit_setup import FitSetup, fit_setup
 from .imaging_specs import CACHE_DIR, extraction_settings, measurement_cache, photo_specs
 from .outcome import FitOptions, FitOutcome, Observations, RowLabel
 from .presets import Preset
-from .scene import Scene
+from .scene import Scene, Specimen
 
 if TYPE_CHECKING:
     from stairfit import fitting, imaging
@@ -118,6 +118,7 @@ def fit(
     lab, reason, warning = lab_setup(scene, table)
     if reason is not None:
         notes.append(f"fitted with the lab model (3-D directions per face) because {reason}")
+        notes.extend(plate_notes(scene.specimen))
     if warning is not None:
         notes.append(warning)
         warnings.warn(warning, StairfitWarning, stacklevel=2)
@@ -381,6 +382,18 @@ def index_notes(scene: Scene, setup: FitSetup) -> list[str]:
         setup.index, name, spectral.wavelength_nm, spectral.weights, user="the fit"
     )
     return [message] if message else []
+
+
+def plate_notes(specimen: Specimen) -> list[str]:
+    """The note of a lab fit whose scene gives no plate albedo: the plate's reflected light is
+    then left out, which on a steep face seen from downhill is several per cent."""
+    if specimen.plate_albedo > 0.0:
+        return []
+    return [
+        "the light the plate reflects onto the faces is left out: give the plate's reflectance "
+        'as [specimen] plate_albedo (docs/scene.md "A near lamp"); it can be several per cent '
+        "of a steep face seen from downhill"
+    ]
 
 
 def lab_setup(

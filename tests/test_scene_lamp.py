@@ -87,3 +87,22 @@ def test_a_photo_gives_light_deg_or_a_lamp_point_not_both(tmp_path):
     data["photos"][1]["light_deg"] = 0.0
     with pytest.raises(UserError, match=r"photos\[1\].light_position_mm: give either light_deg"):
         _load(tmp_path, data)
+
+
+def test_the_plate_albedo_is_read_checked_and_a_fit_without_it_says_so(tmp_path):
+    """`[specimen] plate_albedo` (docs/scene.md "A near lamp"): default 0, which a lab fit
+    notes as the plate's light left out; outside [0, 1] a one-line error naming the field."""
+    from stairfit.pipeline import plate_notes
+
+    scene = _load(tmp_path, BASE)
+    assert scene.specimen.plate_albedo == 0.0
+    (note,) = plate_notes(scene.specimen)
+    assert "plate_albedo" in note
+    data = copy.deepcopy(BASE)
+    data["specimen"]["plate_albedo"] = 0.03
+    assert _load(tmp_path, data).specimen.plate_albedo == 0.03
+    assert plate_notes(_load(tmp_path, data).specimen) == []
+    data["specimen"]["plate_albedo"] = 1.5
+    with pytest.raises(UserError, match="specimen.plate_albedo") as err:
+        _load(tmp_path, data)
+    assert "\n" not in str(err.value)
