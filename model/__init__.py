@@ -78,6 +78,7 @@ from ._fillet import split_rays as split_rays
 # isort: split
 # Any pair of 3-D directions, Gaussian or microfacet facets (issue 40; docs/model.md §7).
 from ._lab import LAB_KERNELS as LAB_KERNELS
+from ._lab import PLATE_WIDTH_FLOOR_RAD as PLATE_WIDTH_FLOOR_RAD
 from ._lab import InPlane as InPlane
 from ._lab import Lobes3D as Lobes3D
 from ._lab import RoughRetro as RoughRetro
@@ -88,10 +89,9 @@ from ._lab import lab_density_gaussian as lab_density_gaussian
 from ._lab import lab_density_microfacet as lab_density_microfacet
 from ._lab import lab_lobes as lab_lobes
 from ._lab import line_gaussian as line_gaussian
-from ._lab import PLATE_WIDTH_FLOOR_RAD as PLATE_WIDTH_FLOOR_RAD
-from ._lab import plate_reflectance as plate_reflectance
 from ._lab import lit_fractions as lit_fractions
 from ._lab import lobe_fresnel_3d as lobe_fresnel_3d
+from ._lab import plate_reflectance as plate_reflectance
 from ._lab import projected_incidence as projected_incidence
 from ._lab import projected_view as projected_view
 from ._lab import retro_weight_rough as retro_weight_rough

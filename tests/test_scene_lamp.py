@@ -103,6 +103,6 @@ def test_the_plate_albedo_is_read_checked_and_a_fit_without_it_says_so(tmp_path)
     assert _load(tmp_path, data).specimen.plate_albedo == 0.03
     assert plate_notes(_load(tmp_path, data).specimen) == []
     data["specimen"]["plate_albedo"] = 1.5
-    with pytest.raises(UserError, match="specimen.plate_albedo") as err:
+    with pytest.raises(UserError, match=r"specimen\.plate_albedo") as err:
         _load(tmp_path, data)
     assert "\n" not in str(err.value)
