@@ -95,7 +95,7 @@ PHOTO_VARIANT = "sharp+floor"
 
 
 # --------------------------------------------------------------------------------------------
-# Statistics (pure functions; tests/test_coverage.py checks them)
+# Statistics (pure functions; tests/validation/test_coverage.py checks them)
 # --------------------------------------------------------------------------------------------
 
 

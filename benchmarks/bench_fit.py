@@ -14,7 +14,7 @@ or K = 1 effective wavelength) it times, in one run and after compilation (repor
 
 Optionally (`--calibration N`) it checks the coverage of the least-squares intervals on N small
 synthetic datasets and of the posterior intervals on N / 5 of them (the long versions of the
-calibration tests in tests/test_fitting_least_squares.py and tests/test_fitting_posterior.py).
+calibration tests in tests/fitting/test_least_squares.py and tests/fitting/test_posterior.py).
 
     python benchmarks/bench_fit.py [--repeats 7] [--sampling both] [--calibration 0] [--out f.md]
 """

@@ -13,7 +13,7 @@ a posterior's time on small scenes. The baseline is the earlier `log_prob`, repr
   are checked to be identical.
 
 Scenes: the calibration tests' small scene (2 wedges x 9 views, one channel, 18 rows; chains of
-20 tau as tests/test_fitting_posterior.py's short calibration) and the standard scene (6 wedges
+20 tau as tests/fitting/test_posterior.py's short calibration) and the standard scene (6 wedges
 x 19 views x 3 channels, 342 rows; the default stopping rule).
 
     python benchmarks/bench_posterior_calls.py [--repeats 5] [--out FILE]

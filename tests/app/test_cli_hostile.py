@@ -2,7 +2,7 @@
 
 Each case gives: no traceback, no silent wrong result, no deleted input, no leftover file, and
 one clear line (exit status 2 for a mistake in the input, 1 for a system error, 128 + N for a
-signal). The photo folders are copies of the small simulated folder of tests/test_cli_errors.py
+signal). The photo folders are copies of the small simulated folder of tests/app/test_cli_errors.py
 (3 photos of 0.5 MP); almost every case stops before any model is fitted, so no JAX
 compilation is needed.
 """

@@ -53,7 +53,7 @@ def test_density_csv_matches_the_model(capsys):
         "theta_o_deg",
         "sigma_deg",
         "edge_radius_um",
-        "fillet_radius_um",  # issue 15: 0 here (tests/test_predict_fillet.py has fillets)
+        "fillet_radius_um",  # issue 15: 0 here (tests/app/test_predict_fillet.py has fillets)
         "rho_per_rad",
     ]
     assert len(rows) == 2 * 2 * 3 * 13

@@ -154,7 +154,7 @@ def test_missing_calibration_file_is_named(folder: Path, capsys: pytest.CaptureF
 def test_a_dark_frame_that_is_a_device_is_refused_before_reading(
     folder: Path, capsys: pytest.CaptureFixture
 ) -> None:
-    """The hostile-input checks of photo files (tests/test_cli_hostile.py) cover every input
+    """The hostile-input checks of photo files (tests/app/test_cli_hostile.py) cover every input
     file: a dark frame that links to /dev/zero would otherwise be read forever."""
     (folder / "dark.dng").unlink()
     (folder / "dark.dng").symlink_to("/dev/zero")

@@ -1,6 +1,6 @@
 """`stairfit study` without a cluster: finding folders, result names, the resume rule, the table.
 
-The cluster runs are in tests/test_study.py; these check the rules they rely on, each against
+The cluster runs are in tests/app/test_study.py; these check the rules they rely on, each against
 values worked out here (hashes by hashlib, intervals by hand).
 """
 

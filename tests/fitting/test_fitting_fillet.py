@@ -49,8 +49,8 @@ def test_fit_forward_is_the_simulator_and_its_jacobian_the_differences(filleted_
     1.5 um steps to 10% (norm over the rows; measured 5-7%, the correction's quadrature noise at
     2048 rays), and in sigma and scale to 1e-6. One compiled program gives the values and the
     derivative along any direction (three programs took 51-73 s of the suite, issue 14); as for
-    the rounded model (tests/test_fitting_forward.py), the values, not the residuals, which are
-    built from them by the same code for every model (tests/test_fitting_whiten.py)."""
+    the rounded model (tests/fitting/test_forward.py), the values, not the residuals, which are
+    built from them by the same code for every model (tests/fitting/test_whiten.py)."""
     s = filleted_scene
     problem = _problem.prepare(s.obs, s.spec)
     spec = _problem.spec_for(FILLET, problem)
@@ -67,7 +67,7 @@ def test_fit_forward_is_the_simulator_and_its_jacobian_the_differences(filleted_
     m = both(z, zero)[0]
     np.testing.assert_allclose(m, clean, rtol=1e-10, atol=0)
     # the fillet shows: against the same program at r_f = 0, the rounded model exactly
-    # (tests/test_fillet_model.py; a rounded `model_radiance` would be one more compilation)
+    # (tests/model/test_fillet.py; a rounded `model_radiance` would be one more compilation)
     rounded = both(_z(problem, TRUTH._replace(fillet_radius_um=0.0)), zero)[0]
     assert np.max(np.abs(clean - np.asarray(rounded))) > 0.01 * np.max(clean)
 

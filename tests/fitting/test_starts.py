@@ -245,7 +245,7 @@ def test_a_model_error_term_creeping_to_zero_is_fixed_and_the_forced_fit_converg
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     from bench_demo_model_data import demo_observations, fit_pulls, truth_params
 
     obs, spectral, aperture, options, truth = demo_observations(12, Path(tmp_path))

@@ -289,7 +289,7 @@ def test_every_cell_of_the_study_grid_is_calibrated() -> None:
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     import bench_roi_errors as bench
 
     bad = []

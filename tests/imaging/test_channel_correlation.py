@@ -3,7 +3,7 @@
 A multiplicative texture is shared by R, G and B, so the three means of one ROI err together;
 pixel noise is independent per channel. `channel_corr` must tell the two apart, and
 `stairfit.pipeline.roi_correlations` must hand the ROI's `corr_*` to the fit (docs/fitting.md
-§Correlated channels; the whitening itself: tests/test_fitting_whiten.py).
+§Correlated channels; the whitening itself: tests/fitting/test_whiten.py).
 """
 
 from __future__ import annotations

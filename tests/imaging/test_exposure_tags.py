@@ -100,7 +100,7 @@ def test_synthetic_photo_writes_the_tags_where_asked(tmp_path: Path, where: str)
         photo.write_dng(tmp_path / "q.dng", exposure_tags="exif-ifd")
 
 
-@pytest.mark.parametrize("where", ["none"])  # "ifd0": tests/test_measure.py's folder
+@pytest.mark.parametrize("where", ["none"])  # "ifd0": tests/app/test_measure.py's folder
 def test_simulate_writes_the_tags_where_asked(where: str, tmp_path: Path) -> None:
     """`stairfit simulate --exposure-tags none`: no tags, the scene file gives the exposure."""
     import tomllib

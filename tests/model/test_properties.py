@@ -130,7 +130,7 @@ def test_diffuse_integrals_finite_bounded_and_differentiable(to, b2, n, s):
 @SETTINGS
 @given(ti=angles, to=angles, b2=beta2s, n=real_n, s=st.floats(np.deg2rad(0.5), 1.5))
 def test_float32_within_documented_bound(ti, to, b2, n, s):
-    # tests/test_float32.py: |rho32 - rho64| <= 5e-5 x max rho for sigma >= 0.5 deg; the peak
+    # tests/model/test_float32.py: |rho32 - rho64| <= 5e-5 x max rho for sigma >= 0.5 deg; the peak
     # density of one lobe is at most 1 / (sqrt(2 pi) sigma mass) with mass >= 1/2
     f64 = float(_BRDF(ti, to, b2, n, s))
     f32 = float(_BRDF(*(jnp.float32(x) for x in (ti, to, b2, n, s))))

@@ -1,6 +1,6 @@
-"""Property-based stability: what tests/test_properties.py leaves out of issue 7's list.
+"""Property-based stability: what tests/model/test_properties.py leaves out of issue 7's list.
 
-tests/test_properties.py covers `sharp_lobes`, `brdf` (real and complex n), the diffuse integrals
+tests/model/test_properties.py covers `sharp_lobes`, `brdf` (real and complex n), the diffuse integrals
 and the float32 bound of `brdf`. Added here, over the same domain (angles in [-90, 90] deg with
 the ends drawn on purpose, sigma from 1e-6 rad, n from 1.0001 to 3 and complex n):
 
@@ -12,7 +12,7 @@ the ends drawn on purpose, sigma from 1e-6 rad, n from 1.0001 to 3 and complex n
   [conventions §4, §5];
 * continuity of the broadened density across the regime boundaries, with a bound scaled to
   the step (the density's Lipschitz constant in theta_i);
-* the float32 bound of tests/test_float32.py for `band_density`;
+* the float32 bound of tests/model/test_float32.py for `band_density`;
 * the rounded-edge model: edge radius from 0 to `max_edge_radius`, finite values and gradients
   (few examples through one compiled function; it is slow to compile).
 
@@ -168,7 +168,7 @@ def test_broadened_density_continuous_across_regime_boundaries(data, b2, n, to, 
     lo, hi = (float(x) for x in _brdf_pair(edge, h, to, b2, n, s))
     # |d rho / d theta_i| <= sum over lobes of |d ratio| K + ratio |dK / d centre| + the
     # renormalisation's change; with K <= K_max = 2 / (sqrt(2 pi) s), |d ratio / d theta_i| <=
-    # 4 / min(sin, cos)(beta2) (tests/test_properties.py) and |dK / dc| <= (1 / s + 2 / s) K_max
+    # 4 / min(sin, cos)(beta2) (tests/model/test_properties.py) and |dK / dc| <= (1 / s + 2 / s) K_max
     # (Gaussian slope, and the truncation mass's own slope), each of 3 lobes:
     k_max = 2 / (np.sqrt(2 * np.pi) * s)
     lipschitz = 3 * k_max * (4 / min(np.sin(b2), np.cos(b2)) + 3 / s)
@@ -185,8 +185,8 @@ def _band(ti, to, b2, n, s):
 @SETTINGS
 @given(ti=angles, to=angles, b2=beta2s, n=real_n, s=st.floats(0.5 * DEG, 1.5))
 def test_band_density_float32_within_documented_bound(ti, to, b2, n, s):
-    # tests/test_float32.py: |rho32 - rho64| <= 5e-5 x max rho for sigma >= 0.5 deg; as in
-    # tests/test_properties.py, max rho <= 3 lobes x 2 / (sqrt(2 pi) sigma)
+    # tests/model/test_float32.py: |rho32 - rho64| <= 5e-5 x max rho for sigma >= 0.5 deg; as in
+    # tests/model/test_properties.py, max rho <= 3 lobes x 2 / (sqrt(2 pi) sigma)
     f64 = float(_band(*(jnp.float64(x) for x in (ti, to, b2, n, s))))
     f32 = _band(*(jnp.float32(x) for x in (ti, to, b2, n, s)))
     assert f32.dtype == jnp.float32

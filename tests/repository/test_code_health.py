@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "code_health.py"
+TOOL = Path(__file__).resolve().parents[2] / "tools" / "code_health.py"
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 APP = ROOT / "app"
 PACKAGE = "stairfit"
 COMMANDS = ("predict", "simulate", "init", "fit", "measure", "demo", "study", "render")

@@ -5,7 +5,7 @@ texture, vignetting and DNG writer. Here: the renderer is independent (its impor
 are what it says (DNG tags, IFD0 exposure tags, markers where its camera puts them, a focal
 length that gives back the camera pose), and stairfit's measurements of its photos agree with
 its truth within their standard errors once the flat field is applied. The fits of whole
-folders (issue 12's "Done when") are in tests/test_independent_fit.py.
+folders (issue 12's "Done when") are in tests/validation/test_independent_fit.py.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from stairfit import imaging
 from stairfit.imaging_specs import photo_specs
 from stairfit.scene import Camera, load_scene
 
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parents[1]  # tests/, where the renderer lives
 
 
 def scene_reads_intrinsics() -> bool:
@@ -198,7 +198,7 @@ def test_faces_placed_in_3d_from_the_markers_match_the_renderers_projection(
     (each back-projected onto the face), is the renderer's own mean over the same pixels within
     0.003 deg (0.0015 measured, the pose's tilt, the same for every face of a photo); taken at
     the face's centre it misses that mean by up to 0.013 deg (perspective: the near part of a
-    tilted face covers more pixels). The fast counterpart of tests/test_independent_fit.py's
+    tilted face covers more pixels). The fast counterpart of tests/validation/test_independent_fit.py's
     standing-layout fit."""
     setup = ip.standing_setup(flat_photos=0, write_intrinsics=True)
     rendered_setup = ip.render_folder(

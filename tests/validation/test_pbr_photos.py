@@ -22,7 +22,7 @@ pytest.importorskip("mitsuba", reason="mitsuba (a dev dependency) is not install
 
 import pbr_photos as pb
 
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parents[1]  # tests/, where the renderer lives
 VARIANTS = ("scalar_rgb", "scalar_spectral_polarized")
 
 

@@ -102,7 +102,7 @@ def test_fit_with_rois_placed_by_markers_alone_recovers_the_truth(folders, tmp_p
     assert "rounded" not in chosen, chosen
     names = {p["name"] for p in results["parameters"]}
     assert "edge_radius_um" not in names, names
-    # issue 12's criterion (as tests/test_independent_fit.py): a model-error term, if the
+    # issue 12's criterion (as tests/validation/test_independent_fit.py): a model-error term, if the
     # selection keeps one, below 1%. It keeps one of about 0.02% of the model (5 December; so
     # does the fit of the simulator's own ROIs, 0.018%), well within the misfit limit (0.17%)
     for rec in results["parameters"]:
