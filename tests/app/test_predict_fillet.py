@@ -58,10 +58,10 @@ def test_density_csv_is_wired_to_the_model(capsys):
     compilations of the filleted model: 74 and 120 s in two loaded runs of this file): in the
     default suite the CSV layout and the row-to-argument mapping, written by the same code for
     both models, are checked against the model for the rounded one
-    (tests/app/test_predict_rounded.py::test_density_csv_matches_the_model), and the filleted density
-    through the command line against the independent tracer's total and its `fillet_radius_um`
-    column (`test_density_with_fillets_integrates_to_the_tracer_total`) and at R = 0 against
-    the rounded table (`test_zero_fillet_is_the_rounded_table`)."""
+    (tests/app/test_predict_rounded.py::test_density_csv_matches_the_model), and the filleted
+    density through the command line against the independent tracer's total and its
+    `fillet_radius_um` column (`test_density_with_fillets_integrates_to_the_tracer_total`) and
+    at R = 0 against the rounded table (`test_zero_fillet_is_the_rounded_table`)."""
     code, out, err = _run(
         capsys,
         *("--wedge-deg", "30,60", "--theta-i-deg", "-20,10", "--theta-o-deg", "-50:50:25"),

@@ -94,8 +94,8 @@ def test_every_view_is_rendered_beside_its_photo(rendered) -> None:
     markers are where the photo shows them (the camera pose the markers gave: each marker's
     centre within half a pixel of the 300 x 200 px images),
     and each face's mean (renders.json) is the photo's within the model's own error against
-    the stepped mesh (up to 17% on these faces, tests/validation/test_render_specimen.py) and the draft
-    tables' (up to 15%), the median within 10%: a wrong unit, cosine or lamp would be off by
+    the stepped mesh (up to 17% on these faces, tests/validation/test_render_specimen.py) and the
+    draft tables' (up to 15%), the median within 10%: a wrong unit, cosine or lamp would be off by
     far more."""
     _photos, fit, setup, code = rendered
     assert code == 0

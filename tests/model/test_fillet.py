@@ -21,7 +21,8 @@ from stairfit.model import _fillet
 DEG = np.pi / 180
 HALF = np.pi / 2
 L1 = 150.0
-RAYS = 512  # enough for the properties here; accuracy is tests/validation/test_fillet_vs_raytrace.py
+# enough for the properties here; accuracy: tests/validation/test_fillet_vs_raytrace.py
+RAYS = 512
 _TO = jnp.linspace(-HALF, HALF, 37)
 _EDGES = jnp.linspace(-HALF, HALF, 91)
 
@@ -198,7 +199,7 @@ def test_broadening_keeps_the_reflected_power():
 
 
 @pytest.mark.slow  # three ray counts, three compilations (12 s); accuracy at the default
-def test_correction_converges_with_the_ray_count():  # count: tests/validation/test_fillet_vs_raytrace.py
+def test_correction_converges_with_the_ray_count():  # count: validation/test_fillet_vs_raytrace.py
     """Doubling the rays changes the total by less and less; 2048 (the default) against
     16384 within 1e-4 of the total (docs/rounded.md §11 has the table)."""
     ti, b2 = 40 * DEG, 30 * DEG

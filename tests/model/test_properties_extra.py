@@ -1,8 +1,8 @@
 """Property-based stability: what tests/model/test_properties.py leaves out of issue 7's list.
 
-tests/model/test_properties.py covers `sharp_lobes`, `brdf` (real and complex n), the diffuse integrals
-and the float32 bound of `brdf`. Added here, over the same domain (angles in [-90, 90] deg with
-the ends drawn on purpose, sigma from 1e-6 rad, n from 1.0001 to 3 and complex n):
+tests/model/test_properties.py covers `sharp_lobes`, `brdf` (real and complex n), the diffuse
+integrals and the float32 bound of `brdf`. Added here, over the same domain (angles in [-90, 90]
+deg with the ends drawn on purpose, sigma from 1e-6 rad, n from 1.0001 to 3 and complex n):
 
 * wedge angles right at the open ends of (0, 90) deg (1e-9 rad from either end);
 * complex n in the lobes (Fresnel factors in [0, 1], gradients in n' and k);
@@ -168,8 +168,8 @@ def test_broadened_density_continuous_across_regime_boundaries(data, b2, n, to, 
     lo, hi = (float(x) for x in _brdf_pair(edge, h, to, b2, n, s))
     # |d rho / d theta_i| <= sum over lobes of |d ratio| K + ratio |dK / d centre| + the
     # renormalisation's change; with K <= K_max = 2 / (sqrt(2 pi) s), |d ratio / d theta_i| <=
-    # 4 / min(sin, cos)(beta2) (tests/model/test_properties.py) and |dK / dc| <= (1 / s + 2 / s) K_max
-    # (Gaussian slope, and the truncation mass's own slope), each of 3 lobes:
+    # 4 / min(sin, cos)(beta2) (tests/model/test_properties.py) and |dK / dc| <= (1 / s + 2 / s)
+    # K_max (Gaussian slope, and the truncation mass's own slope), each of 3 lobes:
     k_max = 2 / (np.sqrt(2 * np.pi) * s)
     lipschitz = 3 * k_max * (4 / min(np.sin(b2), np.cos(b2)) + 3 / s)
     assert abs(hi - lo) <= 2 * h * lipschitz + 1e-12

@@ -1,8 +1,8 @@
 """A filleted fit of data the model did not make: the independent ray tracer's (issue 15).
 
-The fillet rung's other tests fit data from `stairfit.model` (tests/fitting/test_fitting_fillet.py) or
-from stairfit's own photo simulator (tests/app/test_simulate_fillet_render.py): the fit and the data
-share the tracer of model/_fillet.py. Here the rows of the standard scene (6 wedges 10-60 deg x
+The fillet rung's other tests fit data from `stairfit.model` (tests/fitting/test_fitting_fillet.py)
+or from stairfit's own photo simulator (tests/app/test_simulate_fillet_render.py): the fit and the
+data share the tracer of model/_fillet.py. Here the rows of the standard scene (6 wedges 10-60 deg x
 19 views, `theta_i = 20 deg`, one grey channel, `n = 1.46`) get their values from
 tests/raytrace.py (true circles, its own intersection code and Fresnel, 100 000 rays per
 wedge), broadened here by a Gaussian truncated to the hemisphere written from

@@ -114,8 +114,8 @@ def test_standing_wedges_fit_with_rois_from_the_markers(tmp_path: Path) -> None:
     """Wedges standing on the plate (`standing_setup`: each face rises along +x by its wedge
     angle, as `face_mm` is defined for scenes relative to the base), every ROI placed from the
     markers: the faces are not in the markers' plane, so this needs placement in 3-D with the
-    camera's focal length; the slow counterpart of tests/validation/test_independent_photos.py's fast
-    placement check. It failed (a strict xfail until 2026-12-03: sigma 6.0048 +- 0.0006, pull
+    camera's focal length; the slow counterpart of tests/validation/test_independent_photos.py's
+    fast placement check. It failed (a strict xfail until 2026-12-03: sigma 6.0048 +- 0.0006, pull
     +7.4) while every row took its view angle at the face's centre and its viewing spread from
     the scene's one `angular_extent_deg`: the ROI's pixels see the face at their own angles
     (mean up to 0.019 deg off the centre's) and a standing 60-deg face spans twice the

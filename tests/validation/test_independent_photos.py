@@ -198,8 +198,8 @@ def test_faces_placed_in_3d_from_the_markers_match_the_renderers_projection(
     (each back-projected onto the face), is the renderer's own mean over the same pixels within
     0.003 deg (0.0015 measured, the pose's tilt, the same for every face of a photo); taken at
     the face's centre it misses that mean by up to 0.013 deg (perspective: the near part of a
-    tilted face covers more pixels). The fast counterpart of tests/validation/test_independent_fit.py's
-    standing-layout fit."""
+    tilted face covers more pixels). The fast counterpart of
+    tests/validation/test_independent_fit.py's standing-layout fit."""
     setup = ip.standing_setup(flat_photos=0, write_intrinsics=True)
     rendered_setup = ip.render_folder(
         tmp_path, seed=11, megapixels=1.0, views=(-40.0, 10.0), setup=setup
