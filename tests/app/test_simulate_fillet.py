@@ -22,7 +22,6 @@ from test_scene import GOOD
 
 from stairfit import fitting, simulation
 from stairfit.cli import build_parser, main
-from stairfit.commands import _simulate_options as simulate
 from stairfit.errors import UserError
 from stairfit.report import _truth_html, truth_records
 from stairfit.scene import TRUTH_FIELDS, load_scene
@@ -42,9 +41,12 @@ def _room_um(beta2_deg: float, layer_um: float = LAYER_UM) -> float:
     return min(layer_um, layer_um / math.tan(math.radians(beta2_deg)))
 
 
-def _settings(*flags: str) -> simulation.SimulationSettings:
-    args = build_parser("simulate").parse_args(["simulate", "OUT", *flags])
-    return simulate.settings_from_args(args)
+def _settings(edge_radius_um: float, fillet_radius_um: float) -> simulation.SimulationSettings:
+    """The simulator's settings with these radii, checked as `simulate` checks them."""
+    truth = simulation.Truth(edge_radius_um=edge_radius_um, fillet_radius_um=fillet_radius_um)
+    settings = simulation.SimulationSettings(truth=truth)
+    simulation.check_radii(settings)
+    return settings
 
 
 def test_truth_fields_match_the_simulator():
@@ -55,7 +57,7 @@ def test_truth_fields_match_the_simulator():
 def test_fillet_flag_lands_in_the_scene_truth(tmp_path):
     from stairfit._specimen_layout import SpecimenLayout
 
-    s = _settings("--edge-radius-um", "20", "--fillet-radius-um", "12.5")
+    s = _settings(20.0, 12.5)
     assert s.truth.fillet_radius_um == 12.5
     layout = SpecimenLayout(s.wedges_deg)
     photos = [{"file": f"p{k}.dng", "view_deg": v, "roi_px": {}} for k, v in enumerate(s.views_deg)]
@@ -67,17 +69,23 @@ def test_fillet_flag_lands_in_the_scene_truth(tmp_path):
     assert truth.sigma_deg == s.truth.sigma_deg and truth.scale == s.truth.scale
 
 
-def test_demo_takes_the_fillet_flag():
+def test_demo_takes_the_fillet_flag(tmp_path, capsys):
     args = build_parser("demo").parse_args(["demo", "OUT", "--fillet-radius-um", "7"])
-    assert simulate.settings_from_args(args).truth.fillet_radius_um == 7.0
+    assert args.fillet_radius_um == 7.0
+    # the flag reaches the simulator's settings: a fillet that does not fit is refused there
+    out = tmp_path / "demo"
+    status = main(["demo", str(out), "--megapixels", "0.5", "--fillet-radius-um", "87"])
+    err = capsys.readouterr().err
+    assert status == USER_ERROR and "r + r_f <= min(l1, l2) = 86.6025 um" in err, err
+    assert not out.exists()
 
 
 def test_the_largest_fillet_is_the_closed_form():
     r = 30.0
     largest = _room_um(FINEST_DEG) - r  # 150 cot 60 deg - 30 = 56.60 um
-    assert _settings("--edge-radius-um", "30", "--fillet-radius-um", repr(largest))
+    assert _settings(30.0, largest)
     with pytest.raises(UserError, match=r"give at most 56\.6025"):
-        _settings("--edge-radius-um", "30", "--fillet-radius-um", repr(largest * (1 + 1e-9)))
+        _settings(30.0, largest * (1 + 1e-9))
 
 
 @pytest.mark.parametrize(

@@ -300,7 +300,7 @@ def test_a_study_ends_when_the_only_worker_of_its_cluster_dies(
     # issue 42 case 8: a worker started without a nanny died mid-task; the study waited forever
     import threading
 
-    from stairfit.commands import study
+    from stairfit import study
 
     monkeypatch.setattr(study, "WORKER_LOSS_S", 5.0)
     bin_dir = Path(sys.executable).parent

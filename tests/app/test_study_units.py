@@ -16,19 +16,19 @@ import tomli_w
 from test_scene import GOOD
 
 from stairfit import __version__
-from stairfit.commands._study_task import (
+from stairfit.errors import UserError
+from stairfit.outcome import FitOptions
+from stairfit.presets import get_preset
+from stairfit.scene import load_scene
+from stairfit.study import find_folders, output_name, output_names, prepare_output
+from stairfit.study_report import Z95, csv_text, parameter_cells, study_row
+from stairfit.study_task import (
     FolderTask,
     input_fingerprint,
     replaced_note,
     up_to_date,
     write_ledger,
 )
-from stairfit.commands.study import find_folders, output_name, output_names, prepare_output
-from stairfit.commands.study_report import Z95, csv_text, parameter_cells, study_row
-from stairfit.errors import UserError
-from stairfit.outcome import FitOptions
-from stairfit.presets import get_preset
-from stairfit.scene import load_scene
 
 OPTIONS = FitOptions(get_preset("balanced"), False, "sharp", True, 0, 1, True, False)
 
@@ -252,7 +252,7 @@ def test_a_cluster_that_lost_its_last_worker_ends_the_wait() -> None:
 
     from distributed import Client, LocalCluster
 
-    from stairfit.commands import study
+    from stairfit import study
 
     with (
         LocalCluster(n_workers=1, processes=False, threads_per_worker=1, dashboard_address=None,
@@ -271,7 +271,7 @@ def test_a_cluster_that_lost_its_last_worker_ends_the_wait() -> None:
 
 def test_an_internal_error_keeps_its_traceback_in_a_file(tmp_path: Path) -> None:
     # issue 42: `study --quiet` printed thousands of lines of worker tracebacks
-    from stairfit.commands._study_task import LEDGER_DIR, describe_error
+    from stairfit.study_task import LEDGER_DIR, describe_error
 
     task = FolderTask(tmp_path / "a", tmp_path / "out", "a-12345678", OPTIONS, False, None, "0")
     (tmp_path / "out" / LEDGER_DIR).mkdir(parents=True)

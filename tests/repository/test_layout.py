@@ -1,9 +1,10 @@
 """The layering of the `stairfit` package's own code (app/, issue 43): nothing but the CLI's entry
 imports a command module (the pipeline, simulation, explore and the report are libraries that
-commands call; the benchmarks call them too), no command imports another command, and the app's
-modules import each other without a cycle. Read from the source with `ast` (imports inside
-functions count; those under `if TYPE_CHECKING:` do not, as they never run); the checks are
-tried on small planted trees too, so that they can fail."""
+commands call; the benchmarks and the tests call them too), no command imports another command,
+and the app's modules import each other without a cycle; the tests sit in folders that mirror
+the packages (issue 43). Read from the source with `ast` (imports inside functions count; those
+under `if TYPE_CHECKING:` do not, as they never run); the checks are tried on small planted
+trees too, so that they can fail."""
 
 from __future__ import annotations
 
@@ -159,6 +160,41 @@ def test_no_command_imports_another() -> None:
 
 def test_the_benchmarks_call_libraries_not_commands() -> None:
     assert script_command_imports(ROOT / "benchmarks") == []
+
+
+def test_the_tests_call_libraries_not_commands() -> None:
+    """A test calls the libraries, or runs the command line as a user does (`stairfit.cli`,
+    the console script in a subprocess); it never imports a command module."""
+    assert script_command_imports(ROOT / "tests") == []
+
+
+TEST_FOLDERS = ("model", "fitting", "imaging", "app", "validation", "repository")
+"""tests/: one folder per package (`app`: the `stairfit` package), `validation` for data made
+another way and `repository` for the repository as a whole (docs/testing.md)."""
+NAMED_TESTS = {
+    "fitting/_identify.py": "fitting/test_identify.py",
+    "fitting/_chain.py": "fitting/test_chain.py",
+    "imaging/_hdr.py": "imaging/test_hdr.py",
+    "imaging/_blockvar.py": "imaging/test_blockvar.py",
+    "imaging/_markers.py": "imaging/test_markers.py",
+    "app/outputs.py": "app/test_outputs.py",
+}
+"""Modules issue 43 found without a test named for them, and the test file now named for each."""
+
+
+def test_the_tests_sit_in_folders_that_mirror_the_packages() -> None:
+    tests = ROOT / "tests"
+    files = sorted(tests.rglob("test_*.py"))
+    assert sorted(p.name for p in tests.glob("test_*.py")) == []  # none left at the top
+    assert {p.parent.relative_to(tests).as_posix() for p in files} <= set(TEST_FOLDERS)
+    names = [p.name for p in files]  # no __init__.py: pytest needs the names unique
+    assert sorted(n for n in set(names) if names.count(n) > 1) == []
+
+
+def test_each_module_has_a_test_named_for_it() -> None:
+    for module, test in NAMED_TESTS.items():
+        assert (ROOT / module).is_file(), module
+        assert (ROOT / "tests" / test).is_file(), f"{module}: no {test}"
 
 
 def test_the_app_modules_import_each_other_without_a_cycle() -> None:

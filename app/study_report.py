@@ -1,6 +1,6 @@
 """The study table and page: `study.csv` (one row per specimen) and `study.html`.
 
-Built from the folders' reports (app/commands/_study_task.py), each carrying its results.json;
+Built from the folders' reports (app/study_task.py), each carrying its results.json;
 columns and figures are described in docs/study.md. Degrees in every column and on every axis
 [conventions §1]; a parameter's interval is its posterior 95% interval (2.5-97.5%), or, without
 a posterior, the least-squares value +- 1.96 standard errors.
@@ -18,12 +18,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ._study_task import FAILED, FITTED, INTERRUPTED, SKIPPED, FolderReport
+from .study_task import FAILED, FITTED, INTERRUPTED, SKIPPED, FolderReport
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from .._jsontypes import JSONObject, Record
+    from ._jsontypes import JSONObject, Record
 
 Z95 = 1.959963984540054
 """The 97.5% quantile of the standard normal: a least-squares 95% interval is +- Z95 stderr."""
@@ -161,7 +161,7 @@ def _cell(v: object) -> object:
 
 def write_study(out: Path, reports: Sequence[FolderReport]) -> None:
     """study.csv, the figures and study.html in OUT (each file replaced only when complete)."""
-    from ..outputs import atomic_text, staged_folder
+    from .outputs import atomic_text, staged_folder
 
     rows = sort_rows(reports)
     with atomic_text(out / "study.csv") as fh:
@@ -195,7 +195,7 @@ def plot_axes(rows: Sequence[Record]) -> list[tuple[str, bool]]:
 
 def write_figures(rows: Sequence[Record], folder: Path) -> list[tuple[str, str]]:
     """Every parameter per specimen, and against each varying x axis; [(title, file)]."""
-    from ..figures import save
+    from .figures import save
 
     done = [r for r in rows if r["status"] in (FITTED, SKIPPED)]
     params = parameters_of(done)
@@ -231,7 +231,7 @@ def parameter_figure(
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from ..figures import fixed_layout
+    from .figures import fixed_layout
 
     ncol = min(3, len(params))
     nrow = math.ceil(len(params) / ncol)

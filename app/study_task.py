@@ -1,6 +1,6 @@
 """One folder of a study, as it runs on a Dask worker: skip it if up to date, else fit it.
 
-The worker side of `stairfit study` (app/commands/study.py). A task never raises: every outcome, a
+The worker side of a study (app/study.py). A task never raises: every outcome, a
 failure included, comes back as a `FolderReport` (a plain dict, so that the client needs
 nothing of the worker's state). The fit itself is the pipeline of `stairfit fit`
 (`load_scene`, `check_photos`, `fit_scene` into a staged folder), so each folder's result is
@@ -30,13 +30,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, TypedDict
 
-from .. import __version__
-from ..errors import UserError
+from . import __version__
+from .errors import UserError
 
 if TYPE_CHECKING:
-    from .._jsontypes import JSONObject, JSONValue, Record
-    from ..outcome import FitOptions
-    from ..scene import Scene
+    from ._jsontypes import JSONObject, JSONValue, Record
+    from .outcome import FitOptions
+    from .scene import Scene
 
 LEDGER_DIR = ".stairfit-study"
 """Folder of OUT holding one ledger file per finished folder (its inputs' fingerprint)."""
@@ -117,7 +117,7 @@ def prepare_worker(task: FolderTask) -> str | None:
             f"this worker ({socket.gethostname()}) runs stairfit {__version__}, the study "
             f"stairfit {task.version}; install the same version on every worker"
         )
-    from .._jaxcache import ENV_VAR, enable_persistent_cache, fast_compile
+    from ._jaxcache import ENV_VAR, enable_persistent_cache, fast_compile
 
     fast_compile()  # a worker started by the user (a LocalCluster's inherit it from the study)
     import jax
@@ -129,9 +129,9 @@ def prepare_worker(task: FolderTask) -> str | None:
 
 def fit_or_skip(task: FolderTask) -> FolderReport:
     """The folder's status, scene summary and results (the fit runs only when needed)."""
-    from ..outputs import staged_folder
-    from ..pipeline import check_photos, fit_scene
-    from ..scene import load_scene
+    from .outputs import staged_folder
+    from .pipeline import check_photos, fit_scene
+    from .scene import load_scene
 
     scene = load_scene(task.folder)
     summary = scene_summary(scene)
@@ -182,7 +182,7 @@ def input_fingerprint(scene: Scene, options: FitOptions) -> JSONObject:
     Input files are named relative to the photo folder where they lie inside it (so that a
     study folder moved as a whole keeps its fingerprints), else by absolute path.
     """
-    from ..outcome import sha256_of
+    from .outcome import sha256_of
 
     files = {}
     for path in scene.input_files():
@@ -235,7 +235,7 @@ def replaced_note(dest: Path, ledger: Path, fingerprint: JSONObject, refit: bool
 
 def write_ledger(ledger: Path, task: FolderTask, fingerprint: JSONObject) -> None:
     """Record the fingerprint of the inputs `task.name` was fitted from (atomically)."""
-    from ..outputs import atomic_text
+    from .outputs import atomic_text
 
     record = {"folder": str(task.folder), "output": task.name, "fingerprint": fingerprint}
     with atomic_text(ledger) as fh:
@@ -251,7 +251,7 @@ def read_results(dest: Path) -> JSONObject | None:
 def describe_error(err: BaseException, task: FolderTask) -> str:
     """The one-line error of a failed folder, as `stairfit fit` would print it; the traceback
     of an internal error goes to a file beside the ledger (never to the study's terminal)."""
-    from ..errors import one_line
+    from .errors import one_line
 
     imaging = sys.modules.get("stairfit.imaging")
     if isinstance(err, UserError) or (imaging and isinstance(err, imaging.ImagingError)):
@@ -261,7 +261,7 @@ def describe_error(err: BaseException, task: FolderTask) -> str:
         return one_line(where + (err.strerror or str(err)))
     trace = task.out / LEDGER_DIR / f"{task.name}.error.txt"
     try:
-        from ..fileio import atomic_text
+        from .fileio import atomic_text
 
         with atomic_text(trace) as fh:
             fh.write("".join(traceback.format_exception(err)))
