@@ -1,4 +1,5 @@
-"""emcee posteriors: explicit seeds, reproducible chains, resumable chain files, calibration.
+"""emcee posteriors: explicit seeds, reproducible chains, moves, calibration (the chain file
+and resuming it: tests/fitting/test_chain.py).
 
 [conventions §9, §10]; the settings and the chain file format are in docs/fitting.md.
 """
@@ -43,38 +44,6 @@ def test_posterior_seed_is_recorded_and_reproducible(fit):
     np.testing.assert_array_equal(a.samples, b.samples)
     assert not np.array_equal(a.samples, c.samples)
     assert not a.converged and a.warnings[0].code == "chain_too_short"
-
-
-def test_chain_file_reloads_and_resume_continues_exactly(fit, tmp_path):
-    path = tmp_path / "chain.npz"
-    first = _short(fit, seed=3, max_steps=200, chain_path=path)
-    saved = fitting.load_chain(path)
-    assert saved["chain_z"].shape == (200, first.n_walkers, 4)
-    assert saved["chain"].shape == (200, first.n_walkers, 4)
-    assert saved["log_prob"].shape == (200, first.n_walkers)
-    assert tuple(saved["names"]) == fit.names and int(saved["seed"]) == 3
-    assert int(saved["format_version"]) == fitting.CHAIN_FORMAT_VERSION
-    assert not list(tmp_path.glob("*.tmp"))  # atomic write: no temporary file left behind
-    # resuming to 400 steps gives exactly the chain of one uninterrupted 400-step run
-    resumed = _short(fit, seed=999, max_steps=400, chain_path=path, resume=True)
-    assert resumed.seed == 3 and resumed.n_steps == 400
-    straight = _short(fit, seed=3, max_steps=400, chain_path=tmp_path / "straight.npz")
-    np.testing.assert_array_equal(
-        fitting.load_chain(path)["chain_z"],
-        fitting.load_chain(tmp_path / "straight.npz")["chain_z"],
-    )
-    np.testing.assert_array_equal(resumed.acceptance_per_walker, straight.acceptance_per_walker)
-
-
-def test_resume_refuses_a_different_fit_or_missing_file(fit, tmp_path):
-    path = tmp_path / "chain.npz"
-    _short(fit, seed=1, max_steps=100, chain_path=path)
-    obs, spec = _small(22)
-    other = fitting.fit_least_squares(obs, spec, VARIANT)
-    with pytest.raises(fitting.FitInputError, match="belongs to a different fit"):
-        fitting.sample_posterior(other, chain_path=path, resume=True)
-    with pytest.raises(fitting.FitInputError, match="does not exist"):
-        fitting.sample_posterior(fit, chain_path=tmp_path / "none.npz", resume=True)
 
 
 def test_posterior_converges_and_agrees_with_least_squares(fit):
