@@ -64,39 +64,20 @@ def test_predict_of_one_case_imports_little_and_compiles_two_programs(tmp_path):
 
 
 def test_fitting_without_a_posterior_does_not_import_emcee():
-    """emcee (and the SciPy it imports, about 1 s) is loaded only when a posterior is asked for:
-    `stairfit fit --no-posterior` and the report's module do not need it (issue 14)."""
+    """emcee (and the SciPy it imports, about 1 s) is loaded only when a posterior is asked for
+    (`stairfit.fitting.posterior`): `stairfit fit --no-posterior` and the report's module do not
+    need it (issue 14)."""
     code = (
         "import sys\n"
         "from stairfit import fitting, report\n"
         "before = sorted(m for m in ('emcee', 'scipy') if m in sys.modules)\n"
-        "fitting.sample_posterior, fitting.load_chain, fitting.PosteriorOptions\n"
-        "from stairfit.fitting import ChainBackend\n"
+        "from stairfit.fitting import posterior\n"
+        "posterior.sample_posterior, posterior.load_chain, posterior.PosteriorOptions\n"
+        "from stairfit.fitting.posterior import ChainBackend\n"
         "print(before, 'emcee' in sys.modules, ChainBackend.__module__)\n"
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert run.stdout.split() == ["[]", "True", "stairfit.fitting._chain"], run.stdout
-
-
-def test_prefetch_imports_in_a_thread_and_never_raises():
-    """The fit's late imports load in a daemon thread (app/_prefetch.py); a module that cannot
-    be imported there is skipped silently (the main thread's own import reports it)."""
-    code = (
-        "import sys\n"
-        "from stairfit import _prefetch\n"
-        "before = [m in sys.modules for m in ('emcee', 'arviz', 'h5netcdf', 'stairfit.report')]\n"
-        "t = _prefetch.prefetch((*_prefetch.FIT_MODULES, 'no_such_module_of_stairfit'))\n"
-        "named, daemon = t.name, t.daemon\n"
-        "t.join(300)\n"
-        "after = [m in sys.modules for m in ('emcee', 'arviz', 'h5netcdf', 'stairfit.report')]\n"
-        "print(before, after, t.is_alive(), named, daemon)\n"
-    )
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert run.stdout.strip().split(maxsplit=8) == [
-        "[False,", "False,", "False,", "False]", "[True,", "True,", "True,", "True]",
-        "False stairfit-imports True",
-    ], run.stdout  # fmt: skip
-    assert "Traceback" not in run.stderr, run.stderr
 
 
 def test_the_console_script_is_the_entry_that_freezes_the_heap_and_keeps_the_status(tmp_path):
@@ -125,21 +106,16 @@ def test_the_console_script_is_the_entry_that_freezes_the_heap_and_keeps_the_sta
 
 def test_only_the_console_script_freezes_what_it_imported():
     """`cli.main(freeze_imports=True)` (what `entry` runs) freezes the start-up's imports once
-    jax is set up, and a fit's `prefetch(..., freeze=True)` after each late import, so that
-    full collections do not walk them again; `main()` as tests and notebooks call it, and
-    `prefetch` by default, freeze nothing (what is frozen is never collected)."""
+    jax is set up, so that full collections do not walk them again; `main()` as tests and
+    notebooks call it freezes nothing (what is frozen is never collected)."""
     code = (
         "import gc, sys\n"
-        "from stairfit import _prefetch, cli\n"
+        "from stairfit import cli\n"
         "counts = []\n"
         "for freeze in (False, True):\n"
         "    gc.unfreeze()\n"
         "    status = cli.main(['fit', '/no/such/folder/of/stairfit'], freeze_imports=freeze)\n"
         "    counts.append((status, gc.get_freeze_count() > 0))\n"
-        "for freeze in (False, True):\n"
-        "    gc.unfreeze()\n"
-        "    _prefetch.prefetch(('json', 'csv'), freeze=freeze).join(60)\n"
-        "    counts.append(gc.get_freeze_count() > 0)\n"
         "print(counts)\n"
     )
     env = dict(os.environ, STAIRFIT_JAX_CACHE="off")
@@ -147,4 +123,4 @@ def test_only_the_console_script_freezes_what_it_imported():
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env
     )
     assert run.returncode == 0, run.stderr
-    assert run.stdout.strip() == "[(2, False), (2, True), False, True]", run.stdout
+    assert run.stdout.strip() == "[(2, False), (2, True)]", run.stdout

@@ -8,7 +8,7 @@ import pytest
 import zoo
 
 from stairfit import fitting
-from stairfit.fitting import _params
+from stairfit.fitting import _params, posterior
 
 DEG = np.pi / 180
 TRUTH = fitting.Params(sigma_rad=np.deg2rad([6.0, 9.0]), delta_n=0.02, scale=1.3, floor=0.003)
@@ -45,7 +45,7 @@ def test_fit_records_and_estimates_are_found_by_param_and_wedge():
     with pytest.raises(KeyError, match="edge_radius_um"):
         fit.estimate("edge_radius_um")
     # the posterior keeps the same records in the same order
-    post = fitting.sample_posterior(fit, chunk_steps=20, max_steps=20, emit_warnings=False)
+    post = posterior.sample_posterior(fit, chunk_steps=20, max_steps=20, emit_warnings=False)
     assert [(p.param, p.wedge) for p in post.parameters] == keys
     assert post.index("sigma_rad", 1) == 1
     assert post.chain.shape == (20, post.n_walkers, len(keys))
@@ -63,7 +63,7 @@ def test_options_objects_and_keywords_are_the_same_fit():
     with pytest.raises(TypeError, match="unknown least-squares option"):
         fitting.fit_least_squares(obs, spec, solvr="lm")
     with pytest.raises(TypeError, match="unknown posterior option"):
-        fitting.sample_posterior(a, max_stpes=10)
+        posterior.sample_posterior(a, max_stpes=10)
 
 
 def test_model_jacobian_matches_central_differences_of_the_model():

@@ -13,7 +13,7 @@ import pytest
 import zoo
 
 from stairfit import fitting
-from stairfit.fitting import _export
+from stairfit.fitting import _export, posterior
 
 DEG = np.pi / 180
 TRUTH = fitting.Params(sigma_rad=8 * DEG, delta_n=0.02, scale=1.0, floor=0.003)
@@ -45,7 +45,7 @@ def test_exported_fit_and_posterior_equal_the_traced_ones(cache_dir: Path) -> No
     posterior (XLA may fuse the exported module a little differently)."""
     jax.config.update("jax_compilation_cache_dir", None)
     plain = _fit()
-    post_plain = fitting.sample_posterior(
+    post_plain = posterior.sample_posterior(
         plain, seed=3, max_steps=200, chunk_steps=100, emit_warnings=False
     )
     jax.config.update("jax_compilation_cache_dir", str(cache_dir.parent))
@@ -58,7 +58,7 @@ def test_exported_fit_and_posterior_equal_the_traced_ones(cache_dir: Path) -> No
         np.testing.assert_allclose(f.z, plain.z, rtol=1e-10, atol=1e-12)
         np.testing.assert_allclose(f.chi2, plain.chi2, rtol=1e-10)
         np.testing.assert_allclose(f.stderrs, plain.stderrs, rtol=1e-8)
-    post = fitting.sample_posterior(
+    post = posterior.sample_posterior(
         second, seed=3, max_steps=200, chunk_steps=100, emit_warnings=False
     )
     assert any(p.name.startswith("log_probability-") for p in cache_dir.glob("*.bin"))

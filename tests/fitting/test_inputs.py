@@ -10,7 +10,7 @@ import pytest
 import zoo
 
 from stairfit import fitting
-from stairfit.fitting import FitError, FitInputError
+from stairfit.fitting import FitError, FitInputError, posterior
 
 DEG = np.pi / 180
 
@@ -180,4 +180,4 @@ def test_non_converging_fit_flagged_is_not_success(small_scene):
     assert "NOT CONVERGED" in fit.report()
     assert np.all(np.isfinite(fit.values))  # the values are finite, but flagged as failed
     with pytest.raises(FitError, match="converged least-squares fit"):
-        fitting.sample_posterior(fit)
+        posterior.sample_posterior(fit)

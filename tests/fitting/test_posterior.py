@@ -13,6 +13,7 @@ import pytest
 import zoo
 
 from stairfit import fitting
+from stairfit.fitting import posterior
 
 DEG = np.pi / 180
 TRUTH = fitting.Params(sigma_rad=8 * DEG, delta_n=0.02, scale=1.0, floor=0.003)
@@ -30,10 +31,10 @@ def fit() -> fitting.FitResult:
     return fitting.fit_least_squares(obs, spec, VARIANT)
 
 
-def _short(fit: fitting.FitResult, **kw) -> fitting.PosteriorResult:
+def _short(fit: fitting.FitResult, **kw) -> posterior.PosteriorResult:
     """A fixed-length chain (tau_factor so large that it never counts as converged)."""
     with pytest.warns(fitting.ConvergenceWarning, match="max_steps"):
-        return fitting.sample_posterior(fit, chunk_steps=100, tau_factor=1e9, **kw)
+        return posterior.sample_posterior(fit, chunk_steps=100, tau_factor=1e9, **kw)
 
 
 def test_posterior_seed_is_recorded_and_reproducible(fit):
@@ -49,7 +50,7 @@ def test_posterior_seed_is_recorded_and_reproducible(fit):
 def test_posterior_converges_and_agrees_with_least_squares(fit):
     with warnings.catch_warnings():
         warnings.simplefilter("error", fitting.ConvergenceWarning)
-        post = fitting.sample_posterior(fit, seed=5)
+        post = posterior.sample_posterior(fit, seed=5)
     assert post.converged and post.n_steps > 50 * post.tau_max
     assert post.n_independent > 1000
     assert 0.2 < post.acceptance_fraction < 0.7
@@ -72,12 +73,12 @@ def test_moves_are_named_validated_and_laplace_mixes_fastest(fit):
     laplace < de < stretch, which is why "laplace" is the default (docs/fitting.md §5: about 2
     against 13-17 and 50 steps on the demo scene)."""
     with pytest.raises(fitting.FitInputError, match="moves = 'walk'"):
-        fitting.sample_posterior(fit, moves="walk")
-    assert fitting.PosteriorOptions().moves == "laplace"
-    runs = {m: _short(fit, seed=2, max_steps=1000, moves=m) for m in fitting.MOVES}
+        posterior.sample_posterior(fit, moves="walk")
+    assert posterior.PosteriorOptions().moves == "laplace"
+    runs = {m: _short(fit, seed=2, max_steps=1000, moves=m) for m in posterior.MOVES}
     for m, post in runs.items():
         assert post.moves == m and f"{m} moves" in post.report()
-        assert fitting.MOVES[m] in post.inference_data().attrs["sampler"]
+        assert posterior.MOVES[m] in post.inference_data().attrs["sampler"]
         # 1000 steps are about 30 stretch-move tau: the medians agree with least squares
         assert np.all(np.abs(post.median - fit.values) < 0.3 * fit.stderrs), (m, post.median)
     tau = {m: post.tau_max for m, post in runs.items()}
@@ -99,7 +100,7 @@ def test_laplace_move_samples_its_target_exactly_whatever_the_proposal():
         out = 2.0 * np.log(np.where(a > 0, a, 1.0)) - a - 0.5 * ((b - a) / 0.5) ** 2
         return np.where(a > 0, out, -np.inf)
 
-    move = fitting.LaplaceMove(np.array([2.0, 2.5]), np.array([[1.0, 0.3], [0.3, 1.5]]))
+    move = posterior.LaplaceMove(np.array([2.0, 2.5]), np.array([[1.0, 0.3], [0.3, 1.5]]))
     rs = np.random.RandomState(11)
     start = move.draw(32, rs)
     start[:, 0] = np.abs(start[:, 0]) + 0.1
@@ -127,7 +128,7 @@ def test_laplace_move_visits_both_mirror_modes_of_a_sign_blind_coordinate():
         return -0.5 * x[:, 0] ** 2 - 0.5 * ((np.abs(x[:, 1]) - 2.0) / 0.3) ** 2
 
     def run(mirror: tuple[int, ...]) -> np.ndarray:
-        move = fitting.LaplaceMove(np.array([0.0, 2.0]), np.diag([1.0, 0.09]), mirror=mirror)
+        move = posterior.LaplaceMove(np.array([0.0, 2.0]), np.diag([1.0, 0.09]), mirror=mirror)
         rs = np.random.RandomState(5)
         start = move.draw(32, rs)
         start[:, 1] = np.abs(start[:, 1])
@@ -188,7 +189,7 @@ def _posterior_coverage(n_sets: int, seed0: int, **kw) -> tuple[float, float, fl
     for k in range(n_sets):
         obs, spec = _small(seed0 + k)
         f = fitting.fit_least_squares(obs, spec, VARIANT, emit_warnings=False)
-        post = fitting.sample_posterior(f, seed=k, emit_warnings=False, **kw)
+        post = posterior.sample_posterior(f, seed=k, emit_warnings=False, **kw)
         inside68.append((post.p16 <= t) & (t <= post.p84))
         inside95.append((post.p2_5 <= t) & (t <= post.p97_5))
         shift.append(np.max(np.abs(post.median - f.values) / f.stderrs))

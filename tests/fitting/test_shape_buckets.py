@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from stairfit import fitting
-from stairfit.fitting import _posterior, _problem
+from stairfit.fitting import _posterior, _problem, posterior
 from stairfit.fitting._whiten import group_arrays
 
 DEG = np.pi / 180
@@ -67,7 +67,7 @@ def _compiled() -> Iterator[list[str]]:
 def _fit_and_sample(obs: fitting.Observations, spec: fitting.Spectral) -> fitting.FitResult:
     fit = fitting.fit_least_squares(obs, spec, VARIANT, emit_warnings=False)
     assert fit.success, fit.message
-    fitting.sample_posterior(fit, seed=0, chunk_steps=20, max_steps=40, emit_warnings=False)
+    posterior.sample_posterior(fit, seed=0, chunk_steps=20, max_steps=40, emit_warnings=False)
     assert fit.laplace_log_evidence is not None
     return fit
 
