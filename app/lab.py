@@ -210,6 +210,7 @@ def lab_geometry(scene: Scene, rows: Sequence[MeasurementRow]) -> fitting.LabGeo
         irradiance=np.stack([pad(n[3], None) for n in per_key]),
         wedge=np.asarray(wedge_of, int),
         key=np.asarray(row_key, int),
+        plate_albedo=scene.specimen.plate_albedo,
     )
 
 

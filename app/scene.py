@@ -89,6 +89,9 @@ class Specimen:
     wedges: tuple[Wedge, ...]
     metadata: tuple[tuple[str, MetadataValue], ...] = ()
     """Free `[specimen.metadata]` (printer, nozzle temperature, ...): key = string or number."""
+    plate_albedo: float = 0.0
+    """Lambertian reflectance of the plate the wedges stand on: the lab model adds the plate's
+    light that the risers reflect into a downhill view (0: not modelled)."""
 
 
 @dataclass(frozen=True)
@@ -648,8 +651,9 @@ class _Reader:
 
 def _specimen(r: _Reader, d: RawTable) -> Specimen:
     w = "specimen"
-    r.table(d, w, ["layer_um", "material", "index", "wedges", "metadata"])
+    r.table(d, w, ["layer_um", "material", "index", "wedges", "metadata", "plate_albedo"])
     layer = r.get(d, "layer_um", float, w, lo=1.0, hi=10_000.0)
+    plate_albedo = r.get(d, "plate_albedo", float, w, default=0.0, lo=0.0, hi=1.0)
     if "index" in d and "material" in d:
         r.fail(f"{w}.index", "give either 'material' (a name) or an 'index' table, not both")
     if "index" in d:
@@ -688,7 +692,7 @@ def _specimen(r: _Reader, d: RawTable) -> Specimen:
     if dup:
         r.fail(f"{w}.wedges", f"duplicate wedge name(s) {sorted(dup)}; names must be unique")
     metadata = _metadata(r, d.get("metadata", {}), f"{w}.metadata")
-    return Specimen(layer, index, tuple(wedges), metadata)
+    return Specimen(layer, index, tuple(wedges), metadata, plate_albedo)
 
 
 def _truth(r: _Reader, d: object, specimen: Specimen | None) -> SceneTruth:

@@ -7,9 +7,12 @@ model its geometry is a set of nodes, each a pair of unit directions in the wedg
 (w_o . z)`: the node's share of the ROI's pixels (and of the lamp's disk) times the irradiance
 relative to the scene's reference distance, `(d_ref / d)^2`, times the radiance conversion of
 [conventions §11]. The model's value is then
-`sum over nodes of conv (scale p(w_i, w_o) + floor body(w_i, w_o))`, with `p` the staircase's
-reflected power per steradian and `body` its diffuse body per unit albedo
-(`stairfit.model.lab_body`). The channels of one ROI share its nodes (the geometry key).
+`sum over nodes of conv (scale p(w_i, w_o) + floor body(w_i, w_o)) + scale plate R(w_o)`, with `p`
+the staircase's reflected power per steradian, `body` its diffuse body per unit albedo
+(`stairfit.model.lab_body`) and `R` the share of the lit base plate's radiance that the risers
+reflect into the view (`stairfit.model.plate_reflectance`), `plate` the node's share times the
+plate's Lambertian radiance per unit `scale` (`plate_conv`). The channels of one ROI share its
+nodes (the geometry key).
 """
 
 from __future__ import annotations
@@ -41,6 +44,8 @@ class LabGeometry(NamedTuple):
     [conventions §11]; `weight` `(G, K)`, the node's share of the ROI and lamp (each key's sum
     1); `irradiance` `(G, K)`, the lamp's irradiance at the node relative to the reference
     distance (1 for a distant light). `wedge` `(G,)`. Per row (N): `key`, its geometry key.
+    `plate_albedo`: the Lambertian reflectance of the plate the wedges stand on (0: its
+    reflected light is not modelled).
     """
 
     w_i: NDArray
@@ -49,6 +54,7 @@ class LabGeometry(NamedTuple):
     irradiance: NDArray
     wedge: NDArray
     key: NDArray
+    plate_albedo: float = 0.0
 
     def check(self, n_rows: int) -> LabGeometry:
         """This geometry, or a `FitInputError` naming what is wrong."""
@@ -64,6 +70,8 @@ class LabGeometry(NamedTuple):
         for name in ("w_i", "w_o", "weight", "irradiance"):
             if not np.all(np.isfinite(getattr(self, name))):
                 raise FitInputError(f"lab geometry: {name} has non-finite entries")
+        if not 0.0 <= self.plate_albedo <= 1.0:
+            raise FitInputError(f"lab geometry: plate_albedo {self.plate_albedo} is not in [0, 1]")
         if np.any(self.key < 0) or np.any(self.key >= g):
             raise FitInputError("lab geometry: a row's key is outside 0 .. G-1")
         if not np.allclose(self.weight.sum(axis=1), 1.0, atol=1e-9):
@@ -75,8 +83,9 @@ class LabData(NamedTuple):
     """The traced arrays of the lab model (see `LabGeometry`): `w_i`, `w_o` `(G, K, 3)`, `conv`
     `(G, K)` (weight x irradiance x `(w_i . z) / (w_o . z)`), `b2`, `layer`, `wedge` `(G,)`, `key`
     `(N,)`; the distinct channels' index samples `n` and their summed weights `w` `(C', L)`
-    (`distinct_samples`, `distinct_channels`) and each channel's row of them, `channel` `(C,)`.
-    A scene without lab geometry carries one dummy key (never read)."""
+    (`distinct_samples`, `distinct_channels`) and each channel's row of them, `channel` `(C,)`;
+    `plate` `(G, K)` (`plate_conv`). A scene without lab geometry carries one dummy key (never
+    read)."""
 
     w_i: Float[Array, "G K 3"]
     w_o: Float[Array, "G K 3"]
@@ -88,6 +97,7 @@ class LabData(NamedTuple):
     n: Array
     w: Float[Array, "C L"]
     channel: Int[Array, " C"]
+    plate: Float[Array, "G K"]
 
 
 def distinct_channels(n: NDArray, w: NDArray) -> tuple[NDArray, NDArray, NDArray]:
@@ -129,7 +139,7 @@ def lab_data(
         up[..., 2] = 1.0
         return LabData(up, up, np.zeros((1, 1)), np.full(1, 0.5), np.full(1, 150.0),
                        np.zeros(1, int), np.zeros(n_rows, int), np.full((1, 1), 1.5),
-                       np.ones((1, 1)), np.zeros(1, int))  # fmt: skip
+                       np.ones((1, 1)), np.zeros(1, int), np.zeros((1, 1)))  # fmt: skip
     n, w, channel = distinct_channels(*distinct_samples(*spectral))
     cos_i = np.clip(geo.w_i[..., 2], 0.0, None)
     cos_o = np.maximum(geo.w_o[..., 2], COS_O_FLOOR)
@@ -141,10 +151,23 @@ def lab_data(
         return a if size == g else np.concatenate([a, np.repeat(a[-1:], size - g, axis=0)])
 
     wedge = np.asarray(geo.wedge, int)
+    b2 = np.asarray(beta2_w, float)[wedge]
+    plate = plate_conv(geo.w_i, geo.weight * geo.irradiance, b2, geo.plate_albedo)
     return LabData(
-        pad(geo.w_i), pad(geo.w_o), pad(conv), pad(np.asarray(beta2_w)[wedge]),
-        pad(np.asarray(layer_w)[wedge]), pad(wedge), np.asarray(geo.key, int), n, w, channel,
+        pad(geo.w_i), pad(geo.w_o), pad(conv), pad(b2), pad(np.asarray(layer_w)[wedge]),
+        pad(wedge), np.asarray(geo.key, int), n, w, channel, pad(plate),
     )  # fmt: skip
+
+
+def plate_conv(w_i: NDArray, share: NDArray, beta2: NDArray, albedo: float) -> NDArray:
+    """Each node's share (`weight x irradiance`, `(G, K)`) times the plate's Lambertian
+    radiance per unit irradiance and `scale`, `albedo / pi (w_i . z_plate)`, `z_plate` the
+    plate's normal in the face frame, which is the tread's (`stairfit.model.facet_normals`):
+    the plate in front of a wedge is taken as lit like the wedge's own foot, unshadowed
+    [conventions §2, §11]."""
+    z_plate = np.stack([np.sin(beta2), np.zeros_like(beta2), np.cos(beta2)], axis=-1)
+    cos_p = np.clip(np.einsum("gkj,gj->gk", w_i, z_plate), 0.0, None)
+    return share * albedo / np.pi * cos_p
 
 
 def roughness_alpha(width_rad: ArrayLike) -> Array:
@@ -249,6 +272,8 @@ def _lab_impl(
         p = model.lab_density_microfacet(w_i, w_o, b2, n, width, kernel, weights)
     body = (model.lab_body_rounded(w_i, w_o, b2, n, lab.layer[:, None, None], radius, weights)
             if rounded else model.lab_body(w_i, w_o, b2, n, weights))  # fmt: skip
-    spec = jnp.einsum("gk,gkc->gc", lab.conv, p)[:, lab.channel]
+    plate = model.plate_reflectance(w_o, b2, n, width_g[:, None, None], kernel, weights)
+    spec = (jnp.einsum("gk,gkc->gc", lab.conv, p) + jnp.einsum("gk,gkc->gc", lab.plate, plate))
+    spec = spec[:, lab.channel]
     diffuse = jnp.einsum("gk,gkc->gc", lab.conv, body)[:, lab.channel]
     return spec, diffuse

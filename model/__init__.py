@@ -88,6 +88,8 @@ from ._lab import lab_density_gaussian as lab_density_gaussian
 from ._lab import lab_density_microfacet as lab_density_microfacet
 from ._lab import lab_lobes as lab_lobes
 from ._lab import line_gaussian as line_gaussian
+from ._lab import PLATE_WIDTH_FLOOR_RAD as PLATE_WIDTH_FLOOR_RAD
+from ._lab import plate_reflectance as plate_reflectance
 from ._lab import lit_fractions as lit_fractions
 from ._lab import lobe_fresnel_3d as lobe_fresnel_3d
 from ._lab import projected_incidence as projected_incidence
@@ -103,6 +105,7 @@ from ._lab_rounded import rounded_arcs as rounded_arcs
 from ._lab_rounded import rounded_flats as rounded_flats
 from ._microfacet import DISTRIBUTIONS as DISTRIBUTIONS
 from ._microfacet import ndf as ndf
+from ._microfacet import slope_cdf as slope_cdf
 from ._microfacet import slope_marginal as slope_marginal
 from ._microfacet import smith_g1 as smith_g1
 from ._microfacet import smith_lambda as smith_lambda

@@ -22,14 +22,14 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.special import erf
+from jax.scipy.special import erf, erfc
 from jaxtyping import Array, ArrayLike, Float
 
 from ._broadening import hemisphere_gaussian
 from ._cell import facet_projections
 from ._fresnel import SP, fresnel_sp, fresnel_unpolarised
 from ._lobes import lobe_directions, lobe_weights
-from ._microfacet import DISTRIBUTIONS, ndf, smith_g1
+from ._microfacet import DISTRIBUTIONS, ndf, slope_cdf, smith_g1
 from ._shapes import same_rank, with_rank
 
 LAB_KERNELS: tuple[str, ...] = ("gaussian", *DISTRIBUTIONS)
@@ -574,3 +574,46 @@ def body_per_incidence(w_i: Array, w_o: Array, summed: Array) -> Array:
     up = jnp.broadcast_to((w_i[..., 2] > 0.0) & (w_o[..., 2] > 0.0), lead)
     cos_z = jnp.where(up, jnp.broadcast_to(w_i[..., 2], lead), 1.0)
     return jnp.where(up, summed / cos_z, 0.0)
+
+
+# --------------------------------------------------------------------------------------------
+# The plate's light
+# --------------------------------------------------------------------------------------------
+
+PLATE_WIDTH_FLOOR_RAD = 1e-4
+"""The smallest lobe width `plate_reflectance` uses at the horizon: a sharp lobe crossing it
+then switches within 0.01 deg, with finite derivatives."""
+
+
+def plate_reflectance(
+    w_o: ArrayLike,
+    beta2: ArrayLike,
+    n: ArrayLike,
+    width: ArrayLike,
+    kernel: str = "gaussian",
+    spectral_weight: ArrayLike | None = None,
+) -> Float[Array, "..."]:
+    """The share of the base plate's radiance that the staircase reflects towards the viewer
+    `w_o` (face frame), dimensionless [conventions §11, §12; docs/model.md §7.7].
+
+    A wedge stands on a plate that the lamp lights; the risers reflect the plate in front of
+    the wedge into a view from downhill. By reciprocity the share is that of the reversed view
+    ray: the sharp lobes of light arriving from `w_o` (`lab_lobes`), each its ratio (weight x
+    Fresnel) times the part of it that leaves below the plate's horizon, whose in-plane angle
+    is `beta2 - 90 deg` (the tread's normal is the plate's). A uniform plate radiance makes the
+    out-of-plane spread irrelevant (a direction's elevation sign depends on its projected angle
+    only), so that part is the in-plane spread's: a Gaussian of `width` (rad) in the reflected
+    angle for `kernel` "gaussian"; for a microfacet kernel (`alpha = tan(width)`) the share of
+    micro-slopes that turn the reflection past the horizon, a reflection turning by twice the
+    slope's angle (`slope_cdf`)."""
+    lobes = lab_lobes(w_o, beta2, n, spectral_weight)
+    beta2_, width_ = same_rank(jnp.asarray(beta2), jnp.asarray(width))
+    width_ = jnp.maximum(width_, PLATE_WIDTH_FLOOR_RAD)[..., None]
+    past = (beta2_ - jnp.pi / 2)[..., None] - lobes.theta_o  # > 0: the lobe is below it
+    if kernel == "gaussian":
+        below = 0.5 * erfc(-past / (jnp.sqrt(2.0) * width_))
+    else:
+        half = jnp.clip(0.5 * past, -0.5 * jnp.pi + 1e-6, 0.5 * jnp.pi - 1e-6)
+        below = slope_cdf(jnp.tan(half), jnp.tan(width_), kernel)
+    up = jnp.asarray(w_o)[..., 2] > 0.0
+    return jnp.where(up, jnp.sum(lobes.ratio * below, axis=-1), 0.0)

@@ -15,7 +15,7 @@ finite, with finite gradients, for cosines in [-1, 1] and `alpha > 0`.
 from __future__ import annotations
 
 import jax.numpy as jnp
-from jax.scipy.special import erfc
+from jax.scipy.special import erf, erfc
 from jaxtyping import Array, ArrayLike, Float
 
 from ._shapes import same_rank
@@ -99,3 +99,15 @@ def slope_marginal(x: ArrayLike, alpha: ArrayLike, kind: str = "ggx") -> Float[A
     if kind == "ggx":
         return (1.0 + u * u) ** -1.5 / (2.0 * alpha)
     return jnp.exp(-u * u) / (alpha * jnp.sqrt(jnp.pi))
+
+
+def slope_cdf(x: ArrayLike, alpha: ArrayLike, kind: str = "ggx") -> Float[Array, "..."]:
+    """Probability that one slope component of a micro-normal is below `x`: the integral of
+    `slope_marginal`, GGX `(1 + u / sqrt(1 + u^2)) / 2`, Beckmann `(1 + erf(u)) / 2`,
+    `u = x / alpha` [conventions §12]."""
+    _check(kind)
+    x, alpha = same_rank(x, alpha)
+    u = x / alpha
+    if kind == "ggx":
+        return 0.5 * (1.0 + u / jnp.sqrt(1.0 + u * u))
+    return 0.5 * (1.0 + erf(u))

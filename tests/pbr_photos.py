@@ -1077,7 +1077,7 @@ def scene_dict(setup: PbrSetup) -> dict[str, Any]:
         yc = wedge_centre_y(setup, k)
         face = [[-half, yc - half], [half, yc - half], [half, yc + half], [-half, yc + half]]
         wedges.append({"name": wedge_name(beta2), "angle_deg": beta2, "face_mm": face})
-    specimen: dict[str, Any] = {"layer_um": setup.layer_um}
+    specimen: dict[str, Any] = {"layer_um": setup.layer_um, "plate_albedo": setup.plate_albedo}
     if setup.index == 1.46:
         specimen["material"] = "pla"
     else:
