@@ -44,7 +44,8 @@ _WRAPPER = (
 
 
 def render(folder: Path, quick: bool, layout: str) -> dict[str, Any]:
-    sys.path.insert(0, str(TESTS))
+    sys.path.insert(0, str(TESTS))  # the renderer
+    sys.path.insert(0, str(TESTS / "validation"))  # the tests' layouts and placement
     import jax
 
     jax.config.update("jax_enable_x64", True)
