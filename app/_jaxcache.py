@@ -43,7 +43,7 @@ FAST_COMPILE_JAXLIB = ((0, 6), (0, 10))
 """The jaxlib releases (major, minor), first and last, whose XLA knows the option: it appeared
 in 0.6 (0.5.0 lacks it), and 0.10 is the newest release checked. XLA stops the process on an option
 it does not know, so a release outside this range compiles with its defaults (widen the range
-once a newer release is checked: tests/test_jaxcache.py)."""
+once a newer release is checked: tests/app/test_jaxcache.py)."""
 
 
 def jaxlib_release() -> tuple[int, int] | None:

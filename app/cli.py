@@ -116,7 +116,7 @@ def main(
     status 1. Warnings are one line each. Anything else is a bug and keeps its traceback.
 
     `freeze_imports` (the console script, `entry`): once jax and the command's modules are
-    imported, and after each of a fit's late imports (`_prefetch.prefetch`), `gc.freeze()`
+    imported, and after a fit's late imports (the posterior's, the report's), `gc.freeze()`
     takes them out of the collector's way (they live until the process ends); not for a
     process that goes on, where what is frozen is never collected. `stdout_closed`: the
     process was started without a standard output (`>&-`; `entry` put /dev/null there).

@@ -248,11 +248,11 @@ def autocorrelation(chain: np.ndarray, max_lag: int | None = None) -> np.ndarray
 
 def display_chain(fit: FitFolder) -> tuple[list[str], np.ndarray, int, int]:
     """(names, chain in display units (n_steps, n_walkers, p), burn_in, thin) of chain.npz."""
-    from stairfit import fitting
+    from stairfit.fitting.posterior import load_chain
 
     if fit.chain_path is None:
         raise FileNotFoundError(f"{fit.path}: no chain.npz (the fit ran without a posterior)")
-    data = fitting.load_chain(fit.chain_path)
+    data = load_chain(fit.chain_path)
     records = fit.results["parameters"]  # the chain's columns, in the same order
     if len(records) != data["chain"].shape[-1]:
         raise ValueError(f"{fit.chain_path}: its columns do not match results.json's parameters")

@@ -41,7 +41,7 @@ SPECTRUM_STEP_NM = 20.0
 """Wavelength step at which `reflected_spectra` evaluates a dispersive material before linear
 interpolation onto the 5 nm grid: the reflected spectra are smooth in wavelength (dispersive
 PLA, sigma 1-20 deg: at most 7e-4 of the peak, 0.04 of one 8-bit sRGB step;
-tests/test_figures.py)."""
+tests/app/test_figures.py)."""
 
 
 # --- layout ---------------------------------------------------------------------------------

@@ -201,6 +201,7 @@ def _draws(fit_dir: Path, results: JSONObject, keys: Sequence[tuple[str, int | N
     """Up to `limit` evenly spaced draws of the thinned chain (chain.npz), columns in the order
     of `keys`, display units (widths in degrees); None without a posterior."""
     from stairfit import fitting
+    from stairfit.fitting.posterior import load_chain
 
     post = results.get("diagnostics", {}).get("posterior")
     if post is None:
@@ -212,7 +213,7 @@ def _draws(fit_dir: Path, results: JSONObject, keys: Sequence[tuple[str, int | N
             "re-run `stairfit fit`"
         )
     try:
-        chain = fitting.load_chain(path)
+        chain = load_chain(path)
     except (fitting.FitInputError, OSError, ValueError) as e:
         raise UserError(f"{path}: cannot be read ({e}); re-run `stairfit fit`") from None
     params = [str(p) for p in chain.get("parameters", ())]

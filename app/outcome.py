@@ -16,6 +16,7 @@ from .scene import Scene
 
 if TYPE_CHECKING:
     from stairfit import fitting, imaging
+    from stairfit.fitting.posterior import PosteriorResult
 
     from .accuracy import AccuracyCheck
     from .fit_setup import FitSetup
@@ -34,8 +35,8 @@ class FitOptions:
     cache: bool
     progress: bool
     freeze_imports: bool = False
-    """Freeze what the late imports made out of the collector's way (`_prefetch.prefetch`):
-    the console script only (`cli.entry`)."""
+    """Freeze what the late imports made out of the collector's way (`gc.freeze()` after the
+    posterior's and the report's imports, `pipeline`): the console script only (`cli.entry`)."""
 
 
 @dataclass(frozen=True)
@@ -82,7 +83,7 @@ class FitOutcome:
     observations: Observations
     setup: FitSetup
     selection: fitting.Selection
-    posterior: fitting.PosteriorResult | None
+    posterior: PosteriorResult | None
     timings: dict[str, float]
     notes: tuple[str, ...]
     accuracy: AccuracyCheck | None = None

@@ -24,7 +24,6 @@ import numpy as np
 from . import _exclusions
 from ._compile_watch import watching_compilation
 from ._failed_previews import FAILED_PREVIEWS, forget_previews, keep_previews
-from ._prefetch import FIT_MODULES, REPORT_MODULES, prefetch
 from .accuracy import check_accuracy
 from .errors import StairfitWarning, UserError
 from .fit_setup import FitSetup, fit_setup
@@ -35,6 +34,7 @@ from .scene import Scene, Specimen
 
 if TYPE_CHECKING:
     from stairfit import fitting, imaging
+    from stairfit.fitting.posterior import PosteriorResult
 
     from .accuracy import AccuracyCheck
     from .figures import SaveFigure
@@ -79,9 +79,6 @@ def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     t0 = time.perf_counter()
     table = measure(scene, out, options, specs)
     timings = {"measure_s": time.perf_counter() - t0}
-    # the posterior's and the report's imports, in a thread while the model is compiled and
-    # fitted (not while the photos are decoded, which keeps both cores busy)
-    prefetch(FIT_MODULES if options.posterior else REPORT_MODULES, options.freeze_imports)
     t0 = time.perf_counter()
     try:
         obs = observations(scene, table)
@@ -148,6 +145,8 @@ def fit(
     timings.update(compiled.as_timings())
     from .report import write_outputs
 
+    _freeze_imports(options)
+
     outcome = replace(fitted, posterior=posterior, timings=dict(timings))
     t0 = time.perf_counter()
     write_outputs(outcome, out, drawn)
@@ -157,7 +156,7 @@ def fit(
 
 def sample_while_drawing(
     outcome: FitOutcome, out: Path, draw: SaveFigure | None = None
-) -> tuple[fitting.PosteriorResult, dict[str, str]]:
+) -> tuple[PosteriorResult, dict[str, str]]:
     """The posterior of the chosen fit, and meanwhile, in a second thread, the report's figures
     that need the least-squares fit only (`report.fit_figures`, drawn from `outcome`, which
     nothing changes meanwhile) by `draw` (default `figures.save`): the sampler's model
@@ -502,12 +501,14 @@ def refine(
     return out
 
 
-def sample(fit: fitting.FitResult, out: Path, options: FitOptions) -> fitting.PosteriorResult:
+def sample(fit: fitting.FitResult, out: Path, options: FitOptions) -> PosteriorResult:
     """The posterior of the chosen variant; the chain is saved as out/chain.npz."""
     from stairfit import fitting
+    from stairfit.fitting.posterior import sample_posterior
 
+    _freeze_imports(options)
     try:
-        return fitting.sample_posterior(
+        return sample_posterior(
             fit,
             seed=options.seed,
             tau_factor=options.preset.posterior_tau_factor,
@@ -519,6 +520,18 @@ def sample(fit: fitting.FitResult, out: Path, options: FitOptions) -> fitting.Po
         )
     except (fitting.FitError, fitting.FitInputError) as err:
         raise UserError(f"the posterior could not be sampled: {err}") from None
+
+
+def _freeze_imports(options: FitOptions) -> None:
+    """With `options.freeze_imports` (the console script, `cli.entry`), move what the fit's late
+    imports made (emcee and SciPy, matplotlib and the report) into the collector's permanent
+    generation (`gc.freeze()`): they live until the process ends, and every full collection
+    would walk them again. Not in processes that go on (tests, notebooks, a study's workers):
+    what is frozen is never collected."""
+    if options.freeze_imports:
+        import gc
+
+        gc.freeze()
 
 
 class _Progress:

@@ -48,6 +48,7 @@ if TYPE_CHECKING:
     from collections.abc import Iterable
 
     from stairfit import fitting
+    from stairfit.fitting.posterior import PosteriorResult
     from stairfit.model.materials import Dispersion
 
     from ._jsontypes import JSONValue, Record
@@ -124,7 +125,7 @@ def parameter_records(outcome: FitOutcome) -> list[Record]:
     return records
 
 
-def chain_checks(post: fitting.PosteriorResult, j: int) -> Record:
+def chain_checks(post: PosteriorResult, j: int) -> Record:
     """Parameter `j`'s convergence diagnostics for results.json: split R-hat, bulk and tail
     ESS, and whether they pass the thresholds (R-hat < 1.01, ESS >= 400; docs/fitting.md §5)."""
     rhat, bulk, tail = float(post.rhat[j]), float(post.ess_bulk[j]), float(post.ess_tail[j])
@@ -371,7 +372,7 @@ def table_records(sel: fitting.Selection) -> list[Record]:
     ]
 
 
-def posterior_diagnostics(post: fitting.PosteriorResult | None) -> Record | None:
+def posterior_diagnostics(post: PosteriorResult | None) -> Record | None:
     """results.json's `diagnostics.posterior` (None without a posterior)."""
     if post is None:
         return None
@@ -1062,7 +1063,7 @@ def _checks_text(po: Record | None) -> str:
     return f"{rhat:>6.4f} {bulk:>5.0f}/{tail:<5.0f}{flag}"
 
 
-def posterior_warning_lines(post: fitting.PosteriorResult | None) -> list[str]:
+def posterior_warning_lines(post: PosteriorResult | None) -> list[str]:
     """The posterior's warnings for the summary: the step limit and the acceptance as they
     are, R-hat and ESS one line each naming every parameter concerned."""
     if post is None:

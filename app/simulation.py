@@ -25,6 +25,7 @@ import numpy as np
 
 from . import __version__
 from ._specimen_layout import SpecimenLayout, camera_for
+from .errors import UserError
 from .fileio import write_file
 from .scene import SCENE_FILE, SCENE_VERSION
 
@@ -120,6 +121,51 @@ class SimulationSettings:
     exposure_tags: str = "exif"  # where the DNGs carry the exposure (imaging.synthetic)
     markers: str = "quiet-zone"  # MARKER_STYLES
     effects: SessionEffects = field(default_factory=SessionEffects)
+
+
+def check_radii(s: SimulationSettings) -> None:
+    """The tip arcs and the fillets of `s.truth` fit every wedge's cell (a `UserError` naming the
+    option, `--edge-radius-um` or `--fillet-radius-um`, and the largest that fits)."""
+    _check_edge_radius(s)
+    _check_fillet_radius(s)
+
+
+def _check_edge_radius(s: SimulationSettings) -> None:
+    r = s.truth.edge_radius_um
+    if r < 0:
+        raise UserError("--edge-radius-um: must be >= 0")
+    if r > 0:
+        from stairfit import model
+
+        r_max = min(float(model.max_edge_radius(b * DEG, s.layer_um)) for b in s.wedges_deg)
+        if r > r_max:
+            raise UserError(
+                f"--edge-radius-um: {r} um does not fit the finest cell; the maximum for these "
+                f"wedges and {s.layer_um} um layers is {r_max:.1f} um"
+            )
+
+
+def _check_fillet_radius(s: SimulationSettings) -> None:
+    """The fillets fit beside the tip arcs in every wedge's cell: `0 <= r_f <= min(l1, l2) - r`
+    (`model.max_fillet_radius`, docs/rounded.md §1); checked after the tip radius."""
+    rf, r = s.truth.fillet_radius_um, s.truth.edge_radius_um
+    if rf < 0:
+        raise UserError(
+            f"--fillet-radius-um: {rf:g} is negative; give a radius >= 0 (0 = sharp concave "
+            "corners)"
+        )
+    if rf > 0:
+        from stairfit import model
+
+        room = model.max_fillet_radius(np.asarray(s.wedges_deg) * DEG, s.layer_um, r)
+        k = int(np.argmin(np.asarray(room)))
+        rf_max = float(np.asarray(room)[k])
+        if rf > rf_max + (rf_max + r) * 1e-12:
+            raise UserError(
+                f"--fillet-radius-um: {rf:g} um does not fit beside --edge-radius-um {r:g} in "
+                f"the {s.wedges_deg[k]:g} deg wedge's cell ({s.layer_um:g} um layers; r + r_f "
+                f"<= min(l1, l2) = {rf_max + r:.6g} um); give at most {rf_max:.6g} um"
+            )
 
 
 def image_size(megapixels: float) -> tuple[int, int]:

@@ -18,7 +18,7 @@ Per dataset: the least-squares fit of the true variant, 68% (+-1 se) and 95% (+-
 intervals and the pull `(fit - truth) / se` of every parameter, the reduced chi^2;
 `fitting.select_model` over the 8 sharp variants (shared and per-wedge sigma; the rounded rungs
 cost minutes of compilation each and are left out) and how often it chooses the true variant;
-on the first `--posterior` datasets of the standard design, `fitting.sample_posterior`
+on the first `--posterior` datasets of the standard design, `fitting.posterior.sample_posterior`
 (tau_factor 20 checked every 100 steps and R-hat < 1.01, ESS >= 400: the balanced preset's
 rule; docs/fitting.md §5; moves `--moves`, default the library's default "laplace"; runs before
 5 December 2026 used "de" or the stretch move with the R-hat / ESS extension off) with its
@@ -95,7 +95,7 @@ PHOTO_VARIANT = "sharp+floor"
 
 
 # --------------------------------------------------------------------------------------------
-# Statistics (pure functions; tests/test_coverage.py checks them)
+# Statistics (pure functions; tests/validation/test_coverage.py checks them)
 # --------------------------------------------------------------------------------------------
 
 
@@ -251,6 +251,7 @@ def one_dataset(
 ) -> dict[str, Any]:
     """The true variant's fit, the selection, and (with a seed) the posterior of one dataset."""
     from stairfit import fitting
+    from stairfit.fitting.posterior import sample_posterior
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", fitting.FitWarningCategory)
@@ -266,7 +267,7 @@ def one_dataset(
         except fitting.FitError as err:
             rec["chosen"] = f"failed: {err}"
         if posterior_seed is not None and fit.success:
-            post = fitting.sample_posterior(
+            post = sample_posterior(
                 fit,
                 seed=posterior_seed,
                 tau_factor=20,
@@ -767,7 +768,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     ap.add_argument("--out-dir", type=Path, default=None, help="where to write the results")
     ap.add_argument(
-        "--moves", default="laplace", help="the posterior's proposal (fitting.MOVES; laplace)"
+        "--moves",
+        default="laplace",
+        help="the posterior's proposal (fitting.posterior.MOVES; laplace)",
     )
     ap.add_argument(
         "--photos-only",

@@ -14,7 +14,7 @@ or K = 1 effective wavelength) it times, in one run and after compilation (repor
 
 Optionally (`--calibration N`) it checks the coverage of the least-squares intervals on N small
 synthetic datasets and of the posterior intervals on N / 5 of them (the long versions of the
-calibration tests in tests/test_fitting_least_squares.py and tests/test_fitting_posterior.py).
+calibration tests in tests/fitting/test_least_squares.py and tests/fitting/test_posterior.py).
 
     python benchmarks/bench_fit.py [--repeats 7] [--sampling both] [--calibration 0] [--out f.md]
 """
@@ -128,13 +128,14 @@ def run_fits(sampling: str, repeats: int) -> tuple[list[tuple[str, ...]], object
 def run_posterior(fit) -> tuple[str, ...]:
     """Posterior throughput on one LS fit: compile apart, then a full run to 50 tau."""
     from stairfit import fitting
+    from stairfit.fitting.posterior import sample_posterior
 
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", fitting.ConvergenceWarning)
-        fitting.sample_posterior(fit, seed=0, chunk_steps=10, max_steps=10)
+        sample_posterior(fit, seed=0, chunk_steps=10, max_steps=10)
     compile_s = time.perf_counter() - t0
-    post = fitting.sample_posterior(fit, seed=1)
+    post = sample_posterior(fit, seed=1)
     k = fit.problem.spectral.n_samples
     rate = post.n_independent / post.sampling_s
     return (
@@ -151,6 +152,7 @@ def run_posterior(fit) -> tuple[str, ...]:
 def run_calibration(n_sets: int) -> list[tuple[str, str, str]]:
     """Coverage of LS intervals (n_sets datasets) and posterior intervals (n_sets // 5)."""
     from stairfit import fitting
+    from stairfit.fitting.posterior import sample_posterior
 
     spec = fitting.spectral_setup("pla", sampling="effective", channels=(1,))
     design = fitting.Design((20.0, 45.0), (20.0,) * 9, tuple(np.linspace(-80, 80, 9)),
@@ -166,7 +168,7 @@ def run_calibration(n_sets: int) -> list[tuple[str, str, str]]:
         ls68.append(z < 1.0)
         ls95.append(z < 1.959964)
         if k < n_sets // 5:
-            post = fitting.sample_posterior(fit, seed=k, emit_warnings=False)
+            post = sample_posterior(fit, seed=k, emit_warnings=False)
             po68.append((post.p16 <= t) & (t <= post.p84))
             po95.append((post.p2_5 <= t) & (t <= post.p97_5))
     rows = [(f"least squares, {n_sets} datasets x 4 parameters",

@@ -11,7 +11,7 @@ With `--layout standing` the wedges stand on the plate (faces rising by their an
 -10 deg, 8 views from -50 to 20 deg) and every photo's roi_px is dropped where at least four
 markers are found: the ROIs are placed in 3-D from the markers and `[camera] focal_length_px`
 (the paper's flush faces cannot be described by `face_mm`, whose convention is a wedge standing
-on the base; tests/test_independent_fit.py).
+on the base; tests/validation/test_independent_fit.py).
 
     python benchmarks/bench_independent_fit.py            # the issue's set
     python benchmarks/bench_independent_fit.py --quick    # 0.5 MP, 8 views: a look in minutes
@@ -44,7 +44,8 @@ _WRAPPER = (
 
 
 def render(folder: Path, quick: bool, layout: str) -> dict[str, Any]:
-    sys.path.insert(0, str(TESTS))
+    sys.path.insert(0, str(TESTS))  # the renderer
+    sys.path.insert(0, str(TESTS / "validation"))  # the tests' layouts and placement
     import jax
 
     jax.config.update("jax_enable_x64", True)

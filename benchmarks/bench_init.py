@@ -9,7 +9,7 @@ both scenes are fitted (`stairfit fit --no-posterior`, the same options) and eve
 difference is given in standard errors of the original's fit; with `--true-views` also the
 draft with the original's view angles written in (what the rest of the draft does to the fit).
 
-The sets: `simulate` (tests/test_init.py's folder: 1.5 MP, 6 views, HDR brackets of 2, a flat
+The sets: `simulate` (tests/app/test_init.py's folder: 1.5 MP, 6 views, HDR brackets of 2, a flat
 field and a dark frame; a parallel projection), `independent` (tests/independent_photos.py's
 standing wedges, a pinhole at 900 mm) and, given `--pbr DIR`, the physically based dev set
 (benchmarks/make_pbr_set.py --set dev; its folder is only read, and its `[extraction]`, not a

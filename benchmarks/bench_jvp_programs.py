@@ -9,10 +9,10 @@ nothing is compiled already), the cases of one round one after another and the r
 repeated, so a slow phase of the machine hits every case alike:
 
 * `filleted`: the filleted model (512 rays) and the rounded model at 37 viewing angles, values
-  and derivatives in (sigma, n, r, r_f, theta_i, l1), as tests/test_fillet_model.py (which also
+  and derivatives in (sigma, n, r, r_f, theta_i, l1), as tests/model/test_fillet.py (which also
   has the fillet correction alone in its program);
 * `rounded`: the rounded model at 73 viewing angles, values and derivatives in
-  (sigma, n, r, theta_i) and theta_o, as tests/test_rounded_model.py.
+  (sigma, n, r, theta_i) and theta_o, as tests/model/test_rounded.py.
 
 Reported per case (medians): tracing and lowering, XLA compilation, one call, and the whole
 Jacobian (one call of the `jacfwd` program; n calls of the tangent program). Compiled as the

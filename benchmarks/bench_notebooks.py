@@ -1,7 +1,7 @@
 """Benchmark: the notebooks on the test suite's small settings, and eager against compiled model
 calls (issue 14: what the notebooks' cells cost a user, and the suite).
 
-* every notebook in notebooks/ executed as tests/test_notebooks.py executes it (nbclient,
+* every notebook in notebooks/ executed as tests/repository/test_notebooks.py executes it (nbclient,
   `STAIRFIT_NB_SMALL=1`, a fresh kernel each run; kernel start included), `--repeats` rounds
   interleaved; with `--baseline-ref REF` also the notebooks as stored at git REF (run with the
   installed stairfit), in the same rounds, side by side;

@@ -13,7 +13,7 @@ a posterior's time on small scenes. The baseline is the earlier `log_prob`, repr
   are checked to be identical.
 
 Scenes: the calibration tests' small scene (2 wedges x 9 views, one channel, 18 rows; chains of
-20 tau as tests/test_fitting_posterior.py's short calibration) and the standard scene (6 wedges
+20 tau as tests/fitting/test_posterior.py's short calibration) and the standard scene (6 wedges
 x 19 views x 3 channels, 342 rows; the default stopping rule).
 
     python benchmarks/bench_posterior_calls.py [--repeats 5] [--out FILE]
@@ -49,6 +49,7 @@ import zoo  # noqa: E402
 
 from stairfit import fitting  # noqa: E402
 from stairfit.fitting import _export, _posterior  # noqa: E402
+from stairfit.fitting.posterior import sample_posterior  # noqa: E402
 
 DEG = np.pi / 180
 TRUTH = fitting.Params(sigma_rad=8 * DEG, delta_n=0.02, scale=1.0, floor=0.003)
@@ -100,7 +101,7 @@ def _with_log_prob(fn: Callable[..., np.ndarray], run: Callable[[], Any]) -> Any
 def _posterior_run(fit: Any, kw: dict[str, Any]) -> Any:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return fitting.sample_posterior(fit, seed=1, emit_warnings=False, **kw)
+        return sample_posterior(fit, seed=1, emit_warnings=False, **kw)
 
 
 def _walkers(fit: Any, kw: dict[str, Any]) -> tuple[_posterior.Target, np.ndarray]:

@@ -515,11 +515,12 @@ def start_rows(st: Settings, case: FitCase) -> list[Row]:
 def posterior_compile(fit: Any) -> float:
     """Compilation of the posterior's log probability (a 10-step run)."""
     from stairfit import fitting
+    from stairfit.fitting.posterior import sample_posterior
 
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", fitting.FitWarningCategory)
-        fitting.sample_posterior(fit, seed=0, chunk_steps=10, max_steps=10, emit_warnings=False)
+        sample_posterior(fit, seed=0, chunk_steps=10, max_steps=10, emit_warnings=False)
     return time.perf_counter() - t0
 
 
@@ -530,10 +531,11 @@ def run_posterior(
     the preset's `posterior_chunk_steps`); the app ignores the warning of a chain cut at
     `max_steps` (it reports `converged`)."""
     from stairfit import fitting
+    from stairfit.fitting.posterior import sample_posterior
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", fitting.FitWarningCategory)
-        return fitting.sample_posterior(
+        return sample_posterior(
             fit,
             seed=seed,
             tau_factor=tau_factor,

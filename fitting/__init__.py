@@ -3,12 +3,10 @@
 Public API (everything else is internal). Conventions: docs/conventions.md; design, priors,
 transforms and the selection rule: docs/fitting.md.
 
-The posterior (`sample_posterior`, its options and result, the chain file) is loaded on first
-use (PEP 562 `__getattr__`): it imports emcee, which imports SciPy, a cost that a fit without
-a posterior and every `import stairfit.fitting` need not pay (issue 14).
+The posterior (`sample_posterior`, its options and result, the chain file) is the submodule
+`stairfit.fitting.posterior`, imported explicitly: it imports emcee, which imports SciPy, a cost
+that a fit without a posterior and every `import stairfit.fitting` need not pay (issue 14).
 """
-
-from typing import TYPE_CHECKING, Any
 
 from ._accuracy import ACCURACY_LIMIT as ACCURACY_LIMIT
 from ._accuracy import NumericalError as NumericalError
@@ -86,49 +84,3 @@ from ._simulate import Noise as Noise
 from ._simulate import model_radiance as model_radiance
 from ._simulate import simulate_observations as simulate_observations
 from ._simulate import standard_design as standard_design
-
-_LAZY = {
-    "CHAIN_FORMAT_VERSION": "._chain",
-    "ChainBackend": "._chain",
-    "ChainInfo": "._chain",
-    "load_chain": "._chain",
-    "MOVES": "._posterior",
-    "LaplaceMove": "._posterior",
-    "PosteriorOptions": "._posterior",
-    "PosteriorResult": "._posterior",
-    "log_likelihood": "._posterior",
-    "log_prior": "._posterior",
-    "log_probability": "._posterior",
-    "sample_posterior": "._posterior",
-}
-"""Public names whose modules import emcee: loaded by `__getattr__` on first use."""
-
-
-def __getattr__(name: str) -> Any:
-    """Load a posterior name from its module the first time it is asked for (PEP 562)."""
-    if name in _LAZY:
-        from importlib import import_module
-
-        value = getattr(import_module(_LAZY[name], __name__), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
-
-
-if TYPE_CHECKING:
-    from ._chain import CHAIN_FORMAT_VERSION as CHAIN_FORMAT_VERSION
-    from ._chain import ChainBackend as ChainBackend
-    from ._chain import ChainInfo as ChainInfo
-    from ._chain import load_chain as load_chain
-    from ._posterior import MOVES as MOVES
-    from ._posterior import LaplaceMove as LaplaceMove
-    from ._posterior import PosteriorOptions as PosteriorOptions
-    from ._posterior import PosteriorResult as PosteriorResult
-    from ._posterior import log_likelihood as log_likelihood
-    from ._posterior import log_prior as log_prior
-    from ._posterior import log_probability as log_probability
-    from ._posterior import sample_posterior as sample_posterior

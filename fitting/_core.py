@@ -458,7 +458,7 @@ def _run(z0: np.ndarray, static: Static, data: Data, solver: optx.AbstractLeastS
 START_THREADS = 2
 """Threads that solve the starts of a sharp fit side by side (the machine the project targets
 has 2 cores). XLA runs a compiled program without holding the interpreter, so two starts
-really run at once, with results identical to the bit (tests/test_fitting_starts.py); the
+really run at once, with results identical to the bit (tests/fitting/test_starts.py); the
 time saved is in benchmarks/results/cold.md (issue 14)."""
 
 

@@ -45,7 +45,7 @@ def _amplitudes(c: Array, n2: Array) -> tuple[Array, Array]:
     rule is the calculus automatic differentiation would do on these lines, rearranged to need
     one extra division instead of four: the Fresnel factors are most of the work of a
     Jacobian (benchmarks/bench_model.py). Checked against autodiff of an independent formula
-    in tests/test_band_derivatives.py [conventions §6].
+    in tests/model/test_band_derivatives.py [conventions §6].
     """
     s = jnp.sqrt(n2 - 1.0 + c**2)
     return (c - s) / (c + s), (n2 * c - s) / (n2 * c + s)

@@ -198,7 +198,7 @@ RECEPTOR_NODES = 8
 """Gauss-Legendre nodes of each of the four pieces (core and tail on either side of the lobe)
 of each receptor axis: 32 x 32 nodes per source direction. With facets of 1 deg and wider
 (alpha 0.02 and above) doubling them moves the gloss by at most 0.15 GU, by 0.02 GU in nine
-cases of ten (docs/gloss.md §2; tests/test_gloss.py::test_gloss_quadrature_converges)."""
+cases of ten (docs/gloss.md §2; tests/model/test_gloss.py::test_gloss_quadrature_converges)."""
 
 SMOOTH_NODES = 4
 """Gauss-Legendre nodes per axis of the plain product rule over the receptor on which the

@@ -409,7 +409,7 @@ GGX_SCALE_POWER = 1.5
 freedom) of scales `a` and `b` add to about that distribution with the scale
 `(a^p + b^p)^(1/p)`, `p = GGX_SCALE_POWER`: between the Cauchy's sum of scales (`p = 1`) and
 the normal's quadrature (`p = 2`, exact for Beckmann); checked against the 3-D ray tracer
-(tests/test_lab_vs_raytrace.py)."""
+(tests/validation/test_lab_vs_raytrace.py)."""
 
 
 def _combined_scale(a: Array, b: Array, kind: str) -> Array:

@@ -118,7 +118,7 @@ within this fraction of the half-width of the middle (`|k| <= SPLIT_SIDE_TOL`) t
 piece always gets it, so that a kink at the middle up to rounding (a light centred on the
 horizon, `theta_i = pi/2` in float32 and float64) gets the same rule in every precision (with
 `k > 0` alone float32 and float64 put the extra node on opposite sides there: 4% apart;
-tests/test_properties_extra.py)."""
+tests/model/test_properties_extra.py)."""
 
 TINY_DISK_PIECE = 1e-3
 """A disk piece `[-1, k]` with `1 + k` below this keeps its Gauss-Jacobi mass: its exact mass

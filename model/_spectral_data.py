@@ -3,8 +3,8 @@ sensitivities and the sRGB matrix [conventions §8].
 
 They are copies of colour-science's datasets (BSD-3-Clause), written to
 `model/data/spectral_tables.json` by `tools/make_spectral_data.py` and checked against
-colour-science by `tests/test_spectral_data.py`. Shipping them keeps `import colour` (which also
-imports matplotlib and SciPy, seconds of start-up) out of every stairfit process (issue 14).
+colour-science by `tests/model/test_spectral_data.py`. Shipping them keeps `import colour` (which
+also imports matplotlib and SciPy, seconds of start-up) out of every stairfit process (issue 14).
 Sources, as colour-science cites them:
 
 * `CMFS_NAME`: the CIE 1931 2-degree standard observer, 360-830 nm every 1 nm (colour-science's

@@ -20,7 +20,7 @@ VISIBLE_NM = np.arange(380.0, 781.0, 5.0)
 
 CAMERAS: tuple[str, ...] = ("Nikon 5100 (NPL)", "Sigma SDMerill (NPL)", "ideal")
 """Camera sensitivity sets: colour-science's measured ones (`_spectral_data`, the names of its
-`MSDS_CAMERA_SENSITIVITIES`; tests/test_spectral_data.py keeps the two lists equal) plus an
+`MSDS_CAMERA_SENSITIVITIES`; tests/model/test_spectral_data.py keeps the two lists equal) plus an
 ideal Gaussian RGB camera."""
 
 IDEAL_RGB_CENTRES_NM = (600.0, 540.0, 460.0)
@@ -99,7 +99,7 @@ def xyz_to_srgb(xyz: NDArray, exposure: float = 1.0) -> NDArray:
 
     Only for pictures (the edge of the program): not differentiable, no chromatic adaptation,
     so light under illuminant A looks warm, as in the paper's Fig. 7. The IEC 61966-2-1 matrix
-    and encoding; equal to colour-science's `XYZ_to_sRGB` (tests/test_spectral_data.py).
+    and encoding; equal to colour-science's `XYZ_to_sRGB` (tests/model/test_spectral_data.py).
     """
     matrix = _spectral_data.tables().srgb_matrix_xyz_to_rgb
     linear = np.clip((np.asarray(xyz, float) * exposure) @ matrix.T, 0.0, 1.0)

@@ -28,7 +28,7 @@ def generic_direction(n: int) -> np.ndarray:
     along this direction every input's tangent is non-zero, so the tangent reaching that
     operation is non-zero (it could cancel only for components in a rational ratio) and the
     derivative is non-finite too. (`jax.jacfwd`'s columns whose tangent reaches it as an exact
-    0 are NaN there as well, 0 x inf: tests/test_checks.py.)
+    0 are NaN there as well, 0 x inf: tests/validation/test_checks.py.)
     """
     return 1.0 / np.sqrt(np.arange(1.0, n + 1.0))
 

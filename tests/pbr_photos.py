@@ -1393,9 +1393,9 @@ def patch_radiance(
     with `light_distance_mm` the lab's LED ball (`setup.lamp_diameter_mm`) at that distance
     from the patch centre along `light_dir`, normalised so that its irradiance normal to the
     beam at the patch centre is 1 (Mitsuba's single-precision sphere sampling makes it 0.08%
-    higher at 6 mm and 500 mm, tests/test_pbr_photos.py). The camera is orthographic; the patch
-    is a rectangle on the mean plane spanning exactly `periods` layer periods across the layer
-    lines (default: the fewest that reach `min_length_mm`), so that no part of a period is
+    higher at 6 mm and 500 mm, tests/validation/test_pbr_photos.py). The camera is orthographic;
+    the patch is a rectangle on the mean plane spanning exactly `periods` layer periods across the
+    layer lines (default: the fewest that reach `min_length_mm`), so that no part of a period is
     over- or under-counted, cut from a staircase extending 10 mm beyond it on every side
     (shadows and masking from the neighbouring steps included). The material, layers, edges and
     Mitsuba variant are the setup's. `surface="flat"` renders the mean plane itself (a flat

@@ -2,7 +2,7 @@
 
 Plain NumPy on purpose: it shares no code and no assumption with `stairfit.imaging.synthetic`
 or with the estimator in `stairfit.imaging`, so that the calibration study
-(benchmarks/bench_roi_errors.py, tests/test_roi_errors.py) does not test the estimator against
+(benchmarks/bench_roi_errors.py, tests/imaging/test_blockvar.py) does not test the estimator against
 its own model of the data.
 
 * **Texture**: a stationary Gaussian random field `T` of unit variance and zero (ensemble) mean

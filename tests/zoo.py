@@ -1,7 +1,7 @@
 """The fitting tests' problem zoo: the scenes they fit and the solvers they fit them with.
 
 One place for the synthetic scenes (spectral setup x design x truth x noise x seed) that the
-tests in tests/test_fitting_*.py and tests/test_fit_extremes.py share, in the spirit of
+tests in tests/fitting/ share, in the spirit of
 optimistix's tests/helpers.py: a test names a scene and a truth instead of building its own.
 Every scene is `fitting.simulate_observations` of a known truth, i.e. data from
 `stairfit.model` directly, not from the fitting layer's forward [conventions §1, §9].

@@ -20,7 +20,7 @@ The packages and their folders come from pyproject.toml's `[tool.setuptools] pac
 
 The limits of issue 17's "Done when" are `MAX_OVER_SOFT` functions over `SOFT_LINES` lines and
 none over `HARD_LINES`, no private import across packages and no shadowing name; the exit status
-is 1 when any is exceeded (tests/test_code_health.py asserts the same).
+is 1 when any is exceeded (tests/repository/test_code_health.py asserts the same).
 
     python tools/code_health.py            # the report; exit status 1 on a violation
 """

@@ -5,7 +5,7 @@ the CIE illuminants, the measured camera sensitivities and the XYZ -> linear sRG
 colour-science has them all, but `import colour` also imports `colour.plotting`, matplotlib and
 SciPy (seconds of every process's start-up; docs/performance.md), so the tables are shipped as
 package data, copied here from colour-science's own datasets. Run after upgrading
-colour-science, then `pytest tests/test_spectral_data.py` (which checks the shipped tables
+colour-science, then `pytest tests/model/test_spectral_data.py` (which checks the shipped tables
 equal colour-science's):
 
     python tools/make_spectral_data.py

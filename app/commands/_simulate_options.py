@@ -11,12 +11,12 @@ import numpy as np
 from .. import _ranges
 from ..errors import UserError
 from ..simulation import (
-    DEG,
     MARKER_STYLES,
     MIN_MEGAPIXELS,
     SessionEffects,
     SimulationSettings,
     Truth,
+    check_radii,
 )
 
 
@@ -157,44 +157,5 @@ def settings_from_args(args: argparse.Namespace) -> SimulationSettings:
         markers=getattr(args, "markers", base.markers),
         effects=effects_from_args(args),
     )
-    _check_edge_radius(settings)
-    _check_fillet_radius(settings)
+    check_radii(settings)
     return settings
-
-
-def _check_edge_radius(s: SimulationSettings) -> None:
-    r = s.truth.edge_radius_um
-    if r < 0:
-        raise UserError("--edge-radius-um: must be >= 0")
-    if r > 0:
-        from stairfit import model
-
-        r_max = min(float(model.max_edge_radius(b * DEG, s.layer_um)) for b in s.wedges_deg)
-        if r > r_max:
-            raise UserError(
-                f"--edge-radius-um: {r} um does not fit the finest cell; the maximum for these "
-                f"wedges and {s.layer_um} um layers is {r_max:.1f} um"
-            )
-
-
-def _check_fillet_radius(s: SimulationSettings) -> None:
-    """The fillets fit beside the tip arcs in every wedge's cell: `0 <= r_f <= min(l1, l2) - r`
-    (`model.max_fillet_radius`, docs/rounded.md §1); checked after the tip radius."""
-    rf, r = s.truth.fillet_radius_um, s.truth.edge_radius_um
-    if rf < 0:
-        raise UserError(
-            f"--fillet-radius-um: {rf:g} is negative; give a radius >= 0 (0 = sharp concave "
-            "corners)"
-        )
-    if rf > 0:
-        from stairfit import model
-
-        room = model.max_fillet_radius(np.asarray(s.wedges_deg) * DEG, s.layer_um, r)
-        k = int(np.argmin(np.asarray(room)))
-        rf_max = float(np.asarray(room)[k])
-        if rf > rf_max + (rf_max + r) * 1e-12:
-            raise UserError(
-                f"--fillet-radius-um: {rf:g} um does not fit beside --edge-radius-um {r:g} in "
-                f"the {s.wedges_deg[k]:g} deg wedge's cell ({s.layer_um:g} um layers; r + r_f "
-                f"<= min(l1, l2) = {rf_max + r:.6g} um); give at most {rf_max:.6g} um"
-            )
