@@ -109,7 +109,7 @@ def fit(
     specs = tuple(photo_specs(scene) if specs is None else specs)
     timings = dict(timings or {})
     t0 = time.perf_counter() if started is None else started
-    notes = [*obs.notes, *cache_notes(scene, table)]
+    notes = [*scene.left_out, *obs.notes, *cache_notes(scene, table)]
     setup = fit_setup(scene, options.preset)
     notes.extend(index_notes(scene, setup))
     lab, reason, warning = lab_setup(scene, table)

@@ -13,7 +13,7 @@ import difflib
 import math
 import os
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import EllipsisType
 from typing import TYPE_CHECKING, TypeVar, overload
@@ -295,6 +295,8 @@ class Scene:
     calibration: CalibrationFrames | None = None
     truth: SceneTruth | None = None
     fit: FitSettings = field(default_factory=FitSettings)
+    left_out: tuple[str, ...] = ()
+    """Why each photo listed in the file but not in `photos` was left out (`load_scene`)."""
 
     @property
     def folder(self) -> Path:
@@ -497,7 +499,25 @@ def parse_scene(raw: RawTable, path: Path, measure_only: bool = False) -> Scene:
     if specimen is not None:
         _check_geometry(r, scene)
         _check_rois(r, scene)
+        scene = _without_blind_photos(scene)
     return scene
+
+
+def _without_blind_photos(scene: Scene) -> Scene:
+    """`scene` without the photos in which no wedge face is both lit and seen (each named in
+    `left_out`): such a photo holds no measurement, and the others are still worth fitting."""
+    assert scene.specimen is not None
+    keep, left = [], []
+    for photo in scene.photos:
+        if any(visible(scene, photo, w) for w in scene.specimen.wedges) or photo.roi_px:
+            keep.append(photo)
+        else:
+            left.append(
+                f"photo {photo.file!r} left out: no wedge face is both lit and seen in it "
+                f"(light_deg {photo.light_deg}, view_deg {photo.view_deg}: every face is "
+                f"lit or seen more than {VISIBILITY_LIMIT_DEG:g} deg from its normal)"
+            )
+    return replace(scene, photos=tuple(keep), left_out=tuple(left)) if left else scene
 
 
 LAYOUT_TABLES: tuple[str, ...] = ("specimen", "markers", "light", "camera")
@@ -1197,12 +1217,16 @@ def _check_geometry(r: _Reader, scene: Scene) -> None:
                     f"this photo cannot see wedge {name!r}'s face lit (face-frame theta_i = "
                     f"{ti:g} deg, theta_o = {to:g} deg); fix light_deg/view_deg or drop the ROI",
                 )
-        if not seen and not patches:
-            r.fail(
-                f"photos[{k}]",
-                "no wedge face is both lit and visible in this photo; fix "
-                "light_deg/view_deg or angles_relative_to",
-            )
+    blind = [
+        k for k, p in enumerate(scene.photos)
+        if not p.roi_px and not any(visible(scene, p, w) for w in scene.specimen.wedges)
+    ]  # fmt: skip
+    if blind and len(blind) == len(scene.photos) and not patches:
+        r.fail(
+            f"photos[{blind[0]}]",
+            "no wedge face is both lit and visible in this photo, nor in any other; fix "
+            "light_deg/view_deg or angles_relative_to",
+        )
 
 
 def _check_rois(r: _Reader, scene: Scene) -> None:

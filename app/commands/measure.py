@@ -217,4 +217,6 @@ def print_summary(scene: Scene, reports: Sequence[PhotoReport], out: Path) -> No
     print(f"stairfit measure: {scene.folder}")
     for r in reports:
         print(summary_line(r))
+    for note in scene.left_out:
+        print(f"  note: {note}")
     print(f"  measurements: {out / 'measurements.csv'}; report: {out / 'report.html'}")

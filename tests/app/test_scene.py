@@ -73,6 +73,22 @@ def test_wedges_turned_away_are_left_out_of_a_photo(tmp_path):
         load_scene(_write(tmp_path, d))
 
 
+def test_a_photo_that_sees_no_face_is_left_out_and_named_unless_every_photo_is(tmp_path):
+    """A photo in which no face is both lit and seen holds no measurement: it is left out of
+    the scene with its reason in `left_out` (which fit and measure print), and the other photos
+    are kept; only a scene whose every photo is blind is refused, in one line."""
+    d = _mutate(["photos", 0, "light_deg"], -85.0)  # lit from 95 and 130 deg: behind both
+    scene = load_scene(_write(tmp_path, d))
+    assert [p.file for p in scene.photos] == ["b.dng"]
+    (note,) = scene.left_out
+    assert "'a.dng' left out" in note and "light_deg -85.0" in note
+    assert load_scene(_write(tmp_path, GOOD)).left_out == ()
+    d["photos"][1]["light_deg"] = -85.0
+    with pytest.raises(UserError, match=r"photos\[0\]: no wedge face is both lit and visible") as e:
+        load_scene(_write(tmp_path, d))
+    assert "nor in any other" in str(e.value) and "\n" not in str(e.value)
+
+
 @pytest.mark.parametrize(
     ("path", "value", "delete", "message"),
     [
@@ -92,7 +108,6 @@ def test_wedges_turned_away_are_left_out_of_a_photo(tmp_path):
         (["photos"], None, True, r"photos: missing or empty"),
         (["specimen", "wedges", 0, "angle_deg"], 95.0, False, r"angle_deg: 95.0 is outside"),
         (["photos", 0, "view_deg"], "thirty", False, r"view_deg: must be a number"),
-        (["photos", 0, "light_deg"], -85.0, False, r"no wedge face is both lit and visible"),
         (["light", "illuminant"], "D66", False, r"light\.illuminant: unknown illuminant"),
         (["camera", "sensitivity"], "Brownie", False, r"camera\.sensitivity: unknown camera"),
         (["specimen", "material"], "pla-bodurov", False, r"did you mean 'pla-bodurov2016'"),
