@@ -558,12 +558,13 @@ def place_faces(
 
 
 def _check_hidden(spec: PhotoSpec, pose: CameraPose, rois: dict[str, RoiMask]) -> None:
-    """ImagingError when another wedge hides part of a placed face's eroded ROI."""
+    """ImagingError when another wedge hides part of a placed face's eroded ROI (`rois`: the
+    faces measured; one too thin to measure is not in it and not checked)."""
     faces, angles = dict(spec.faces_mm), dict(spec.face_angles_deg)
     occluders = spec.occluders()
     for n in spec.placed_names():
         others = [o for o in occluders if o[0] != n]
-        if not others:
+        if not others or n not in rois:
             continue
         fraction, by = hidden_fraction(pose, faces[n], angles.get(n, 0.0), others, rois[n])
         if fraction > 0:

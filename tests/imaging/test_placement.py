@@ -311,3 +311,24 @@ def test_hidden_face_is_refused_in_a_photo(tmp_path) -> None:
     msg = str(err.value)
     assert "'p.dng', wedge 'back'" in msg and "hidden behind wedge 'front'" in msg
     assert "roi_px" in msg
+
+
+def test_a_face_too_thin_to_measure_is_not_checked_for_being_hidden(tmp_path) -> None:
+    """The hidden-face check gets the measured faces' ROIs only (a face too thin to measure is
+    a flagged row without one): it checks those and skips the rest, where it failed on the
+    missing ROI before."""
+    from stairfit.imaging._pipeline import _check_hidden, _eroded_rois, place_faces
+
+    faces = {
+        "front": ([(0, 0), (20, 0), (20, 20), (0, 20)], 60.0),
+        "back": ([(25, 0), (45, 0), (45, 20), (25, 20)], 10.0),
+    }
+    frame, _ = _photo(_ortho(-30.0), faces, tmp_path)
+    spec = _spec(frame, faces, -30.0)
+    _, pose, placed = place_faces(frame, spec, None)
+    polygons = {n: (p, "markers") for n, p in placed.items()}
+    rois, _, _ = _eroded_rois(spec, polygons, (frame.height, frame.width),
+                              imaging.ExtractionSettings())  # fmt: skip
+    _check_hidden(spec, pose, {"front": rois["front"]})  # 'back' (hidden) not measured: no error
+    with pytest.raises(imaging.ImagingError, match="hidden behind wedge 'front'"):
+        _check_hidden(spec, pose, rois)
