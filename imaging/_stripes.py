@@ -245,6 +245,8 @@ def _candidates(
     if across is not None:
         # the true wave vector lies along `across`, f from 1/MAX_PERIOD to 1/MIN_PERIOD
         f = np.arange(nu_min, 1.0 / MIN_PERIOD_PX, 0.25 / max(extent, 1.0))
+        if f.size == 0:  # narrower across the layers than MIN_PERIODS of the shortest period
+            return None
         line = f[:, None] * across[None, :]
         iy, ix = index(line)
         power = spec[iy, ix]
