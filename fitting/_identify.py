@@ -27,6 +27,12 @@ DEGENERACY_EIGENVALUE = 1e-12
 """Relative eigenvalue (of the correlation-normalised Fisher matrix) below which the
 information is numerically singular."""
 
+ZERO_INFORMATION = 1e-30
+"""A free parameter's Fisher diagonal below this fraction of the largest is zero to rounding
+(its derivative is rounding noise). The diagonals carry the parameters' units: a floor in
+radiance units (about 1e5) against widths in radians has about 1e-12 of their information at
+equal relative precision, so only a rounding-level fraction says "none"."""
+
 PARTICIPATION = 0.2
 """A parameter takes part in a singular direction when its component in the (normalised)
 eigenvector is at least this fraction of the largest component."""
@@ -80,7 +86,7 @@ def covariance(core: CoreFit) -> Covariance:
     if not np.all(np.isfinite(fisher)):
         return Covariance(None, diag, ())
     scale = np.sqrt(np.where(diag > 0, diag, 1.0))
-    zero = diag <= DEGENERACY_EIGENVALUE * max(float(diag.max(initial=0.0)), 1e-300)
+    zero = diag <= ZERO_INFORMATION * max(float(diag.max(initial=0.0)), 1e-300)
     lam, vec = np.linalg.eigh(fisher / np.outer(scale, scale))
     lam_max = max(float(lam.max(initial=0.0)), 1e-300)
     singular: set[int] = set(np.flatnonzero(zero).tolist())

@@ -123,3 +123,23 @@ def test_edge_radius_on_fine_cells_is_identified():
         fit = fitting.fit_least_squares(obs, spec, fitting.variant("r", "edge_radius_um"))
     e = fit.estimate("edge_radius_um")
     assert abs(e.value - 10.0) < 3 * e.stderr and e.stderr < 2.0
+
+
+def test_a_parameter_in_large_units_is_not_taken_for_one_without_information() -> None:
+    """The Fisher diagonals carry the parameters' units: the variant set's Beckmann probe had
+    its floor (radiance units, about 2e5) at 9e-13 of the width's diagonal, well conditioned
+    (normalised eigenvalues 0.56-1.89), and the old 1e-12 test called it singular, which fixed
+    the floor at 0 and left a model-error term of 89%. A column of zeros is still singular."""
+    from types import SimpleNamespace
+
+    from stairfit.fitting._identify import covariance
+
+    diag = np.array([2.66e4, 2.14e5, 7.10e3, 1.96e-7, 4.16e4])  # sigma, r, scale, floor, f
+    corr = np.full((5, 5), 0.3) + 0.7 * np.eye(5)
+    fisher = corr * np.sqrt(np.outer(diag, diag))
+    core = SimpleNamespace(free_slots=np.arange(5), ev=SimpleNamespace(fisher=fisher))
+    cov = covariance(core)
+    assert cov.degenerate == () and cov.z is not None
+    assert np.allclose(cov.z @ fisher, np.eye(5), atol=1e-8)
+    fisher[3, :] = fisher[:, 3] = 0.0
+    assert 3 in covariance(core).degenerate
