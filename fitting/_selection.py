@@ -668,6 +668,11 @@ def _fit_ladder(
     )
     for v in sorted(ladder, key=lambda u: len(u.features)):
         skip = _skip_reason(v, known, rows, settings, bool(fits))
+        probe = _converged_probe(v, settings.starts) if skip is not None else None
+        if probe is not None and not _parents_added_nothing(v, known, rows):
+            fits[v.name] = probe  # the budget is spent, but this variant was fitted as a probe
+            rows[v.name] = dataclasses.replace(_row(probe, v, math.nan, 0.0), detail=PROBE_KEPT)
+            continue
         if skip is not None:
             rows[v.name] = not_fitted_row(v, Status.NOT_FITTED, skip)
             continue
@@ -706,13 +711,32 @@ def _skip_reason(
     """Why `v` is not tried (None: it is): every parent added nothing (the escalation stops
     where each route to a rung passes through one that changed nothing), or the ladder's time
     budget is spent and some variant has already converged."""
-    parents = [rows.get(u.name) for u in parents_of(v, known)]
-    if parents and all(r is not None and r.status == Status.ADDS_NOTHING for r in parents):
-        names = " and ".join(repr(r.name) for r in parents if r is not None)
+    if _parents_added_nothing(v, known, rows):
+        names = " and ".join(repr(u.name) for u in parents_of(v, known))
         return f"not tried: {names} added nothing"
     if any_fitted and settings.deadline is not None and time.process_time() > settings.deadline:
         return f"not tried: the ladder's time budget ({settings.budget_s:g} CPU s) was spent"
     return None
+
+
+def _parents_added_nothing(
+    v: Variant, known: tuple[Variant, ...], rows: dict[str, ComparisonRow]
+) -> bool:
+    """Whether `v` has parents and every one of them added nothing (the escalation stops)."""
+    parents = [rows.get(u.name) for u in parents_of(v, known)]
+    return bool(parents) and all(r is not None and r.status == Status.ADDS_NOTHING
+                                 for r in parents)  # fmt: skip
+
+
+PROBE_KEPT = "the kernel probe's fit of this variant: the ladder's time budget was spent"
+"""A ladder row's detail when the budget left no time to fit the variant again, and the chosen
+kernel's probe had fitted that very variant (same free parameters and kernel)."""
+
+
+def _converged_probe(v: Variant, starts: tuple[FitResult, ...]) -> FitResult | None:
+    """The best converged fit among the probes of `v` itself (`_probe_starts`), or None."""
+    done = [f for f in _probe_starts(v, starts) if f.success]
+    return min(done, key=lambda f: f.chi2, default=None)
 
 
 def _adds_nothing(fit: FitResult, v: Variant, parents: tuple[FitResult, ...]) -> str | None:

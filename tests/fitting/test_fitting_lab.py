@@ -242,3 +242,23 @@ def test_the_linear_scale_start_uses_the_lab_models_own_body_term(lab_arrays, ke
     z0[problem.layout.slot("floor")] = 3e3
     z = np.asarray(_core._linear_scale(jnp.asarray(z0), static, data))
     assert np.exp(z[problem.layout.slot("scale")]) == pytest.approx(3e5, rel=1e-9)
+
+
+def test_a_spent_budget_keeps_the_kernel_probes_fit_of_a_variant(lab_arrays):
+    """When the ladder's CPU budget is spent by the kernel probes (the variant set: every rung
+    after the first was "not tried"), a variant the chosen kernel's probe has already fitted is
+    taken from that fit instead of being left out; the others stay "not tried"."""
+    from stairfit.fitting._selection import PROBE_KEPT
+
+    geo, spec, _ = lab_arrays
+    obs = _lab_observations(lab_arrays, "ggx", np.deg2rad(3.4), 30.0, np.random.default_rng(5))
+    ladder = tuple(v for v in fitting.DEFAULT_LADDER
+                   if fitting.FILLET not in v.free and not v.per_wedge_sigma)  # fmt: skip
+    sel = fitting.select_model(fitting.prepare(obs, spec, lab=geo), ladder=ladder,
+                               kernels=("gaussian", "ggx"), time_budget_s=1e-9,
+                               rounded_rungs="when_needed", options=fitting.LeastSquaresOptions(
+                                   on_failure="flag", emit_warnings=False))  # fmt: skip
+    rows = {r.name: r for r in sel.table}
+    assert rows["sharp+floor"].detail == PROBE_KEPT
+    assert sel.chosen == "sharp+floor" and sel.fit.variant.kernel == "ggx"
+    assert "time budget" in rows["sharp+delta_n+floor"].detail
