@@ -13,9 +13,10 @@ renderer calls visible is compared with two truths:
   face's mean) differ between the two regions.
 * **the ROI's own render** (with `--renders DIR`, a folder holding `renders/DSC_*.npz` of the
   same photos: `make_pbr_set.py --keep-renders`; the DNGs must be the same bytes, which is
-  checked): `T` the render's mean over the pixels the ROI used, compared with the ROI's mean
-  radiance as measured, `value x (1 + stripe_offset)` (docs/imaging.md §Layer stripes: `value`
-  is the layer-period average, `stripe_offset` how far the ROI's own mean lies from it). The
+  checked; photos without a kept render are compared with truth.json only): `T` the render's
+  mean over the pixels the ROI used, compared with the ROI's mean radiance as measured,
+  `value x (1 + stripe_offset)` (docs/imaging.md §Layer stripes: `value` is the layer-period
+  average, `stripe_offset` how far the ROI's own mean lies from it). The
   pull's denominator adds the Monte Carlo variance of `T` minus that of the channel's own sites
   (their render noise is in the photo, so in `stderr`, and cancels in the difference), both
   exact from the render's per-pixel variance.
@@ -99,7 +100,11 @@ def compare(
     for spec, fm in measured:
         i = index[spec.name]
         photo = truth["photos"][i]
-        render = pb.load_render(renders, i) if renders is not None else None
+        render = (
+            pb.load_render(renders, i)
+            if renders is not None and (renders / "renders" / f"{spec.name}.npz").exists()
+            else None
+        )
         for r in fm.rows:
             face = photo["faces"].get(r.wedge)
             if face is None:
@@ -127,11 +132,14 @@ def stats(rows: list[dict[str, Any]]) -> dict[str, Any]:
     se = np.array([d["row"].stderr for d in used])
     t = np.array([d["truth"] for d in used])
     out["truth_json"] = _numbers(value / t - 1, (value - t) / se)
-    if used and all("T" in d for d in used):
-        mean = value * np.array([1 + _offset(d["row"]) for d in used])
-        big_t = np.array([d["T"] for d in used])
-        extra = np.array([d["var_diff"] - d["var_sites"] for d in used])
-        out["roi_render"] = _numbers(mean / big_t - 1, (mean - big_t) / np.sqrt(se**2 + extra))
+    rendered = [i for i, d in enumerate(used) if "T" in d]  # photos with a kept render
+    if rendered:
+        sub = [used[i] for i in rendered]
+        mean = value[rendered] * np.array([1 + _offset(d["row"]) for d in sub])
+        big_t = np.array([d["T"] for d in sub])
+        extra = np.array([d["var_diff"] - d["var_sites"] for d in sub])
+        pull = (mean - big_t) / np.sqrt(se[rendered] ** 2 + extra)
+        out["roi_render"] = {"rows": len(sub), **_numbers(mean / big_t - 1, pull)}
     out["grey_split"] = _split(used)
     rms = {d["row"].photo: d["row"].reprojection_error_px for d in rows}
     finite = [e for e in rms.values() if e is not None and math.isfinite(e)]
@@ -205,6 +213,8 @@ def _same_photos(folder: Path, renders: Path, truth: dict[str, Any]) -> None:
     from stairfit.imaging import file_sha256
 
     for p in truth["photos"]:
+        if not (renders / "renders" / f"{p['file']}.npz").exists():
+            continue  # compared with truth.json only
         a, b = folder / p["file"], renders / p["file"]
         if file_sha256(a) != file_sha256(b):
             raise SystemExit(f"{b} is not {a}: render the same set (seed) with --keep-renders")

@@ -162,7 +162,7 @@ def _inner(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _plane_fit(
     n: np.ndarray, s: np.ndarray, y: np.ndarray, x: np.ndarray, degree: int = 1
 ) -> _Fit | None:
-    """Weighted least-squares plane (degree 1) or quadratic surface (degree 2) through the
+    """Weighted least-squares plane (degree 1), quadratic (2) or cubic (3) surface through the
     block means; None if no block is left over."""
     ok = n > 0
     k = int(ok.sum())
@@ -177,6 +177,8 @@ def _plane_fit(
     terms = [ok.astype(float), u, v]
     if degree >= 2:
         terms += [u * u, u * v, v * v]
+    if degree >= 3:
+        terms += [u * u * u, u * u * v, u * v * v, v * v * v]
     design = np.stack(terms)
     xtdx = _inner(design * n, design)
     lam, vec = np.linalg.eigh(xtdx)
@@ -372,8 +374,9 @@ def adaptive_covariance(
     the first at which edge neighbours are correlated by at most MAX_EDGE_RHO is used. When
     even the coarsest level with MIN_FIT_BLOCKS blocks fails that, the estimate is returned
     with dof 0 (the texture is correlated over more than the ROI allows to measure).
-    `degree` 2 detrends the block means by a quadratic surface instead of a plane (a near
-    lamp's fall-off, a radiance that changes steeply across a face); the moments stay exact.
+    `degree` 2 (3) detrends the block means by a quadratic (cubic) surface instead of a plane
+    (a near lamp's fall-off, a radiance that changes steeply across a face); the moments stay
+    exact.
     `min_fit` is the fewest blocks a level needs (MIN_FIT_BLOCKS for a 2-D grid; a row of
     strips has 2 covariances to fit instead of 5 and needs fewer), `max_rho` the largest edge
     correlation accepted (strips of whole layers may share a layer with their neighbours and
@@ -433,6 +436,27 @@ def _estimate(
     n_blocks = np.array([int((blocks.n[c] > 0).sum()) for c in range(3)])
     slopes = np.array([f.slope if f is not None else (math.nan, math.nan) for f in fits])
     return BlockEstimate(cov, dof, n_blocks, blocks.size_px, slopes)
+
+
+def curvature_f(base: Blocks, size_px: int, degree: int, channel: int = 1) -> float:
+    """The F statistic of the terms a `degree` surface adds to the plane through one channel's
+    block means at the block side `size_px`: (the weighted residual sum of squares the terms
+    remove, per term) over (what the surface leaves, per remaining degree of freedom). NaN
+    when either fit is undefined or leaves no degree of freedom."""
+    b = aggregate(base, max(1, size_px // base.size_px))
+    n, s, y, x = b.n[channel], b.s[channel], b.y[channel], b.x[channel]
+    plane, surface = _plane_fit(n, s, y, x, 1), _plane_fit(n, s, y, x, degree)
+    if plane is None or surface is None or surface.k <= surface.rank or surface.rank <= plane.rank:
+        return math.nan
+    ok = n > 0
+
+    def rss(f: _Fit) -> float:
+        return float(np.sum(np.where(ok, f.e**2 / np.where(ok, n, 1.0), 0.0)))
+
+    removed, left = rss(plane) - rss(surface), rss(surface)
+    if not left > 0:
+        return math.inf if removed > 0 else math.nan
+    return (removed / (surface.rank - plane.rank)) / (left / (surface.k - surface.rank))
 
 
 def edge_correlation(base: Blocks, degree: int = 1, min_fit: int = MIN_FIT_BLOCKS) -> float:

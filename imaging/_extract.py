@@ -44,6 +44,7 @@ from ._blockvar import (
     BlockEstimate,
     Blocks,
     adaptive_covariance,
+    curvature_f,
     edge_correlation,
 )
 from ._decode import RawFrame
@@ -340,8 +341,8 @@ def roi_data(
         acc[0].block,
     )
     # with stripes fitted, the level's curvature (a near lamp) is detrended as the stripes' fit
-    # did; the plain path keeps the plane (docs/imaging.md §Standard errors)
-    est = adaptive_covariance(blocks, degree=2 if fit is not None else 1)
+    # did; the plain path starts from the plane (docs/imaging.md §Standard errors)
+    est = detrended_covariance(blocks, degree=2 if fit is not None else 1)
     if fit is not None and px is not None:
         est = _with_strips(est, px, fit)
     base = tuple(a.stats() for a in acc)
@@ -349,6 +350,34 @@ def roi_data(
     weights, plain, lev = _noise_weights(acc, fit, px)
     greens = _green_sites(frame, px, fit) if fit is not None and px is not None else None
     return RoiData(blocks, est, base, noise_local, lev, weights, plain, fit, greens)  # type: ignore[arg-type]
+
+
+MAX_DETREND_DEGREE = 3
+"""The highest degree of the surface removed from the block means (`detrended_covariance`)."""
+
+TREND_F = 100.0
+"""A higher-degree surface is used only when its extra terms stand out this much (`curvature_f`
+on green, at the block side it resolves): a near lamp's highlight gave F 106-5300 (the
+variant set's faces, tests/imaging/test_blockvar.py's highlights); random texture correlated
+over the ROI's own size, which such a surface would partly absorb and so hide, at most 62
+(1440 ROIs of the calibration grid's cells, 2-8 px texture in 20-200 blocks)."""
+
+
+def detrended_covariance(blocks: Blocks, degree: int) -> BlockEstimate:
+    """`adaptive_covariance` at the lowest detrending degree, from `degree` up to
+    MAX_DETREND_DEGREE, at which some channel's correlation is resolved (dof > 0) and, above
+    `degree`, whose extra terms pass `TREND_F`; the first estimate when none does. A highlight
+    from a near lamp curves a face's radiance beyond a plane or a quadratic: that smooth,
+    deterministic change is not scatter of the mean, but left in the residuals it keeps
+    neighbours correlated at every block size (docs/imaging.md §Standard errors, item 1)."""
+    first = adaptive_covariance(blocks, degree=degree)
+    if np.any(first.dof > 0):
+        return first
+    for d in range(degree + 1, MAX_DETREND_DEGREE + 1):
+        est = adaptive_covariance(blocks, degree=d)
+        if np.any(est.dof > 0) and curvature_f(blocks, est.size_px, d) >= TREND_F:
+            return est
+    return first
 
 
 STRIP_OFFSETS = (0.0, 0.25, 0.5, 0.75)

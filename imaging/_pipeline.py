@@ -69,7 +69,7 @@ from ._roi import (
 )
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 14
+TABLE_VERSION = 15
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
@@ -89,6 +89,8 @@ TABLE_VERSION = 14
 14: the stripes' harmonics shorter than 0.4 px that the residuals show are fitted too; what the
     stripes leave at the mosaic's Nyquist frequency (the two greens' difference) is in R's and
     B's errors (issue 45).
+15: block means detrended by a quadratic, then a cubic surface where a plane leaves the
+    correlation unresolved (a near lamp's highlight across a face).
 """
 
 

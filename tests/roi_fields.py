@@ -145,7 +145,7 @@ def render(cell: Cell, n_rois: int, rng: np.random.Generator) -> tuple[np.ndarra
         signal[box] = _textured(cell, illum, level[colour[box]], field, box)
         placed.append(poly)
         levels.append(level)
-    mosaic = _sensor(signal, rng)
+    mosaic = sensor(signal, rng)
     truths = []
     for k, (poly, level) in enumerate(zip(placed, levels, strict=True)):
         roi = imaging.roi_mask(poly, shape, 0, photo="roi_fields", wedge=f"r{k}")
@@ -190,7 +190,8 @@ def _textured(
     return illum * (1 + t) if cell.texture == "mult" else illum + level * t
 
 
-def _sensor(signal: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def sensor(signal: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """DN of a noise-free signal (DN above black): Poisson electrons, read noise, black, 14 bits."""
     electrons = rng.poisson(np.maximum(signal, 0) * GAIN_E_PER_DN)
     dn = electrons / GAIN_E_PER_DN + READ_NOISE_DN * rng.standard_normal(signal.shape)
     return np.clip(np.rint(dn + BLACK_DN), 0, WHITE_DN).astype(np.uint16)
