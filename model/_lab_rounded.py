@@ -166,12 +166,11 @@ def rounded_flats(
          for k in range(2)], axis=-1,
     )  # fmt: skip
     exact = delta_w[..., :2] / jnp.where(has_w, sharp_w[..., :2], 1.0)
+    # the exact share at the mirror direction corrects `flat_lit_seen`'s share at the view;
+    # where the mirror direction sees no flat part (an arc hides it) the view may still see
+    # one, and that share is the limit of the correction (exact and at_mirror vanish together)
     has_m = has_w & (at_mirror > _TINY)
-    seen = jnp.where(
-        has_m,
-        exact * at_view / jnp.where(has_m, at_mirror, 1.0),
-        jnp.where(has_w, exact, at_view),
-    )
+    seen = jnp.where(has_m, exact * at_view / jnp.where(has_m, at_mirror, 1.0), at_view)
     sharp_retro = sharp_w[..., 2]
     has = sharp_retro > 1e-9
     scale_retro = jnp.where(
