@@ -909,7 +909,8 @@ def report_html(
         f"<tr><td>{'&#10003;' if r['variant'] == sel.chosen else ''}</td><td>{e(r['variant'])}"
         f"</td><td>{_fmt(r['n_free'], 'd')}</td><td>{_fmt(r['chi2'], '.5g')}</td>"
         f"<td>{_fmt(r['bic'], '.6g')}</td><td>{_fmt(r['delta'], '.3g')}</td>"
-        f"<td>{e(r['status'])}{'; ' + e(r['notes']) if r['notes'] else ''}</td></tr>"
+        f"<td>{e(r['status'])}{' (' + e(r['detail']) + ')' if r.get('detail') else ''}"
+        f"{'; ' + e(r['notes']) if r['notes'] else ''}</td></tr>"
         for r in results["model_selection"]["table"]
     )
     imgs = "".join(

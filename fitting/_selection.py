@@ -495,6 +495,11 @@ def _with_rounding(sel: Selection, rounding: Rounding) -> Selection:
     """The selection with its rounding record, and the reason saying what happened."""
     what = "were fitted" if rounding.fitted else "were not fitted"
     took = f" (in {rounding.elapsed_s:.0f} s)" if rounding.fitted else ""
+    if rounding.fitted and any(r.detail == PROBE_KEPT for r in sel.table):
+        took = (
+            f" (in {rounding.elapsed_s:.0f} s: the ladder's time budget was spent, so the "
+            "rungs the kernel probes had fitted are kept)"
+        )
     reason = f"{sel.reason}; the rounded variants {what}{took} because {rounding.reason}"
     return dataclasses.replace(sel, rounding=rounding, reason=reason)
 

@@ -3,6 +3,8 @@ the in-plane limit, and a fit that recovers a microfacet truth and chooses its k
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -262,3 +264,19 @@ def test_a_spent_budget_keeps_the_kernel_probes_fit_of_a_variant(lab_arrays):
     assert rows["sharp+floor"].detail == PROBE_KEPT
     assert sel.chosen == "sharp+floor" and sel.fit.variant.kernel == "ggx"
     assert "time budget" in rows["sharp+delta_n+floor"].detail
+
+
+def test_the_reason_says_when_the_rounded_rungs_were_taken_from_the_kernel_probes() -> None:
+    """A ladder whose budget the kernel probes spent took its rounded rungs from their fits in
+    no time: the reason says so instead of "fitted (in 0 s)"."""
+    from stairfit.fitting import _selection as s
+
+    v = fitting.variant("rounded+floor", "edge_radius_um", "floor")
+    row = s.not_fitted_row(v, s.Status.MISFITS, s.PROBE_KEPT)
+    sel = s.Selection("rounded+floor", None, (row,), "chosen", "bic", 2.0, False, {})  # type: ignore[arg-type]
+    why = "the best sharp variant misfits"
+    kept = s._with_rounding(sel, s.Rounding("when_needed", True, why, 4, 0.0)).reason
+    assert "time budget was spent, so the rungs the kernel probes had fitted are kept" in kept
+    plain = dataclasses.replace(sel, table=(s.not_fitted_row(v, s.Status.MISFITS, "x"),))
+    fitted = s._with_rounding(plain, s.Rounding("when_needed", True, why, 4, 12.0)).reason
+    assert "were fitted (in 12 s) because the best sharp variant misfits" in fitted
