@@ -116,3 +116,24 @@ def standard(
     spec = effective() if spec is None else spec
     design = fitting.standard_design(channels=tuple(range(spec.n_channels)))
     return scene(truth, design, spec, noise, seed)
+
+
+# --- the posterior tests' scene (tests/fitting/test_posterior.py, test_chain.py) --------------
+
+POSTERIOR_TRUTH = fitting.Params(sigma_rad=8 * DEG, delta_n=0.02, scale=1.0, floor=0.003)
+"""The truth of the posterior tests' small scene."""
+
+POSTERIOR_VARIANT = fitting.variant("dn_floor", "delta_n", "floor")
+"""The variant the posterior tests sample: width, index offset, scale and floor free."""
+
+
+def posterior_scene(seed: int) -> tuple[fitting.Observations, fitting.Spectral]:
+    """`small` of `POSTERIOR_TRUTH`: its observations and spectral setup."""
+    s = small(POSTERIOR_TRUTH, seed)
+    return s.obs, s.spec
+
+
+def posterior_fit(seed: int = 21) -> fitting.FitResult:
+    """The least-squares fit of `POSTERIOR_VARIANT` to `posterior_scene(seed)`."""
+    obs, spec = posterior_scene(seed)
+    return fitting.fit_least_squares(obs, spec, POSTERIOR_VARIANT)

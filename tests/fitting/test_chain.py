@@ -11,20 +11,12 @@ import zoo
 from stairfit import fitting
 from stairfit.fitting import posterior
 
-DEG = np.pi / 180
-TRUTH = fitting.Params(sigma_rad=8 * DEG, delta_n=0.02, scale=1.0, floor=0.003)
-VARIANT = fitting.variant("dn_floor", "delta_n", "floor")
-
-
-def _small(seed: int) -> tuple[fitting.Observations, fitting.Spectral]:
-    s = zoo.small(TRUTH, seed)
-    return s.obs, s.spec
+TRUTH, VARIANT, _small = zoo.POSTERIOR_TRUTH, zoo.POSTERIOR_VARIANT, zoo.posterior_scene
 
 
 @pytest.fixture(scope="module")
 def fit() -> fitting.FitResult:
-    obs, spec = _small(21)
-    return fitting.fit_least_squares(obs, spec, VARIANT)
+    return zoo.posterior_fit()
 
 
 def _short(fit: fitting.FitResult, **kw) -> posterior.PosteriorResult:
