@@ -372,7 +372,7 @@ class PosteriorResult:
             "burn_in": int(self.burn_in),
             "sampler": f"emcee EnsembleSampler ({MOVES[self.moves]}); ArviZ chains are emcee "
             "walkers",
-            "source": "stairfit.fitting.sample_posterior",
+            "source": "stairfit.fitting.posterior.sample_posterior",
         }
         chain = self.chain * factors
         return inference_data(chain, self.log_prob, self.burn_in, names, units, attrs)

@@ -6,6 +6,7 @@ and resuming it: tests/fitting/test_chain.py).
 
 from __future__ import annotations
 
+import importlib
 import warnings
 
 import numpy as np
@@ -166,6 +167,9 @@ def test_chain_as_inference_data_opens_in_arviz(fit, tmp_path):
     np.testing.assert_array_equal(idata.posterior["scale"].values.T, kept[:, :, 2])
     assert idata.warmup_posterior.sizes["draw"] == post.burn_in
     assert idata.posterior["sigma_deg"].attrs["units"] == "deg"
+    # the file names the function that wrote it, importable as named
+    module, _, name = post.inference_data().attrs["source"].rpartition(".")
+    assert callable(getattr(importlib.import_module(module), name))
     np.testing.assert_array_equal(idata.sample_stats["lp"].values.T, post.log_prob[post.burn_in :])
     # ArviZ's own summary of the file reproduces the diagnostics in the result
     table = az.summary(idata, kind="diagnostics", round_to="none")
