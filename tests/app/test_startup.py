@@ -124,3 +124,26 @@ def test_only_the_console_script_freezes_what_it_imported():
     )
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip() == "[(2, False), (2, True)]", run.stdout
+
+
+def test_the_fit_pipeline_freezes_its_late_imports_only_when_asked():
+    """`pipeline` freezes what the fit's late imports made (emcee, the report) only with
+    `FitOptions.freeze_imports` (the console script); a fit called from a test or a notebook
+    freezes nothing."""
+    code = (
+        "import gc\n"
+        "from stairfit import pipeline\n"
+        "from stairfit.outcome import FitOptions\n"
+        "from stairfit.presets import PRESETS\n"
+        "counts = []\n"
+        "for freeze in (False, True):\n"
+        "    gc.unfreeze()\n"
+        "    options = FitOptions(PRESETS['balanced'], False, None, True, 0, 1, True, False,\n"
+        "                         freeze_imports=freeze)\n"
+        "    pipeline._freeze_imports(options)\n"
+        "    counts.append(gc.get_freeze_count() > 0)\n"
+        "print(counts)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "[False, True]", run.stdout
