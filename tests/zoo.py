@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
+import pytest
 
 from stairfit import fitting
 
@@ -137,3 +138,13 @@ def posterior_fit(seed: int = 21) -> fitting.FitResult:
     """The least-squares fit of `POSTERIOR_VARIANT` to `posterior_scene(seed)`."""
     obs, spec = posterior_scene(seed)
     return fitting.fit_least_squares(obs, spec, POSTERIOR_VARIANT)
+
+
+def short_chain(fit: fitting.FitResult, **kw: object) -> fitting.posterior.PosteriorResult:
+    """A fixed-length chain of `fit` (tau_factor so large that it never counts as converged),
+    with the max_steps warning that this implies checked. The posterior (and emcee) is imported
+    here, not by every test that uses the zoo."""
+    from stairfit.fitting import posterior
+
+    with pytest.warns(fitting.ConvergenceWarning, match="max_steps"):
+        return posterior.sample_posterior(fit, chunk_steps=100, tau_factor=1e9, **kw)  # type: ignore[arg-type]

@@ -24,10 +24,7 @@ def fit() -> fitting.FitResult:
     return zoo.posterior_fit()
 
 
-def _short(fit: fitting.FitResult, **kw) -> posterior.PosteriorResult:
-    """A fixed-length chain (tau_factor so large that it never counts as converged)."""
-    with pytest.warns(fitting.ConvergenceWarning, match="max_steps"):
-        return posterior.sample_posterior(fit, chunk_steps=100, tau_factor=1e9, **kw)
+_short = zoo.short_chain
 
 
 def test_posterior_seed_is_recorded_and_reproducible(fit):
