@@ -439,20 +439,30 @@ def gloss_table(
 ) -> list[GlossRow]:
     """Gloss units of every surface angle x azimuth x ISO 2813 geometry (see `GlossRow`):
     at the optimum, and with the posterior draws' median and 16-84% interval or the delta
-    method's standard deviation. One compiled program for the optimum and the draws."""
+    method's standard deviation. One compiled program: for the optimum and the draws, or for
+    the optimum and its gradient."""
     import jax
     import jax.numpy as jnp
 
     combos = _combos(wedge_deg, azimuth_deg, angles_deg)
     f = _table_function(model, combos, layer_um)
-    vectors = model.best[None, :] if model.draws is None else np.vstack([model.best, model.draws])
-    values = np.asarray(jax.jit(lambda v: jax.lax.map(f, v))(
-        jnp.asarray(vectors, float)))  # (V, C, 3)  # fmt: skip
-    best, totals = values[0], values[1:, :, 0]
-    sd = np.full(best.shape[0], np.nan)
+    sd = np.full(combos.wedge_deg.size, np.nan)
     if model.draws is None and model.covariance is not None and model.best.size:
-        jac = np.asarray(jax.jit(jax.jacfwd(lambda v: f(v)[:, 0]))(jnp.asarray(model.best, float)))
+        # the delta method: the table and its gradient in one program (the forward-mode
+        # Jacobian evaluates the table on the way)
+        def with_table(v: jax.Array) -> tuple[jax.Array, jax.Array]:
+            t = f(v)
+            return t[:, 0], t
+
+        jac, table = jax.jit(jax.jacfwd(with_table, has_aux=True))(jnp.asarray(model.best, float))
+        jac, values = np.asarray(jac), np.asarray(table)[None]  # (C, P), (1, C, 3)
         sd = np.sqrt(np.einsum("cp,pq,cq->c", jac, model.covariance, jac))
+    else:
+        vectors = model.best[None, :] if model.draws is None else np.vstack([model.best,
+                                                                            model.draws])
+        values = np.asarray(jax.jit(lambda v: jax.lax.map(f, v))(
+            jnp.asarray(vectors, float)))  # (V, C, 3)  # fmt: skip
+    best, totals = values[0], values[1:, :, 0]
     rows = []
     for c in range(best.shape[0]):
         median = p16 = p84 = None

@@ -11,6 +11,13 @@ model-error term and the facet kernel chosen. The set comes from benchmarks/make
 
     python benchmarks/make_pbr_set.py --set dev --out /data/pbr/dev
     python benchmarks/bench_lab_fit.py /data/pbr/dev
+    python benchmarks/bench_lab_fit.py SET --compare-exe OTHER/.venv/bin/stairfit --repeats 2
+
+`--compare-exe` times another installation's `stairfit` (e.g. the commit before a change, in
+its own checkout and virtual environment) beside this one: in each repeat both run cold and
+then warm, one after another, each with its own empty JAX cache, so that a slow phase of the
+machine hits them alike; the medians and each run's `fit_s`, `compile_s` and `measure_s`
+(results.json) are printed, with both fits' chosen model and parameters.
 
 Results: benchmarks/results/lab_fit.md (newest run first; say whether the machine was loaded).
 """
@@ -65,13 +72,63 @@ def _compare(results: Path, truth_file: Path) -> dict[str, object]:
     return out
 
 
+def _stages(results: Path) -> dict[str, float]:
+    """The stage times a fit recorded in its results.json (s)."""
+    t = json.loads(results.read_text())["diagnostics"]["timings_s"]
+    return {k: round(float(v), 1) for k, v in t.items()}
+
+
+def _pair(exes: dict[str, str], folder: Path, work: Path, repeats: int) -> dict[str, object]:
+    """Cold then warm `stairfit fit --no-posterior` of every exe, `repeats` times interleaved."""
+    runs: dict[str, list[dict[str, object]]] = {name: [] for name in exes}
+    for r in range(repeats):
+        for name, exe in exes.items():
+            base = work / f"{name}{r}"
+            env = dict(os.environ, STAIRFIT_JAX_CACHE=str(base / "jax"))
+            cold = _run([exe, "fit", str(folder), "-o", str(base / "cold"), "--no-posterior",
+                         "--no-cache", "--quiet"], env)  # fmt: skip
+            warm = _run([exe, "fit", str(folder), "-o", str(base / "warm"), "--no-posterior",
+                         "--quiet"], env)  # fmt: skip
+            runs[name].append({"cold_s": round(cold, 1), "warm_s": round(warm, 1),
+                               "cold_stages": _stages(base / "cold" / "results.json"),
+                               "warm_stages": _stages(base / "warm" / "results.json")})  # fmt: skip
+            print(name, r, json.dumps(runs[name][-1]), file=sys.stderr, flush=True)
+    out: dict[str, object] = {}
+    for name in exes:
+        cold = sorted(float(x["cold_s"]) for x in runs[name])  # type: ignore[arg-type]
+        warm = sorted(float(x["warm_s"]) for x in runs[name])  # type: ignore[arg-type]
+        out[name] = {
+            "cold_median_s": round(cold[len(cold) // 2] if len(cold) % 2 else
+                                   (cold[len(cold) // 2 - 1] + cold[len(cold) // 2]) / 2, 1),
+            "warm_median_s": round(warm[len(warm) // 2] if len(warm) % 2 else
+                                   (warm[len(warm) // 2 - 1] + warm[len(warm) // 2]) / 2, 1),
+            "runs": runs[name],
+            **_compare(work / f"{name}0" / "cold" / "results.json", folder / "truth.json"),
+        }  # fmt: skip
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("folder", type=Path, help="a set from benchmarks/make_pbr_set.py")
     parser.add_argument("--with-posterior", action="store_true")
+    parser.add_argument("--compare-exe", help="another installation's stairfit, timed beside")
+    parser.add_argument("--repeats", type=int, default=1, help="with --compare-exe")
     args = parser.parse_args(argv)
     exe = str(Path(sys.executable).with_name("stairfit"))
     work = Path(tempfile.mkdtemp(prefix="bench_lab_fit_"))
+    if args.compare_exe:
+        load = os.getloadavg()[0]
+        try:
+            pair = _pair({"this": exe, "other": args.compare_exe}, args.folder, work,
+                         args.repeats)  # fmt: skip
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+        print(json.dumps({"folder": str(args.folder), "other": args.compare_exe,
+                          "load_average_start_end": [round(load, 2),
+                                                     round(os.getloadavg()[0], 2)],
+                          **pair}, indent=1))  # fmt: skip
+        return 0
     env = dict(os.environ, STAIRFIT_JAX_CACHE=str(work / "jax"))
     load = os.getloadavg()[0]
     timings = {}

@@ -273,7 +273,7 @@ def _lab_impl(
     body = (model.lab_body_rounded(w_i, w_o, b2, n, lab.layer[:, None, None], radius, weights)
             if rounded else model.lab_body(w_i, w_o, b2, n, weights))  # fmt: skip
     plate = model.plate_reflectance(w_o, b2, n, width_g[:, None, None], kernel, weights)
-    spec = (jnp.einsum("gk,gkc->gc", lab.conv, p) + jnp.einsum("gk,gkc->gc", lab.plate, plate))
+    spec = jnp.einsum("gk,gkc->gc", lab.conv, p) + jnp.einsum("gk,gkc->gc", lab.plate, plate)
     spec = spec[:, lab.channel]
     diffuse = jnp.einsum("gk,gkc->gc", lab.conv, body)[:, lab.channel]
     return spec, diffuse

@@ -88,6 +88,7 @@ def fit_least_squares(
     aperture: model.Aperture | None = None,
     resolution: int | None = None,
     start_from: tuple[FitResult, ...] = (),
+    stop_when_fixed: frozenset[str] = frozenset(),
     **option_overrides: Any,
 ) -> FitResult:
     """Fit one model variant by least squares [conventions §9].
@@ -110,6 +111,11 @@ def fit_least_squares(
     whose optima are also used as starts (`nested_start`), in every solve of the refinement
     loop: a superset of parameters started at a subset's optimum cannot end worse than it
     (Levenberg-Marquardt only accepts steps that lower the objective).
+
+    `stop_when_fixed`: parameter names; once the refinement has fixed every one of them
+    (unidentified or on a bound) it stops, and the result is the fit in which they were found
+    so, with their warnings. The model selection asks this of the parameters a variant adds over
+    its parent: fixing them makes the fit its parent again, which it already has.
     """
     t0 = time.perf_counter()
     opts = (options or LeastSquaresOptions()).updated(**option_overrides)
@@ -121,7 +127,7 @@ def fit_least_squares(
     extra = tuple(nested_start(problem, f) for f in start_from)
     if FILLET in variant.free:
         extra += tuple(z for f in start_from if (z := fillet_split_start(problem, f)) is not None)
-    refined = _refine(problem, spec_for(variant, problem), solver, opts, extra)
+    refined = _refine(problem, spec_for(variant, problem), solver, opts, extra, stop_when_fixed)
     result = make_result(problem, variant, refined.core, opts.solver, refined.records,
                          refined.unidentified, t0)  # fmt: skip
     if not result.success and opts.on_failure == "raise":
@@ -159,9 +165,11 @@ def _refine(
     solver: optx.AbstractLeastSquaresSolver,
     opts: LeastSquaresOptions,
     extra: tuple[np.ndarray, ...] = (),
+    stop: frozenset[str] = frozenset(),
 ) -> _Refined:
     """Fit, then fix parameters on bounds or unidentified one at a time and refit, until
-    nothing changes (at most `2 x slots + 2` rounds); `extra` starts go into every solve."""
+    nothing changes (at most `2 x slots + 2` rounds), or until every parameter in `stop` is
+    fixed (`fit_least_squares`); `extra` starts go into every solve."""
 
     def solve(s: FreeSpec) -> CoreFit:
         return fit_core(problem, s, solver, opts.max_steps, opts.sigma_starts_rad, extra)
@@ -176,10 +184,15 @@ def _refine(
             records.append(step.warning)
         if step.unidentified is not None:
             names.append(step.unidentified)
-        if step.spec is None:
+        if step.spec is None or (stop and stop <= _fixed_names(records)):
             break
         core = step.core if step.core is not None else solve(step.spec)
     return _Refined(core, records, names)
+
+
+def _fixed_names(records: list[FitWarning]) -> set[str | None]:
+    """The parameters the refinement has fixed (unidentified, or on a bound)."""
+    return {r.parameter for r in records if r.code in ("unidentified", "at_bound")}
 
 
 def _next_step(

@@ -293,6 +293,9 @@ def _recheck_kernel(
     if sel.chosen == facets.probe or not probe_misfits:
         return sel, facets
     chosen = sel.fit.requested
+    settled = _kernel_settled(sel.fit, facets, probe_rows)
+    if settled is not None:
+        return sel, facets._replace(reason=f"{facets.reason}; {settled}")
     scored = {facets.kernel: _criterion(sel.fit, criterion)}
     fits, rows = {facets.kernel: sel.fit}, []
     for kernel in (k for k in kernels if k != facets.kernel):
@@ -337,6 +340,32 @@ def _recheck_kernel(
                                assessment=describe_fit(fit)), facets  # fmt: skip
 
 
+RECHECK_FACTOR = 10.0
+"""The kernels are not compared again at the chosen variant when, at the probe, every other
+kernel's `-2 log L` exceeds the chosen kernel's by more than this many times what the chosen
+variant's added features gained the chosen kernel there: to overturn the choice another kernel
+would have to gain more than `RECHECK_FACTOR + 1` times as much from the same features (on the
+issue's GGX set: margins of 1620 and 1720 against a gain of 28)."""
+
+
+def _kernel_settled(fit: FitResult, facets: Facets, probe_rows: list[ComparisonRow]) -> str | None:
+    """Why comparing the kernels again at the chosen variant (`fit`) cannot change the choice
+    (`RECHECK_FACTOR`), or None when it could (or the probe's numbers are missing)."""
+    probe = [f for f in facets.fits if f.requested.name.startswith(f"{facets.probe} (")]
+    margins = [r.delta for r in probe_rows if not r.name.endswith(f"({facets.kernel} facets)")]
+    if not probe or not margins or not all(math.isfinite(d) for d in margins):
+        return None
+    gain = max(2.0 * (fit.log_likelihood - probe[-1].log_likelihood), 0.0)
+    margin = min(margins)
+    if not margin > RECHECK_FACTOR * gain:
+        return None
+    return (
+        f"not compared again at {fit.requested.name!r}: at the probe every other kernel is "
+        f"{margin:.3g} worse, more than {RECHECK_FACTOR:g} x the {gain:.3g} that variant's "
+        "added features gained there"
+    )
+
+
 KERNEL_PROBE = "sharp+floor"
 """The variant every facet kernel is fitted with before the ladder (`choose_kernel`): the
 simplest variant with a body reflection, which the lab model's scenes (dark plastics under a
@@ -370,8 +399,11 @@ def choose_kernel(
     second, fits2 = _probe_kernels(problem, rounded, kernels, criterion, threshold, settings, fits)
     reason = (f"{second.reason}, fitted because every kernel misfits at '{probe.name}' "
               f"({facets.reason})")  # fmt: skip
-    return second._replace(rows=facets.rows + second.rows, reason=reason,
-                           fits=_chosen(fits, second.kernel) + _chosen(fits2, second.kernel))
+    return second._replace(
+        rows=facets.rows + second.rows,
+        reason=reason,
+        fits=_chosen(fits, second.kernel) + _chosen(fits2, second.kernel),
+    )
 
 
 def _chosen(fits: dict[str, FitResult], kernel: str) -> tuple[FitResult, ...]:
@@ -683,8 +715,11 @@ def _fit_ladder(
             continue
         parents = tuple(fits[u.name] for u in parents_of(v, known) if u.name in fits)
         t0 = time.perf_counter()
+        fit = _kept_probe(v, settings, parents)
         try:
-            fit = _fit_variant(problem, v, settings, parents + _probe_starts(v, settings.starts))
+            if fit is None:
+                starts = parents + _probe_starts(v, settings.starts)
+                fit = _fit_variant(problem, v, settings, starts, _added(v, parents))
         except UnconstrainedError as err:  # a misfit running to a degenerate limit, or no signal
             rows[v.name] = _unconstrained_row(v, err)
             continue
@@ -692,9 +727,10 @@ def _fit_ladder(
             rows[v.name] = not_fitted_row(v, Status.UNIDENTIFIABLE, str(err))
             continue
         row = _row(fit, v, math.nan, time.perf_counter() - t0)
-        nothing = _adds_nothing(fit, v, parents) if fit.success else None
+        judged = fit.success or _stopped(fit, v, parents)
+        nothing = _adds_nothing(fit, v, parents) if judged else None
         if nothing is not None:
-            rows[v.name] = dataclasses.replace(row, status=Status.ADDS_NOTHING, detail=nothing)
+            rows[v.name] = _adds_nothing_row(fit, v, parents, row, nothing)
         elif fit.success:
             fits[v.name] = fit
             rows[v.name] = row
@@ -744,17 +780,67 @@ def _converged_probe(v: Variant, starts: tuple[FitResult, ...]) -> FitResult | N
     return min(done, key=lambda f: f.chi2, default=None)
 
 
+def _kept_probe(
+    v: Variant, settings: _Settings, parents: tuple[FitResult, ...]
+) -> FitResult | None:
+    """The chosen kernel's converged probe fit of `v` itself, when it is at least as likely as
+    every fitted parent (so a refit from the parents' optima could not be needed to keep it
+    from ending worse than them); None otherwise. The probe was fitted with the ladder's own
+    settings, so fitting it again would repeat its work."""
+    probe = _converged_probe(v, settings.starts)
+    if probe is None or any(probe.log_likelihood < p.log_likelihood for p in parents):
+        return None
+    settings.on_variant(v.name)
+    return dataclasses.replace(probe, requested=probe.requested._replace(name=v.name),
+                               variant=probe.variant._replace(name=v.name))  # fmt: skip
+
+
+def _best_parent(parents: tuple[FitResult, ...]) -> FitResult:
+    return max(parents, key=lambda f: f.log_likelihood)
+
+
+def _added(v: Variant, parents: tuple[FitResult, ...]) -> frozenset[str]:
+    """The parameters `v` adds over its most likely fitted parent (none without parents)."""
+    return frozenset(set(v.free) - set(_best_parent(parents).requested.free)) if parents else (
+        frozenset()
+    )  # fmt: skip
+
+
+def _adds_nothing_row(
+    fit: FitResult, v: Variant, parents: tuple[FitResult, ...], row: ComparisonRow, why: str
+) -> ComparisonRow:
+    """The row of a variant that adds nothing: when the parameters it adds were fixed, its fit
+    is its most likely parent again, whose numbers it shows (the ladder stops fitting it as
+    soon as they are fixed, `fit_least_squares(stop_when_fixed=...)`)."""
+    best = _best_parent(parents)
+    if _stopped(fit, v, parents):
+        row = dataclasses.replace(_row(best, v, math.nan, row.elapsed_s), notes=row.notes)
+    return dataclasses.replace(row, status=Status.ADDS_NOTHING, detail=why)
+
+
+def _fixed(fit: FitResult) -> set[str | None]:
+    """The parameters the fit's refinement fixed (unidentified, or on a bound)."""
+    return {w.parameter for w in fit.warnings if w.code in ("unidentified", "at_bound")}
+
+
+def _stopped(fit: FitResult, v: Variant, parents: tuple[FitResult, ...]) -> bool:
+    """Whether the refinement fixed every parameter `v` adds over its most likely parent (so
+    the fit is that parent again, converged or not where it stopped)."""
+    added = _added(v, parents)
+    return bool(added) and added <= _fixed(fit)
+
+
 def _adds_nothing(fit: FitResult, v: Variant, parents: tuple[FitResult, ...]) -> str | None:
     """Why the converged `fit` of `v` is its parent again (None when it adds something): each
     parameter it adds over a parent was fixed on a bound or as unidentified, or `-2 log L`
     falls by less than `GAIN_MIN` below the best parent's."""
     if not parents:
         return None
-    best = max(parents, key=lambda f: f.log_likelihood)
-    added = set(v.free) - set(best.requested.free)
+    best = _best_parent(parents)
+    added = _added(v, parents)
     removed = {w.parameter: w.code.replace("_", " ") for w in fit.warnings
                if w.code in ("unidentified", "at_bound")}  # fmt: skip
-    if added and added <= set(removed):
+    if _stopped(fit, v, parents):
         what = ", ".join(f"{p} {removed[p]}" for p in sorted(added))
         return f"{what}: the fit is {best.requested.name!r} again"
     gain = 2.0 * (fit.log_likelihood - best.log_likelihood)
@@ -767,13 +853,18 @@ def _adds_nothing(fit: FitResult, v: Variant, parents: tuple[FitResult, ...]) ->
 
 
 def _fit_variant(
-    problem: Problem, v: Variant, settings: _Settings, parents: tuple[FitResult, ...]
+    problem: Problem,
+    v: Variant,
+    settings: _Settings,
+    parents: tuple[FitResult, ...],
+    stop_when_fixed: frozenset[str] = frozenset(),
 ) -> FitResult:
-    """One variant of the ladder, also started from its parents' optima."""
+    """One variant of the ladder, also started from its parents' optima; `stop_when_fixed`:
+    see `fit_least_squares`."""
     v_run = v.with_free(model_error=True) if settings.model_error else v
     try:
         return fit_least_squares(problem, variant=v_run, options=settings.options,
-                                 start_from=parents)  # fmt: skip
+                                 start_from=parents, stop_when_fixed=stop_when_fixed)  # fmt: skip
     finally:
         settings.on_variant(v.name)
 
@@ -836,8 +927,9 @@ def _find(force: str | Variant, ladder: tuple[Variant, ...]) -> Variant:
 
 
 def _row(fit: FitResult, v: Variant, delta: float, elapsed_s: float) -> ComparisonRow:
-    notes = ", ".join(f"{w.parameter} {w.code.replace('_', ' ')}" for w in fit.warnings
-                      if w.code in ("unidentified", "at_bound"))  # fmt: skip
+    notes = ", ".join(dict.fromkeys(f"{w.parameter} {w.code.replace('_', ' ')}"
+                                    for w in fit.warnings
+                                    if w.code in ("unidentified", "at_bound")))  # fmt: skip
     a = describe_fit(fit)
     return ComparisonRow(
         name=v.name,

@@ -280,3 +280,45 @@ def test_the_reason_says_when_the_rounded_rungs_were_taken_from_the_kernel_probe
     plain = dataclasses.replace(sel, table=(s.not_fitted_row(v, s.Status.MISFITS, "x"),))
     fitted = s._with_rounding(plain, s.Rounding("when_needed", True, why, 4, 12.0)).reason
     assert "were fitted (in 12 s) because the best sharp variant misfits" in fitted
+
+
+def test_the_ladder_keeps_the_chosen_kernels_probe_fit_of_its_own_variant(lab_arrays):
+    """The kernel probe fitted `sharp+floor` with the ladder's own settings: when that fit is as
+    likely as the rung's fitted parents, the ladder takes it instead of solving it again."""
+    geo, spec, _ = lab_arrays
+    obs = _lab_observations(lab_arrays, "ggx", np.deg2rad(3.4), 30.0, np.random.default_rng(5))
+    ladder = (fitting.variant("sharp"), fitting.variant("sharp+floor", "floor"))
+    sel = fitting.select_model(fitting.prepare(obs, spec, lab=geo), ladder=ladder,
+                               kernels=("gaussian", "ggx"))  # fmt: skip
+    assert sel.facets is not None and sel.facets.kernel == "ggx", sel.report()
+    (probe,) = sel.facets.fits
+    kept = sel.fits["sharp+floor"]
+    assert kept.chi2 == probe.chi2 and kept.log_likelihood >= sel.fits["sharp"].log_likelihood
+    assert kept.requested.name == kept.variant.name == "sharp+floor"  # named as the ladder's rung
+    assert kept.requested.kernel == "ggx"
+
+
+def test_the_kernels_are_compared_again_only_where_that_could_change_the_choice() -> None:
+    """After a misfitting probe the kernels are fitted again at the chosen variant, unless at
+    the probe every other kernel was worse by more than `RECHECK_FACTOR` times what the chosen
+    variant's added features gained the chosen kernel (a rule on numbers: fakes suffice)."""
+    from types import SimpleNamespace
+
+    from stairfit.fitting import _selection as s
+
+    def fit(name: str, loglik: float) -> SimpleNamespace:
+        return SimpleNamespace(requested=SimpleNamespace(name=name), log_likelihood=loglik)
+
+    probe = "rounded+floor"
+    rows = [SimpleNamespace(name=f"{probe} (gaussian facets)", delta=1720.0),
+            SimpleNamespace(name=f"{probe} (ggx facets)", delta=0.0),
+            SimpleNamespace(name=f"{probe} (beckmann facets)", delta=1620.0)]  # fmt: skip
+    facets = s.Facets("ggx", probe, (), "", (fit(f"{probe} (ggx facets)", -4127.7),))
+    chosen = fit("rounded+delta_n+floor", -4113.7)  # gained 28 in -2 log L
+    why = s._kernel_settled(chosen, facets, rows)  # type: ignore[arg-type]
+    assert why is not None and "1.62e+03 worse" in why and "the 28 " in why, why
+    # a gain a tenth of the margin or more: compared again
+    assert s._kernel_settled(fit("rounded+delta_n+floor", -4127.7 + 81.5), facets, rows) is None  # type: ignore[arg-type]
+    # a kernel that did not converge at the probe (no margin): compared again
+    rows[0] = SimpleNamespace(name=rows[0].name, delta=float("nan"))
+    assert s._kernel_settled(chosen, facets, rows) is None  # type: ignore[arg-type]

@@ -33,9 +33,45 @@ def test_a_rung_that_changes_nothing_is_reported_and_not_escalated_from():
         assert rows[name].status == fitting.Status.ADDS_NOTHING, sel.report()
         assert "'sharp'" in rows[name].detail
         assert name not in sel.fits  # not scored: no tie on rounding noise
+    # "floor at bound: the fit is 'sharp' again": the row shows the parent's numbers (the fit
+    # stopped when the floor was fixed), each note once
+    floor = rows["sharp+floor"]
+    assert "floor at bound" in floor.detail and floor.notes == "floor at bound", floor
+    assert (floor.n_free, floor.bic) == (rows["sharp"].n_free, rows["sharp"].bic)
     both = rows["sharp+delta_n+floor"]
     assert both.status == fitting.Status.NOT_FITTED and "added nothing" in both.detail
     assert "adds nothing" in sel.report()
+
+
+def _fixed(fit: fitting.FitResult) -> set[str | None]:
+    return {w.parameter for w in fit.warnings if w.code in ("unidentified", "at_bound")}
+
+
+def test_a_fit_told_to_stop_when_its_added_parameter_is_fixed_does_not_refit_without_it(
+    monkeypatch,
+):
+    """The ladder needs only to know that a rung's added parameter is fixed (the rung is its
+    parent again, which it has): `stop_when_fixed` ends the refinement there, one solve earlier
+    than the full refinement, with the same warning."""
+    from stairfit.fitting import _least_squares
+
+    obs, spec = _exact_observations()
+    v = next(u for u in LADDER if u.name == "sharp+floor")
+    calls = []
+    real = _least_squares.fit_core
+    monkeypatch.setattr(_least_squares, "fit_core",
+                        lambda *a, **k: calls.append(1) or real(*a, **k))  # fmt: skip
+    opts = fitting.LeastSquaresOptions(on_failure="flag", emit_warnings=False)
+    full = fitting.fit_least_squares(obs, spec, variant=v, options=opts)
+    n_full, calls[:] = len(calls), []
+    stopped = fitting.fit_least_squares(obs, spec, variant=v, options=opts,
+                                        stop_when_fixed=frozenset({"floor"}))  # fmt: skip
+    assert "floor" in _fixed(full) and "floor" in _fixed(stopped), (full.warnings,)
+    assert len(calls) == n_full - 1, (len(calls), n_full)
+    # a parameter the stop does not name is refined as before
+    other = fitting.fit_least_squares(obs, spec, variant=v, options=opts,
+                                      stop_when_fixed=frozenset({"delta_n"}))  # fmt: skip
+    assert other.chi2 == full.chi2 and _fixed(other) == _fixed(full)
 
 
 def test_a_spent_time_budget_leaves_the_other_rungs_untried():
