@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -184,15 +184,19 @@ def _refine(
             records.append(step.warning)
         if step.unidentified is not None:
             names.append(step.unidentified)
-        if step.spec is None or (stop and stop <= _fixed_names(records)):
+        if step.spec is None or (stop and stop <= fixed_names(records)):
             break
         core = step.core if step.core is not None else solve(step.spec)
     return _Refined(core, records, names)
 
 
-def _fixed_names(records: list[FitWarning]) -> set[str | None]:
-    """The parameters the refinement has fixed (unidentified, or on a bound)."""
-    return {r.parameter for r in records if r.code in ("unidentified", "at_bound")}
+FIXING_CODES = ("unidentified", "at_bound")
+"""The warning codes of a parameter the refinement fixed (unidentified, or on a bound)."""
+
+
+def fixed_names(warnings: Sequence[FitWarning]) -> set[str | None]:
+    """The parameters the refinement fixed (`FIXING_CODES`), by their warnings."""
+    return {w.parameter for w in warnings if w.code in FIXING_CODES}
 
 
 def _next_step(

@@ -18,7 +18,7 @@ from typing import Any, NamedTuple
 from stairfit import model
 
 from ._errors import FitError, FitInputError, UnconstrainedError, emit
-from ._least_squares import LeastSquaresOptions, fit_least_squares
+from ._least_squares import FIXING_CODES, LeastSquaresOptions, fit_least_squares, fixed_names
 from ._misfit import P_VALUE_LIMIT, Assessment, Status, chi2_p_value, chi2_text, describe_fit
 from ._observations import Observations, Spectral
 from ._params import DEFAULT_LADDER, DEFAULTS, FILLET, Params, Priors, Variant
@@ -344,8 +344,8 @@ RECHECK_FACTOR = 10.0
 """The kernels are not compared again at the chosen variant when, at the probe, every other
 kernel's `-2 log L` exceeds the chosen kernel's by more than this many times what the chosen
 variant's added features gained the chosen kernel there: to overturn the choice another kernel
-would have to gain more than `RECHECK_FACTOR + 1` times as much from the same features (on the
-issue's GGX set: margins of 1620 and 1720 against a gain of 28)."""
+would have to gain more than `RECHECK_FACTOR + 1` times as much from the same features
+(docs/fitting.md §10)."""
 
 
 def _kernel_settled(fit: FitResult, facets: Facets, probe_rows: list[ComparisonRow]) -> str | None:
@@ -818,16 +818,11 @@ def _adds_nothing_row(
     return dataclasses.replace(row, status=Status.ADDS_NOTHING, detail=why)
 
 
-def _fixed(fit: FitResult) -> set[str | None]:
-    """The parameters the fit's refinement fixed (unidentified, or on a bound)."""
-    return {w.parameter for w in fit.warnings if w.code in ("unidentified", "at_bound")}
-
-
 def _stopped(fit: FitResult, v: Variant, parents: tuple[FitResult, ...]) -> bool:
     """Whether the refinement fixed every parameter `v` adds over its most likely parent (so
     the fit is that parent again, converged or not where it stopped)."""
     added = _added(v, parents)
-    return bool(added) and added <= _fixed(fit)
+    return bool(added) and added <= fixed_names(fit.warnings)
 
 
 def _adds_nothing(fit: FitResult, v: Variant, parents: tuple[FitResult, ...]) -> str | None:
@@ -839,7 +834,7 @@ def _adds_nothing(fit: FitResult, v: Variant, parents: tuple[FitResult, ...]) ->
     best = _best_parent(parents)
     added = _added(v, parents)
     removed = {w.parameter: w.code.replace("_", " ") for w in fit.warnings
-               if w.code in ("unidentified", "at_bound")}  # fmt: skip
+               if w.code in FIXING_CODES}  # fmt: skip
     if _stopped(fit, v, parents):
         what = ", ".join(f"{p} {removed[p]}" for p in sorted(added))
         return f"{what}: the fit is {best.requested.name!r} again"
@@ -928,8 +923,7 @@ def _find(force: str | Variant, ladder: tuple[Variant, ...]) -> Variant:
 
 def _row(fit: FitResult, v: Variant, delta: float, elapsed_s: float) -> ComparisonRow:
     notes = ", ".join(dict.fromkeys(f"{w.parameter} {w.code.replace('_', ' ')}"
-                                    for w in fit.warnings
-                                    if w.code in ("unidentified", "at_bound")))  # fmt: skip
+                                    for w in fit.warnings if w.code in FIXING_CODES))  # fmt: skip
     a = describe_fit(fit)
     return ComparisonRow(
         name=v.name,
