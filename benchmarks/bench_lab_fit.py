@@ -29,11 +29,13 @@ import json
 import math
 import os
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 
 def _run(args: list[str], env: dict[str, str]) -> float:
@@ -80,7 +82,7 @@ def _stages(results: Path) -> dict[str, float]:
 
 def _pair(exes: dict[str, str], folder: Path, work: Path, repeats: int) -> dict[str, object]:
     """Cold then warm `stairfit fit --no-posterior` of every exe, `repeats` times interleaved."""
-    runs: dict[str, list[dict[str, object]]] = {name: [] for name in exes}
+    runs: dict[str, list[dict[str, Any]]] = {name: [] for name in exes}
     for r in range(repeats):
         for name, exe in exes.items():
             base = work / f"{name}{r}"
@@ -95,16 +97,12 @@ def _pair(exes: dict[str, str], folder: Path, work: Path, repeats: int) -> dict[
             print(name, r, json.dumps(runs[name][-1]), file=sys.stderr, flush=True)
     out: dict[str, object] = {}
     for name in exes:
-        cold = sorted(float(x["cold_s"]) for x in runs[name])  # type: ignore[arg-type]
-        warm = sorted(float(x["warm_s"]) for x in runs[name])  # type: ignore[arg-type]
         out[name] = {
-            "cold_median_s": round(cold[len(cold) // 2] if len(cold) % 2 else
-                                   (cold[len(cold) // 2 - 1] + cold[len(cold) // 2]) / 2, 1),
-            "warm_median_s": round(warm[len(warm) // 2] if len(warm) % 2 else
-                                   (warm[len(warm) // 2 - 1] + warm[len(warm) // 2]) / 2, 1),
+            "cold_median_s": round(statistics.median(x["cold_s"] for x in runs[name]), 1),
+            "warm_median_s": round(statistics.median(x["warm_s"] for x in runs[name]), 1),
             "runs": runs[name],
             **_compare(work / f"{name}0" / "cold" / "results.json", folder / "truth.json"),
-        }  # fmt: skip
+        }
     return out
 
 
