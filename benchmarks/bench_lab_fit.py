@@ -113,6 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compare-exe", help="another installation's stairfit, timed beside")
     parser.add_argument("--repeats", type=int, default=1, help="with --compare-exe")
     args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error(f"--repeats {args.repeats}: give at least 1")
     exe = str(Path(sys.executable).with_name("stairfit"))
     work = Path(tempfile.mkdtemp(prefix="bench_lab_fit_"))
     if args.compare_exe:

@@ -716,6 +716,8 @@ def _fit_ladder(
         parents = tuple(fits[u.name] for u in parents_of(v, known) if u.name in fits)
         t0 = time.perf_counter()
         fit = _kept_probe(v, settings, parents)
+        if fit is not None:
+            settings.on_variant(v.name)  # a rung done, for the progress bar
         try:
             if fit is None:
                 starts = parents + _probe_starts(v, settings.starts)
@@ -790,7 +792,6 @@ def _kept_probe(
     probe = _converged_probe(v, settings.starts)
     if probe is None or any(probe.log_likelihood < p.log_likelihood for p in parents):
         return None
-    settings.on_variant(v.name)
     return dataclasses.replace(probe, requested=probe.requested._replace(name=v.name),
                                variant=probe.variant._replace(name=v.name))  # fmt: skip
 
