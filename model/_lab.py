@@ -576,16 +576,20 @@ def lab_body(
     """The diffuse body of the staircase's material, per unit albedo (1/sr x pi): light that
     enters a facet (transmittance `1 - F`), is scattered inside and leaves through a facet
     (`1 - F` again), Lambertian, each facet weighted by its visible lit share:
-    `sum_k (L_k / l) V_k (w_i . n_k)(w_o . n_k) T_i T_o / (w_i . z)` [conventions §11].
+    `sum_k (L_k / l) V_k (w_i . n_k)(w_o . n_k) T_i T_o / (w_i . z)`, plus each facet's body
+    seen in the other facet's mirror and lit through it (`body_mirrored`) [conventions §11].
     For a flat surface it is `cos(theta_o) T_i T_o`, so `floor * lab_body / cos(theta_o)` is a
     Lambertian radiance per unit irradiance (`floor cos(theta_i)` when `n -> 1`)."""
     w_i, w_o, (beta2,) = _broadcast(w_i, w_o, beta2)
     band = _band(n, spectral_weight)
     inc, view = projected_incidence(w_i), projected_view(w_o)
-    visible = jnp.minimum(lit_fractions(inc.theta, beta2), lit_fractions(-view.theta, beta2))
+    lit, seen = lit_fractions(inc.theta, beta2), lit_fractions(-view.theta, beta2)
+    visible = jnp.minimum(lit, seen)
     length = jnp.stack([jnp.cos(beta2), jnp.sin(beta2)], axis=-1)
-    terms = body_terms(w_i, w_o, facet_normals(beta2), band)  # (..., 2)
-    return body_per_incidence(w_i, w_o, jnp.sum(length * visible * terms, axis=-1))
+    normals = facet_normals(beta2)
+    terms = body_terms(w_i, w_o, normals, band)  # (..., 2)
+    mirrored = body_mirrored(w_i, w_o, normals, length, length, lit, seen, band)
+    return body_per_incidence(w_i, w_o, jnp.sum(length * visible * terms, axis=-1) + mirrored)
 
 
 def body_terms(w_i: Array, w_o: Array, normals: Array, band: _Band) -> Array:
@@ -599,6 +603,47 @@ def body_terms(w_i: Array, w_o: Array, normals: Array, band: _Band) -> Array:
     )
     trans = (1.0 - fresnel_unpolarised(ci, bn)) * (1.0 - fresnel_unpolarised(co, bn))
     return cos_i * cos_o * jnp.sum(trans * bw, axis=-1)
+
+
+def body_mirrored(
+    w_i: Array,
+    w_o: Array,
+    normals: Array,
+    length: Array,
+    flat: Array,
+    lit: Array,
+    seen: Array,
+    band: _Band,
+) -> Array:
+    """The body seen in the other facet's mirror, and lit through it, per unit period length
+    `(...)` (summed over the two facets; add it to the body's summed terms) [conventions §11;
+    docs/model.md §7.8].
+
+    Tread and riser are the arms of a right-angled groove, so a view ray that one facet `j`
+    reflects meets the other facet `k` from the concave corner up to `min(flat_k, flat_j
+    cos_oj / cos_ok)`, where `k` glows with its body (lit from `length_k (1 - lit_k)` on: the
+    shadow starts at the corner). That part of `k` appears in `j` with `j`'s Fresnel factor at
+    the view's local cosine; the mirror keeps `k`'s local angle. The reverse path, the lamp
+    seen in `j` lighting `k` where the view sees it, is the same with the directions swapped,
+    so the sum is reciprocal. `normals` `(..., 2, 3)`, `length` the facets' lengths per period
+    and `flat` their flat reach from the corner (the length less a rounded tip), `lit` and
+    `seen` the lit and visible fractions (`lit_fractions`), all `(..., 2)`."""
+    cos_i = jnp.clip(jnp.einsum("...j,...kj->...k", w_i, normals), 0.0, 1.0)
+    cos_o = jnp.clip(jnp.einsum("...j,...kj->...k", w_o, normals), 0.0, 1.0)
+    facets = _Band(band.n[..., None, :], band.weight[..., None, :])  # the facet axis before L
+    trans_i, trans_o = 1.0 - _fresnel_u(cos_i, facets), 1.0 - _fresnel_u(cos_o, facets)
+    other = jnp.flip  # facet j of body facet k, along the last axis
+
+    def through(cos_a: Array, cos_b: Array, reached: Array) -> Array:
+        """Body facets' span reached through the other facet's mirror from direction `a`, part
+        of it lit (or seen) from `b`, times `cos_a`, times the mirror's Fresnel factor."""
+        reach = jnp.minimum(flat * cos_a, other(flat * cos_a, -1))
+        span = jnp.maximum(reach - length * (1.0 - reached) * cos_a, 0.0)
+        return span * other(_fresnel_u(cos_a, facets), -1) * cos_b
+
+    seen_in_mirror = through(cos_o, cos_i, lit)  # the view reflected, facet k lit by the lamp
+    lit_in_mirror = through(cos_i, cos_o, seen)  # the lamp reflected, facet k seen
+    return jnp.sum((seen_in_mirror + lit_in_mirror) * trans_i * trans_o, axis=-1)
 
 
 def body_per_incidence(w_i: Array, w_o: Array, summed: Array) -> Array:

@@ -34,6 +34,7 @@ from ._lab import (
     _band,
     _broadcast,
     _lobe_fresnel_band,
+    body_mirrored,
     body_per_incidence,
     body_terms,
     facet_normals,
@@ -237,8 +238,10 @@ def lab_body_rounded(
     """`lab_body` of the rounded staircase: the flat parts' Lambertian body on their lit and
     seen flat length (`flat_lit_seen`) plus each tip's quarter circle (length `pi r / 2`, its
     normal turning from the tread's to the riser's), unshadowed (shadows fall into the concave
-    corners) [conventions §11]. At `edge_radius_um = 0` it is `lab_body`. A sharp body on a
-    60-deg wedge with 25-um tips gave a third of Mitsuba's body radiance at a grazing view."""
+    corners), and the flats' bodies in each other's mirror (`body_mirrored`, each flat's
+    reach from the corner ending at its tip's arc) [conventions §11]. At `edge_radius_um = 0`
+    it is `lab_body`. A sharp body on a 60-deg wedge with 25-um tips gave a third of Mitsuba's
+    body radiance at a grazing view."""
     w_i, w_o, (beta2,) = _broadcast(w_i, w_o, beta2)
     band = _band(n, spectral_weight)
     inc, view = projected_incidence(w_i), projected_view(w_o)
@@ -249,6 +252,10 @@ def lab_body_rounded(
     normals = facet_normals(beta2)  # (..., 2, 3)
     flat_len, _ = flat_lit_seen(inc.theta, view.theta, beta2, l1, l2, r)
     flats = jnp.sum(flat_len * body_terms(w_i, w_o, normals, band), axis=-1) / period
+    length = jnp.stack([l2, l1], axis=-1) / period[..., None]  # (tread, riser) per period
+    reach = jnp.maximum(length - (r / period)[..., None], 0.0)  # each flat ends at its tip's arc
+    lit, seen = lit_fractions(inc.theta, beta2), lit_fractions(-view.theta, beta2)
+    flats = flats + body_mirrored(w_i, w_o, normals, length, reach, lit, seen, band)
     x, w = np.polynomial.legendre.leggauss(ARC_BODY_NODES)
     rank = normals.ndim  # (..., 2, 3): the nodes take the facet axis' place
     phi = with_rank(jnp.asarray(0.25 * np.pi * (x + 1.0), beta2.dtype)[:, None], rank)

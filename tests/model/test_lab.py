@@ -249,8 +249,10 @@ def test_sharp_lobes_are_reciprocal(n):
 def test_body_of_a_flat_surface_is_cos_theta_o_times_both_transmittances(n):
     """`beta2 -> 0` (a flat face): `lab_body = cos(theta_o) T_i T_o`, `T = 1 - F` of the textbook
     Fresnel at each direction's angle from z (tests/raytrace.py). At `beta2 = 0` to rounding; at
-    `beta2 = 1e-9` the tread's tilt changes the result to first order, by up to 7e3 beta2
-    relative near grazing (measured), where `T` varies fastest with the local cosine."""
+    `beta2 = 1e-9` the tread's tilt and the riser's first-order length change the result to
+    first order, by up to 3e4 beta2 relative near grazing (measured 2.0e4: `T` varies fastest
+    with the local cosine there, and the riser's body lit through the tread's mirror, whose
+    Fresnel factor is near 1, is divided by a small `w_i . z`)."""
     rng = np.random.default_rng(42)
     w_i, w_o = _random_pairs(rng, 2000)
 
@@ -260,7 +262,7 @@ def test_body_of_a_flat_surface_is_cos_theta_o_times_both_transmittances(n):
 
     expected = w_o[:, 2] * transmittance(w_i[:, 2]) * transmittance(w_o[:, 2])
     np.testing.assert_allclose(BODY(w_i, w_o, 0.0, n), expected, rtol=1e-13)
-    np.testing.assert_allclose(BODY(w_i, w_o, 1e-9, n), expected, rtol=1e-5)
+    np.testing.assert_allclose(BODY(w_i, w_o, 1e-9, n), expected, rtol=3e-5)
 
 
 @pytest.mark.parametrize("n", [1.46, 1.5 + 0.3j])
