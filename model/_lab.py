@@ -592,12 +592,16 @@ def lab_body(
     return body_per_incidence(w_i, w_o, jnp.sum(length * visible * terms, axis=-1) + mirrored)
 
 
+def _facet_cosines(w: Array, normals: Array) -> Array:
+    """A direction's cosine with each normal, clipped to [0, 1]: `(..., K)` for `(..., K, 3)`."""
+    return jnp.clip(jnp.einsum("...j,...kj->...k", w, normals), 0.0, 1.0)
+
+
 def body_terms(w_i: Array, w_o: Array, normals: Array, band: _Band) -> Array:
     """Each surface normal's diffuse term `(w_i . m)(w_o . m) T_i T_o` (both cosines clipped to
     [0, 1], `T = 1 - F` band-averaged over `band`'s samples), `(..., K)` for normals
     `(..., K, 3)` [conventions §11]."""
-    cos_i = jnp.clip(jnp.einsum("...j,...kj->...k", w_i, normals), 0.0, 1.0)
-    cos_o = jnp.clip(jnp.einsum("...j,...kj->...k", w_o, normals), 0.0, 1.0)
+    cos_i, cos_o = _facet_cosines(w_i, normals), _facet_cosines(w_o, normals)
     ci, co, bn, bw = same_rank(  # (..., K, L): the normal axis before the samples
         cos_i[..., None], cos_o[..., None], band.n[..., None, :], band.weight[..., None, :]
     )
@@ -628,8 +632,7 @@ def body_mirrored(
     so the sum is reciprocal. `normals` `(..., 2, 3)`, `length` the facets' lengths per period
     and `flat` their flat reach from the corner (the length less a rounded tip), `lit` and
     `seen` the lit and visible fractions (`lit_fractions`), all `(..., 2)`."""
-    cos_i = jnp.clip(jnp.einsum("...j,...kj->...k", w_i, normals), 0.0, 1.0)
-    cos_o = jnp.clip(jnp.einsum("...j,...kj->...k", w_o, normals), 0.0, 1.0)
+    cos_i, cos_o = _facet_cosines(w_i, normals), _facet_cosines(w_o, normals)
     facets = _Band(band.n[..., None, :], band.weight[..., None, :])  # the facet axis before L
     trans_i, trans_o = 1.0 - _fresnel_u(cos_i, facets), 1.0 - _fresnel_u(cos_o, facets)
     other = jnp.flip  # facet j of body facet k, along the last axis
