@@ -192,8 +192,9 @@ def lab_grid(
     band-averaged over the channel's wavelength samples and summed over the nodes with `conv`
     [conventions §8, §11, §12]. `width_g` is each key's width in rad: the Gaussian's sigma, or
     for a microfacet kernel the roughness angle, `alpha = tan(width)` (`roughness_alpha`). The
-    rounded geometry is computed once per key, at the mean projected angle of incidence of its
-    nodes (docs/model.md §7.6). Derivatives by `_lab_grid_jvp`."""
+    arcs' panels are computed once per key, at the mean projected angle of incidence of its
+    nodes; the flats' delta weights and the arcs' single reflection at every node (docs/model.md
+    §7.6). Derivatives by `_lab_grid_jvp`."""
     rounded = radius_um is not None
     radius = jnp.zeros((), width_g.dtype) if radius_um is None else jnp.asarray(radius_um)
     return _lab_grid(width_g, jnp.asarray(dn, width_g.dtype), radius, (kernel, rounded,
@@ -255,17 +256,19 @@ def _lab_impl(
         )  # (G,): each key's conv-weighted mean projected angle
         res = model.ROUNDED_RESOLUTION if resolution is None else resolution
         geo = model.rounded_geometry(theta, lab.b2, lab.layer, radius, resolution=res)
-        nodes = jax.tree_util.tree_map(lambda a: a[:, None, None], geo)  # (G, 1, 1, ...)
         p = model.rounded_flats(
-            w_i, w_o, b2, n, width, lab.layer[:, None, None], radius, nodes, kernel, weights
+            w_i, w_o, b2, n, width, lab.layer[:, None, None], radius, kernel, weights
         )
         # the arcs' broad lobes once per key, at its nodes' mean directions (docs/model.md §7.6)
         mean_i, mean_o = (_mean_direction(w, lab.conv)[:, None, :] for w in (lab.w_i, lab.w_o))
-        arcs = model.rounded_arcs(
+        arcs = model.arc_panels(
             mean_i, mean_o, lab.b2[:, None], n, width[:, :, 0],
             jax.tree_util.tree_map(lambda a: a[:, None], geo), kernel, weights,
         )  # (G, C')  # fmt: skip
         p = p + arcs[:, None, :]  # every node of a key gets its key's arcs
+        if kernel != "gaussian":  # the arcs' single reflection at every node
+            p = p + model.arc_single(w_i, w_o, b2, n, width, lab.layer[:, None, None], radius,
+                                     kernel, weights)  # fmt: skip
     elif kernel == "gaussian":
         p = model.lab_density_gaussian(w_i, w_o, b2, n, width, spectral_weight=weights)
     else:

@@ -45,11 +45,13 @@ from ._rounded import ROUNDED_RESOLUTION as ROUNDED_RESOLUTION
 from ._rounded import RoundedGeometry as RoundedGeometry
 from ._rounded import RoundedPaths as RoundedPaths
 from ._rounded import RoundedStructure as RoundedStructure
+from ._rounded import arc_single_seen as arc_single_seen
 from ._rounded import brdf_rounded as brdf_rounded
 from ._rounded import brdf_rounded_from_geometry as brdf_rounded_from_geometry
 from ._rounded import check_edge_radius as check_edge_radius
 from ._rounded import max_edge_radius as max_edge_radius
 from ._rounded import rounded_binned as rounded_binned
+from ._rounded import rounded_delta_weight as rounded_delta_weight
 from ._rounded import rounded_geometry as rounded_geometry
 from ._rounded import rounded_paths as rounded_paths
 from ._rounded import rounded_structure as rounded_structure
@@ -99,6 +101,8 @@ from ._lab import rough_retro as rough_retro
 from ._lab_rounded import ARC_BODY_NODES as ARC_BODY_NODES
 from ._lab_rounded import ARC_SIGMA_PER_ALPHA as ARC_SIGMA_PER_ALPHA
 from ._lab_rounded import arc_deflection as arc_deflection
+from ._lab_rounded import arc_panels as arc_panels
+from ._lab_rounded import arc_single as arc_single
 from ._lab_rounded import lab_body_rounded as lab_body_rounded
 from ._lab_rounded import lab_density_rounded as lab_density_rounded
 from ._lab_rounded import rounded_arcs as rounded_arcs

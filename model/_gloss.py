@@ -488,8 +488,9 @@ def _densities(
         geo = rounded_geometry(projected_incidence(w_i).theta, s.beta2, s.layer_um,
                                s.edge_radius_um, resolution=resolution)  # fmt: skip
         flats = rounded_flats(w_i, w_o, s.beta2, s.n, s.width, s.layer_um, s.edge_radius_um,
-                              geo, kind, s.spectral_weight)  # fmt: skip
-        arcs = rounded_arcs(w_i, w_g, s.beta2, s.n, s.width, geo, kind, s.spectral_weight)
+                              kind, s.spectral_weight)  # fmt: skip
+        arcs = rounded_arcs(w_i, w_g, s.beta2, s.n, s.width, s.layer_um, s.edge_radius_um, geo,
+                            kind, s.spectral_weight)  # fmt: skip
         body = lab_body_rounded(w_i, w_g, s.beta2, s.n, s.layer_um, s.edge_radius_um,
                                 s.spectral_weight)  # fmt: skip
         return flats, arcs, body

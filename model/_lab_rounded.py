@@ -10,8 +10,9 @@ every Fresnel factor at the 3-D local angle, and its light leaves with `t_o = -t
   (`lab_density_microfacet`'s single reflections, each facet scaled by the share of its lit
   and seen part that stays flat), the two-bounce path scaled by the rounded corner reflector's
   weight over the sharp one, and the arcs' continuous lobes spread by a Gaussian of width
-  `ARC_SIGMA_PER_ALPHA * alpha` in the plane and by the slope distribution along the layer
-  lines (`arc_deflection`).
+  `ARC_SIGMA_PER_ALPHA * alpha` in the plane (the single reflection counted where the camera
+  sees the arc, `arc_single_seen`) and by the slope distribution along the layer lines
+  (`arc_deflection`).
 * The body: the flats' Lambertian body on their lit and seen flat length and the tips' quarter
   circles (`lab_body_rounded`).
 
@@ -47,9 +48,12 @@ from ._lab import (
 from ._lobes import lobe_directions, lobe_weights
 from ._microfacet import slope_marginal
 from ._rounded import (
+    _ESC_SLOT,
     ROUNDED_RESOLUTION,
     RoundedGeometry,
+    arc_single_seen,
     brdf_rounded_from_geometry,
+    rounded_delta_weight,
     rounded_geometry,
 )
 from ._shapes import same_rank, with_rank
@@ -108,9 +112,10 @@ def lab_density_rounded(
     if geometry is None:
         geometry = rounded_geometry(projected_incidence(w_i).theta, beta2, layer_um,
                                     edge_radius_um, resolution=resolution)  # fmt: skip
-    flats = rounded_flats(w_i, w_o, beta2, n, width, layer_um, edge_radius_um, geometry, kind,
+    flats = rounded_flats(w_i, w_o, beta2, n, width, layer_um, edge_radius_um, kind,
                           spectral_weight)  # fmt: skip
-    arcs = rounded_arcs(w_i, w_o, beta2, n, width, geometry, kind, spectral_weight)
+    arcs = rounded_arcs(w_i, w_o, beta2, n, width, layer_um, edge_radius_um, geometry, kind,
+                        spectral_weight)  # fmt: skip
     return flats + arcs
 
 
@@ -122,12 +127,13 @@ def rounded_flats(
     width: ArrayLike,
     layer_um: ArrayLike,
     edge_radius_um: ArrayLike,
-    geometry: RoundedGeometry,
     kind: str = "gaussian",
     spectral_weight: ArrayLike | None = None,
 ) -> Float[Array, "..."]:
     """The flat facets' part of `lab_density_rounded` (1/sr): Gaussian facets, the three delta
-    lobes with the rounded weights (`geometry.delta_weight`), 3-D Fresnel factors and the
+    lobes with the rounded weights (`rounded_delta_weight` at each node's own projected angle
+    of incidence, as they change fast near a facet's grazing mirror direction: taken once per
+    face, they made a 55-deg face 22% too dark), 3-D Fresnel factors and the
     kernels of `lab_density_gaussian`; microfacet facets, `lab_density_microfacet`'s single
     reflections scaled by the share of each facet's lit and seen part that stays flat: its
     rounded delta weight over its sharp lobe weight (exact at its mirror direction) times how
@@ -141,7 +147,9 @@ def rounded_flats(
     band = _band(n, spectral_weight)
     inc, view = projected_incidence(w_i), projected_view(w_o)
     up = (w_i[..., 2] > 0.0) & (w_o[..., 2] > 0.0)
-    delta_w = geometry.delta_weight  # (..., 3)
+    l1, r = (jnp.broadcast_to(jnp.asarray(a, beta2.dtype), beta2.shape)
+             for a in (layer_um, edge_radius_um))  # fmt: skip
+    delta_w = rounded_delta_weight(inc.theta, beta2, l1, r)  # (..., 3)
     if kind == "gaussian":
         fresnel = _lobe_fresnel_band(inc.theta, inc.t, beta2, band)  # (..., 3)
         ratio = delta_w * fresnel
@@ -151,8 +159,6 @@ def rounded_flats(
         out = jnp.sum(ratio * k_in, axis=-1) * line_gaussian(view.t, -inc.t, width)
         return jnp.where(up, out, 0.0)
     single, retro = microfacet_parts(w_i, w_o, beta2, band, width, kind)
-    l1, r = (jnp.broadcast_to(jnp.asarray(a, beta2.dtype), beta2.shape)
-             for a in (layer_um, edge_radius_um))  # fmt: skip
     l2 = l1 * jnp.cos(beta2) / jnp.sin(beta2)
     flat = jnp.stack(
         [jnp.clip((l2 - r) / jnp.maximum(l2, _TINY), 0.0, 1.0),
@@ -271,16 +277,44 @@ def rounded_arcs(
     beta2: ArrayLike,
     n: ArrayLike,
     width: ArrayLike,
+    layer_um: ArrayLike,
+    edge_radius_um: ArrayLike,
     geometry: RoundedGeometry,
     kind: str = "gaussian",
     spectral_weight: ArrayLike | None = None,
 ) -> Float[Array, "..."]:
-    """The arcs' part of `lab_density_rounded` (1/sr): the rounded model's continuous lobes at
-    the projected angles (3-D Fresnel factors), spread by a Gaussian of width sigma
-    (Gaussian facets) or `ARC_SIGMA_PER_ALPHA * alpha` (microfacet facets) in `theta'` and in
-    `t` by `line_gaussian` (Gaussian facets) or `arc_deflection` (microfacet facets)
-    [conventions §11, §12]. The arcs' own spread of directions is far
-    wider than the nodes of one face (a few degrees), so a fit may take it once per face
+    """The arcs' part of `lab_density_rounded` (1/sr): `arc_panels` plus, with microfacet
+    facets, `arc_single` [conventions §11, §12]."""
+    panels = arc_panels(w_i, w_o, beta2, n, width, geometry, kind, spectral_weight)
+    if kind == "gaussian":
+        return panels
+    return panels + arc_single(w_i, w_o, beta2, n, width, layer_um, edge_radius_um, kind,
+                               spectral_weight)  # fmt: skip
+
+
+def _along(w_i: Array, w_o: Array, width: Array, kind: str) -> Array:
+    """The arcs' density in `t_o`: `line_gaussian` (Gaussian facets) or `arc_deflection`."""
+    if kind == "gaussian":
+        return line_gaussian(projected_view(w_o).t, -projected_incidence(w_i).t, width)
+    return arc_deflection(w_i, w_o, width, kind)
+
+
+def arc_panels(
+    w_i: ArrayLike,
+    w_o: ArrayLike,
+    beta2: ArrayLike,
+    n: ArrayLike,
+    width: ArrayLike,
+    geometry: RoundedGeometry,
+    kind: str = "gaussian",
+    spectral_weight: ArrayLike | None = None,
+) -> Float[Array, "..."]:
+    """The rounded model's continuous lobes (`geometry`'s panels) at the projected angles (3-D
+    Fresnel factors), spread by a Gaussian of width sigma (Gaussian facets) or
+    `ARC_SIGMA_PER_ALPHA * alpha` (microfacet facets) in `theta'` and along the layer lines by
+    `line_gaussian` resp. `arc_deflection` (1/sr) [conventions §11, §12]. With microfacet
+    facets without the arcs' single reflection (`arc_single`). Their spread of directions is
+    far wider than the nodes of one face (a few degrees), so a fit takes them once per face
     (`fitting/_lab.py`)."""
     w_i, w_o, (beta2, width) = _broadcast(w_i, w_o, beta2, width)
     band = _band(n, spectral_weight)
@@ -288,10 +322,41 @@ def rounded_arcs(
     up = (w_i[..., 2] > 0.0) & (w_o[..., 2] > 0.0)
     sigma = width if kind == "gaussian" else ARC_SIGMA_PER_ALPHA * width
     arcs_only = geometry._replace(delta_weight=jnp.zeros_like(geometry.delta_weight))
+    if kind != "gaussian":  # `arc_single` has the single reflection
+        density = geometry.nodes.density.at[..., _ESC_SLOT, :, :].set(0.0)
+        arcs_only = arcs_only._replace(nodes=geometry.nodes._replace(density=density))
     rho = _rounded_band(arcs_only, inc.theta, view.theta, beta2, band, sigma, inc.t)
-    along = (line_gaussian(view.t, -inc.t, sigma) if kind == "gaussian"
-             else arc_deflection(w_i, w_o, width, kind))  # fmt: skip
-    return jnp.where(up, rho * along, 0.0)
+    return jnp.where(up, rho * _along(w_i, w_o, width, kind), 0.0)
+
+
+def arc_single(
+    w_i: ArrayLike,
+    w_o: ArrayLike,
+    beta2: ArrayLike,
+    n: ArrayLike,
+    width: ArrayLike,
+    layer_um: ArrayLike,
+    edge_radius_um: ArrayLike,
+    kind: str,
+    spectral_weight: ArrayLike | None = None,
+) -> Float[Array, "..."]:
+    """The arcs' single reflection with microfacet facets (`kind` "ggx"/"beckmann", `width` =
+    alpha), 1/sr: `arc_single_seen` (an arc point counts where the camera sees it) at the
+    projected angles with the 3-D local cosines, band-averaged, times `arc_deflection` along
+    the layer lines [conventions §11, §12]. It changes fast with the angles where the next step
+    hides the arcs, so a fit takes it at every node (docs/model.md §7.6)."""
+    w_i, w_o, (beta2, width) = _broadcast(w_i, w_o, beta2, width)
+    band = _band(n, spectral_weight)
+    inc, view = projected_incidence(w_i), projected_view(w_o)
+    up = (w_i[..., 2] > 0.0) & (w_o[..., 2] > 0.0)
+    c = jnp.sqrt(jnp.clip(1.0 - inc.t * inc.t, 0.0, 1.0))
+    args = [jnp.asarray(a)[..., None] for a in (inc.theta, view.theta, beta2,
+                                                ARC_SIGMA_PER_ALPHA * width, layer_um,
+                                                edge_radius_um, c)]  # fmt: skip
+    seen = arc_single_seen(*args[:3], band.n, *args[3:])
+    seen, w = same_rank(seen, band.weight)
+    rho = jnp.sum(seen * w, axis=-1)
+    return jnp.where(up, rho * arc_deflection(w_i, w_o, width, kind), 0.0)
 
 
 def arc_deflection(w_i: Array, w_o: Array, alpha: Array, kind: str) -> Array:

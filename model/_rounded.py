@@ -37,7 +37,7 @@ from jax.scipy.special import erf
 from jaxtyping import Array, ArrayLike, Float
 
 from ._broadening import hemisphere_gaussian, hemisphere_mass
-from ._fresnel import SP, fresnel_sp
+from ._fresnel import SP, fresnel_sp, fresnel_unpolarised
 from ._lab import lobe_fresnel_3d
 from ._lobes import Lobes, lobe_directions, lobe_fresnel
 from ._shapes import same_rank, with_rank
@@ -223,6 +223,24 @@ class _Split(NamedTuple):
     riser_tip_hi: Array
 
 
+def _lit_arc(k: _Cell, r: Array) -> tuple[Array, Array]:
+    """The lit part of the arc, `alpha in [lo, hi]` (right-hand tip for theta_i >= 0,
+    left-hand tip otherwise; both are copies): front-facing, and not in the shadow of the
+    neighbouring tip (docs/rounded.md §2). With `k` at `-theta_o` it is the part seen from
+    `theta_o`."""
+    ti, b, c, s, Lc = k.ti, k.b, k.c, k.s, k.Lc
+    pos = ti >= 0
+    m_plus = jnp.where(b + ti >= HALF_PI, 1.0, s)
+    m_minus = jnp.where(ti <= -b, -1.0, -c)
+    a_lo = jnp.maximum(b - HALF_PI, -HALF_PI - ti)
+    a_hi = jnp.minimum(b, HALF_PI - ti)
+    x_lo = jnp.where(pos, m_plus - Lc / r, -1.0)
+    x_hi = jnp.where(pos, 1.0, m_minus + Lc / r)
+    a_lo = jnp.maximum(a_lo, _safe_arcsin(x_lo) - ti)
+    a_hi = jnp.maximum(jnp.minimum(a_hi, _safe_arcsin(x_hi) - ti), a_lo)
+    return a_lo, a_hi
+
+
 def _split(k: _Cell, r: Array) -> _Split:
     """First hits and flat-first paths in closed form, for edge radius `r` (> 0 where angles
     are used). Ray-front coordinate `u = x cos(theta_i) + z sin(theta_i)`, origin at the centre
@@ -266,14 +284,7 @@ def _split(k: _Cell, r: Array) -> _Split:
     ra_u_lo = jnp.clip(jnp.maximum(r_lo, ub_lo), ub_lo, ub_hi)
     ra_u_hi = jnp.clip(jnp.minimum(r_hi, ub_hi), ra_u_lo, ub_hi)
 
-    # The lit part of the arc (right-hand tip for theta_i >= 0, left-hand tip otherwise; both
-    # are copies): front-facing, and not in the shadow of the neighbouring tip.
-    a_lo = jnp.maximum(b - HALF_PI, -HALF_PI - ti)
-    a_hi = jnp.minimum(b, HALF_PI - ti)
-    x_lo = jnp.where(pos, m_plus - Lc / r, -1.0)
-    x_hi = jnp.where(pos, 1.0, m_minus + Lc / r)
-    a_lo = jnp.maximum(a_lo, _safe_arcsin(x_lo) - ti)
-    a_hi = jnp.maximum(jnp.minimum(a_hi, _safe_arcsin(x_hi) - ti), a_lo)
+    a_lo, a_hi = _lit_arc(k, r)
 
     def to_angle(u: Array, centre: Array) -> Array:
         return _safe_arcsin((u - centre) / r) - ti
@@ -602,13 +613,25 @@ def _geometry(
     nodes = jax.tree_util.tree_map(lambda a: a[..., n_e:].reshape(shape), ev)
     lo_th = jnp.minimum(th_edges[..., 1:], th_edges[..., :-1])
     hi_th = jnp.maximum(th_edges[..., 1:], th_edges[..., :-1])
-    delta_weight = (
-        jnp.stack(
-            [flats.tread_escape, flats.riser_escape, flats.tread_retro + flats.riser_retro], axis=-1
-        )
-        / k.Lc[..., None]
-    )
-    return RoundedGeometry(delta_weight, lo, hi, lo_th, hi_th, nodes)
+    return RoundedGeometry(_delta_weight(k, flats), lo, hi, lo_th, hi_th, nodes)
+
+
+def _delta_weight(k: _Cell, flats: _Split) -> Array:
+    """The three delta lobes' weights (tread, riser, retro), fractions of the incident power."""
+    w = [flats.tread_escape, flats.riser_escape, flats.tread_retro + flats.riser_retro]
+    return jnp.stack(w, axis=-1) / k.Lc[..., None]
+
+
+def rounded_delta_weight(
+    theta_i: ArrayLike, beta2: ArrayLike, layer_um: ArrayLike, edge_radius_um: ArrayLike
+) -> Float[Array, "... 3"]:
+    """The rounded staircase's delta-lobe weights `(tread, riser, retro)` (fractions of the
+    incident power, closed form, docs/rounded.md §3), `rounded_geometry`'s `delta_weight`
+    without the arcs: cheap enough for every node of a fit, where the weights change fast with
+    the angle of incidence (near a facet's grazing mirror direction) [conventions §1, §2]."""
+    ti, b, l1, r = _geom_args(theta_i, beta2, layer_um, edge_radius_um)
+    k = _cell(ti, b, l1)
+    return _delta_weight(k, _split(k, r))
 
 
 def _fresnel_product(nodes: _Nodes, n: Array, c: Array | None = None) -> Array:
@@ -919,6 +942,59 @@ def brdf_rounded_from_geometry(
     # (`where`, not `maximum`: at exactly 0, e.g. r = 0 in a far tail, keep the derivative)
     rho = delta + _contract(g, w, 3)
     return jnp.where(rho >= 0, rho, 0.0)
+
+
+ARC_SEEN_NODES = 16
+"""Gauss-Legendre nodes of `arc_single_seen` over the lit and seen arc within `ARC_SEEN_REACH`
+kernel widths of the arc angle whose mirror direction is the view: a Gaussian cut anywhere
+in that window integrates to 1e-7 (its tails beyond it hold 6e-7)."""
+ARC_SEEN_REACH = 5.0
+
+
+def arc_single_seen(
+    theta_i: ArrayLike,
+    theta_o: ArrayLike,
+    beta2: ArrayLike,
+    n: ArrayLike,
+    sigma: ArrayLike,
+    layer_um: ArrayLike,
+    edge_radius_um: ArrayLike,
+    c: ArrayLike = 1.0,
+) -> Float[Array, "..."]:
+    """In-plane density (1/rad) of the light reflected once by the rounded tips into
+    `theta_o` when each arc point spreads its mirror direction `phi = theta_i + 2 alpha` by a
+    Gaussian of width `sigma` (per ray truncated to the hemisphere and renormalised), counted
+    where the point is lit and **seen from `theta_o`** (docs/model.md §7.6): a rough arc point
+    whose mirror ray would hit the next step still sends light to a camera that sees it, and a
+    point hidden from the camera sends none. At `sigma -> 0` it is the `tip` lobe of
+    `brdf_rounded`, whose visibility is the mirror ray's. `c`: the 3-D factor of the local
+    cosines [conventions §11]. Angles in radians; arguments broadcast."""
+    ti, b, l1, r = _geom_args(theta_i, beta2, layer_um, edge_radius_um)
+    th, sg, c = (jnp.asarray(a, ti.dtype) for a in (theta_o, sigma, c))
+    ti, b, l1, r, th, sg, n, c = same_rank(ti, b, l1, r, th, sg, n, c)
+    k = _cell(ti, b, l1)
+    r_tiny = k.L * float(np.sqrt(np.finfo(np.dtype(ti.dtype)).eps))
+    rg = jnp.where(r > r_tiny, r, r_tiny)
+    lit_lo, lit_hi = _lit_arc(k, rg)
+    seen_lo, seen_hi = _lit_arc(_cell(-th, b, l1), rg)
+    centre = 0.5 * (th - k.ti)  # the arc angle whose mirror direction is theta_o
+    reach = 0.5 * ARC_SEEN_REACH * sg  # the kernel's sd in alpha is sigma / 2
+    lo = jnp.maximum(jnp.maximum(lit_lo, seen_lo), centre - reach)
+    hi = jnp.maximum(jnp.minimum(jnp.minimum(lit_hi, seen_hi), centre + reach), lo)
+    x, w = (with_rank(jnp.asarray(a, lo.dtype), lo.ndim + 1)
+            for a in np.polynomial.legendre.leggauss(ARC_SEEN_NODES))  # fmt: skip
+    half = 0.5 * (hi - lo)
+    a = (0.5 * (lo + hi))[..., None] + half[..., None] * x
+    cos_hit = jnp.cos(k.ti[..., None] + a)
+    phi = k.ti[..., None] + 2.0 * a
+    s_n = sg[..., None]
+    # each point's Gaussian renormalised on its own hemisphere, alpha +- pi/2 (not the face's)
+    mass = hemisphere_mass(phi - a, s_n)
+    kern = _std_pdf((th[..., None] - phi) / s_n) / s_n / mass
+    fres = fresnel_unpolarised(cos_hit * c[..., None], n[..., None])
+    power = r[..., None] * cos_hit / k.Lc[..., None]  # incident power per unit alpha (§2)
+    out = half * jnp.sum(w * power * fres * kern, axis=-1)
+    return jnp.where(jnp.abs(th) <= HALF_PI, out, 0.0)
 
 
 def rounded_binned(

@@ -264,14 +264,14 @@ def _program(kernel: str, part: str) -> Callable:
             geo = model.rounded_geometry(theta, b2, layer, radius)
             geo = jax.tree_util.tree_map(lambda x: x[:, None], geo)
         if part == "arc_rho":
-            arcs = model.rounded_arcs(a, b, b2c, n, wc, geo, kernel)
+            arcs = model.rounded_arcs(a, b, b2c, n, wc, layer, rc, geo, kernel)
             spread = along(a, b, wc)
             return arcs / jnp.where(spread > 0.0, spread, 1.0)
         albedo = fixed[2]
         if part == "rounded":
             spec = model.lab_density_rounded(a, b, b2c, n, wc, layer, rc, kernel, geometry=geo)
         elif part == "rounded_flats":
-            spec = model.rounded_flats(a, b, b2c, n, wc, layer, rc, geo, kernel)
+            spec = model.rounded_flats(a, b, b2c, n, wc, layer, rc, kernel)
         elif kernel == "gaussian":
             spec = model.lab_density_gaussian(a, b, b2c, n, wc)
         else:
