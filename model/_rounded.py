@@ -944,11 +944,11 @@ def brdf_rounded_from_geometry(
     return jnp.where(rho >= 0, rho, 0.0)
 
 
-ARC_SEEN_NODES = 16
+ARC_SEEN_NODES = 12
 """Gauss-Legendre nodes of `arc_single_seen` over the lit and seen arc within `ARC_SEEN_REACH`
 kernel widths of the arc angle whose mirror direction is the view: a Gaussian cut anywhere
-in that window integrates to 1e-7 (its tails beyond it hold 6e-7)."""
-ARC_SEEN_REACH = 5.0
+in that window integrates to 1e-5 (its tails beyond it hold 7e-6)."""
+ARC_SEEN_REACH = 4.5
 
 
 def arc_single_seen(
