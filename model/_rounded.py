@@ -584,12 +584,18 @@ class RoundedGeometry(NamedTuple):
     nodes: _Nodes  # (..., 7, P, 3)
 
 
+def _arc_radius(k: _Cell, r: Array) -> Array:
+    """The radius at which arc angles are evaluated: `r`, but at least `sqrt(eps)` periods
+    (the `r -> 0+` limit; the arcs' powers keep the factor `r` itself)."""
+    r_tiny = k.L * float(np.sqrt(np.finfo(np.dtype(k.L.dtype)).eps))
+    return jnp.where(r > r_tiny, r, r_tiny)
+
+
 def _geometry(
     theta_i: Array, beta2: Array, layer_um: Array, r: Array, resolution: int
 ) -> RoundedGeometry:
     k = _cell(theta_i, beta2, layer_um)
-    r_tiny = k.L * float(np.sqrt(np.finfo(np.dtype(theta_i.dtype)).eps))
-    rg = jnp.where(r > r_tiny, r, r_tiny)  # arc angles are evaluated at rg > 0 (r -> 0+ limit)
+    rg = _arc_radius(k, r)
     flats = _split(k, r)
     ang = _split(k, rg)
     g = _arc_geom(k, rg)
@@ -973,8 +979,7 @@ def arc_single_seen(
     th, sg, c = (jnp.asarray(a, ti.dtype) for a in (theta_o, sigma, c))
     ti, b, l1, r, th, sg, n, c = same_rank(ti, b, l1, r, th, sg, n, c)
     k = _cell(ti, b, l1)
-    r_tiny = k.L * float(np.sqrt(np.finfo(np.dtype(ti.dtype)).eps))
-    rg = jnp.where(r > r_tiny, r, r_tiny)
+    rg = _arc_radius(k, r)
     lit_lo, lit_hi = _lit_arc(k, rg)
     seen_lo, seen_hi = _lit_arc(_cell(-th, b, l1), rg)
     centre = 0.5 * (th - k.ti)  # the arc angle whose mirror direction is theta_o
