@@ -132,8 +132,8 @@ def rounded_flats(
 ) -> Float[Array, "..."]:
     """The flat facets' part of `lab_density_rounded` (1/sr): Gaussian facets, the three delta
     lobes with the rounded weights (`rounded_delta_weight` at each node's own projected angle
-    of incidence, as they change fast near a facet's grazing mirror direction: taken once per
-    face, they made a 55-deg face 22% too dark), 3-D Fresnel factors and the
+    of incidence, as they change fast near a facet's grazing mirror direction; docs/model.md
+    §7.6), 3-D Fresnel factors and the
     kernels of `lab_density_gaussian`; microfacet facets, `lab_density_microfacet`'s single
     reflections scaled by the share of each facet's lit and seen part that stays flat: its
     rounded delta weight over its sharp lobe weight (exact at its mirror direction) times how
