@@ -323,6 +323,11 @@ def _width_deg(model: GlossModel, vector: jax.Array, wedge_deg: ArrayLike) -> ja
     return jnp.interp(wedge_deg, xs, ys)
 
 
+SURFACE_PARAMS = frozenset({"sigma_rad", "delta_n", "edge_radius_um", "scale", "floor"})
+"""The fitted parameters `surface_of` reads: the delta method differentiates the gloss in these
+alone (the model-error term, for one, changes no surface)."""
+
+
 def surface_of(
     model: GlossModel, vector: jax.Array, wedge_deg: ArrayLike, layer_um: ArrayLike
 ) -> m.GlossSurface:
@@ -345,7 +350,7 @@ def surface_of(
     floor = _value(model, vector, "floor", "floor", 0.0)
     if not model.lab:
         scale = scale / m.line_gaussian(0.0, 0.0, width_rad)
-    width = width_rad if model.kind == "gaussian" else jnp.tan(width_rad)
+    width = width_rad if model.kind == "gaussian" else m.roughness_alpha(width_rad)
     return m.GlossSurface(
         beta2=wedge_deg * DEG, layer_um=layer_um, n=n, width=width,
         edge_radius_um=_value(model, vector, "edge_radius_um", "edge_radius_um", 0.0),
@@ -449,14 +454,18 @@ def gloss_table(
     sd = np.full(combos.wedge_deg.size, np.nan)
     if model.draws is None and model.covariance is not None and model.best.size:
         # the delta method: the table and its gradient in one program (the forward-mode
-        # Jacobian evaluates the table on the way)
-        def with_table(v: jax.Array) -> tuple[jax.Array, jax.Array]:
-            t = f(v)
+        # Jacobian evaluates the table on the way), in the parameters the surface depends on
+        used = np.array([i for i, (p, _) in enumerate(model.keys) if p in SURFACE_PARAMS], int)
+        best = jnp.asarray(model.best, float)
+
+        def with_table(u: jax.Array) -> tuple[jax.Array, jax.Array]:
+            t = f(best.at[used].set(u))
             return t[:, 0], t
 
-        jac, table = jax.jit(jax.jacfwd(with_table, has_aux=True))(jnp.asarray(model.best, float))
-        jac, values = np.asarray(jac), np.asarray(table)[None]  # (C, P), (1, C, 3)
-        sd = np.sqrt(np.einsum("cp,pq,cq->c", jac, model.covariance, jac))
+        jac, table = jax.jit(jax.jacfwd(with_table, has_aux=True))(best[used])
+        jac, values = np.asarray(jac), np.asarray(table)[None]  # (C, U), (1, C, 3)
+        cov = model.covariance[np.ix_(used, used)]
+        sd = np.sqrt(np.einsum("cp,pq,cq->c", jac, cov, jac))
     else:
         vectors = model.best[None, :] if model.draws is None else np.vstack([model.best,
                                                                             model.draws])

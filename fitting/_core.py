@@ -486,6 +486,14 @@ def _run_starts(
         return [first, *pool.map(lambda z0: _run(z0, static, data, solver, max_steps), rest)]
 
 
+def costly_solve(static: Static) -> bool:
+    """Whether one solve of this forward model costs seconds rather than a fraction of one: the
+    rounded model, and the lab model's microfacet facets (their lobes' quadrature at every
+    node). Where a parent's or another kernel's optimum starts such a fit, further width starts
+    are not worth their time (docs/fitting.md §4)."""
+    return static.rounded or static.lab not in (None, "gaussian")
+
+
 def fit_core(
     problem: Problem,
     spec: FreeSpec,
@@ -498,14 +506,14 @@ def fit_core(
     `FitError` when no start gives finite values.
 
     `extra`: further start vectors (every slot of `z`), e.g. a parent variant's optimum
-    (`_least_squares.nested_start`); with them, the width starts `sigmas` are used only when
-    `spec` is sharp (a rounded solve costs tens of seconds per start). The best start is the one
+    (`_least_squares.nested_start`); with them, only the first of the width starts `sigmas` is
+    used where a solve is costly (`costly_solve`). The best start is the one
     with the lowest `-2 log L` (the solver's objective; chi^2 when there is no model-error
     term, whose variance term chi^2 alone would ignore)."""
     static, data = problem.static_for(spec), problem.arrays_for(spec)
     z0s = start_vectors(problem, spec, sigmas)
     if extra:
-        z0s = np.concatenate([np.stack(extra), z0s[:1] if static.rounded else z0s])
+        z0s = np.concatenate([np.stack(extra), z0s[:1] if costly_solve(static) else z0s])
     runs = _run_starts(z0s, static, data, solver, max_steps)
     tried = tuple(sigmas)
     for _ in range(DENSER_START_ROUNDS):  # every start misfits: try the widths between them

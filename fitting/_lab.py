@@ -23,7 +23,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, Float, Int
 from numpy.typing import NDArray
 
 from stairfit import model
@@ -170,14 +170,6 @@ def plate_conv(w_i: NDArray, share: NDArray, beta2: NDArray, albedo: float) -> N
     return share * albedo / np.pi * cos_p
 
 
-def roughness_alpha(width_rad: ArrayLike) -> Array:
-    """A microfacet kernel's roughness from the fit's width slot: `alpha = tan(width)`, the
-    width being the angle whose tangent is the micro-slopes' scale (Beckmann: their RMS). The
-    fit keeps one transform and prior for every kernel's width, and reports it in degrees;
-    `alpha` is the number a renderer takes (Mitsuba's `alpha`)."""
-    return jnp.tan(jnp.asarray(width_rad))
-
-
 def lab_grid(
     width_g: Array,
     dn: Array,
@@ -191,9 +183,9 @@ def lab_grid(
     `kernel`; `lab_density_rounded` with tip radius `radius_um`) and diffuse body,
     band-averaged over the channel's wavelength samples and summed over the nodes with `conv`
     [conventions §8, §11, §12]. `width_g` is each key's width in rad: the Gaussian's sigma, or
-    for a microfacet kernel the roughness angle, `alpha = tan(width)` (`roughness_alpha`). The
-    arcs' panels are computed once per key, at the mean projected angle of incidence of its
-    nodes; the flats' delta weights and the arcs' single reflection at every node (docs/model.md
+    for a microfacet kernel the roughness angle (`stairfit.model.roughness_alpha`). The arcs'
+    panels are computed once per key, at the mean projected angle of incidence of its nodes;
+    the flats' delta weights and the arcs' single reflection at every node (docs/model.md
     §7.6). Derivatives by `_lab_grid_jvp`."""
     rounded = radius_um is not None
     radius = jnp.zeros((), width_g.dtype) if radius_um is None else jnp.asarray(radius_um)
@@ -249,7 +241,7 @@ def _lab_impl(
     b2 = lab.b2[:, None, None]
     width = width_g[:, None, None]
     if kernel != "gaussian":
-        width = roughness_alpha(width)
+        width = model.roughness_alpha(width)
     if rounded:
         theta = jnp.sum(model.projected_incidence(lab.w_i).theta * lab.conv, axis=1) / jnp.maximum(
             jnp.sum(lab.conv, axis=1), 1e-300

@@ -108,7 +108,9 @@ from ._lab_rounded import lab_density_rounded as lab_density_rounded
 from ._lab_rounded import rounded_arcs as rounded_arcs
 from ._lab_rounded import rounded_flats as rounded_flats
 from ._microfacet import DISTRIBUTIONS as DISTRIBUTIONS
+from ._microfacet import ROUGHNESS_ANGLE_MAX_RAD as ROUGHNESS_ANGLE_MAX_RAD
 from ._microfacet import ndf as ndf
+from ._microfacet import roughness_alpha as roughness_alpha
 from ._microfacet import slope_cdf as slope_cdf
 from ._microfacet import slope_marginal as slope_marginal
 from ._microfacet import smith_g1 as smith_g1

@@ -26,6 +26,22 @@ DISTRIBUTIONS: tuple[str, ...] = ("ggx", "beckmann")
 _TINY = 1e-12
 
 
+ROUGHNESS_ANGLE_MAX_RAD = 1.5
+"""The largest roughness angle (rad, 86 deg; the width prior's upper end, `alpha = tan(1.5) =
+14`, a lobe flat over the hemisphere): beyond it `roughness_alpha` holds. `tan` has period pi,
+so without the hold a fit could leave through the pole into the next branch, where a width of
+`12 pi + 0.06` rad is the same surface as 0.06 rad and would be reported as 2163 deg."""
+
+
+def roughness_alpha(width_rad: ArrayLike) -> Float[Array, "..."]:
+    """A microfacet distribution's `alpha` from the roughness angle the fit and the reports use
+    (its width slot, shared with the Gaussian kernel's sigma): `alpha = tan(width)`, the
+    width being the angle whose tangent is the micro-slopes' scale (Beckmann: their RMS), held
+    at `ROUGHNESS_ANGLE_MAX_RAD` so that `alpha` grows monotonically with the width. `alpha`
+    is the number a renderer takes (Mitsuba's `alpha`) [conventions §12]."""
+    return jnp.tan(jnp.minimum(jnp.asarray(width_rad), ROUGHNESS_ANGLE_MAX_RAD))
+
+
 def _check(kind: str) -> None:
     if kind not in DISTRIBUTIONS:
         raise ValueError(f"microfacet distribution {kind!r}: use one of {', '.join(DISTRIBUTIONS)}")

@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from stairfit.model import LAB_KERNELS
+from stairfit.model import LAB_KERNELS, roughness_alpha
 
 DEG = math.pi / 180.0
 
@@ -41,7 +41,7 @@ class Material(NamedTuple):
         widths: `((beta2_deg, width_rad), ...)`: the facets' width per wedge angle (one entry:
             the same for every wedge; several: interpolated in the wedge angle, the ends held).
             For "gaussian" the broadening sigma; for a microfacet kernel the roughness angle,
-            `alpha = tan(width)` (the fit's width slot, `fitting.roughness_alpha`).
+            `alpha = tan(width)` (the fit's width slot, `stairfit.model.roughness_alpha`).
         edge_radius_um: the convex step edges' radius (0: sharp).
         layer_um: the layer thickness l1.
         index: the refractive index per colour channel (R, G, B), complex.
@@ -71,7 +71,7 @@ class Material(NamedTuple):
     def model_width(self, beta2_deg: ArrayLike) -> NDArray:
         """The width the model functions take: sigma (rad) for "gaussian", alpha otherwise."""
         w = self.width_rad(beta2_deg)
-        return w if self.kernel == "gaussian" else np.tan(w)
+        return w if self.kernel == "gaussian" else np.asarray(roughness_alpha(w), float)
 
     def radius_at(self, beta2_deg: ArrayLike) -> NDArray:
         """The edge radius (um) the cell at `beta2_deg` holds: the material's, or just under

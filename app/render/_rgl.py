@@ -39,6 +39,8 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from stairfit.model import roughness_alpha
+
 from ._material import ArcGrid, Material, arc_grid, clamp_beta2_deg, density
 from ._tensorfile import tensor_bytes
 
@@ -311,7 +313,7 @@ def description(material: Material, beta2_deg: float, resolution: Resolution) ->
     sizes."""
     width = material.width_rad(beta2_deg)
     name = "sigma" if material.kernel == "gaussian" else "alpha"
-    value = math.degrees(width) if material.kernel == "gaussian" else math.tan(width)
+    value = math.degrees(width) if material.kernel == "gaussian" else float(roughness_alpha(width))
     n = ", ".join(f"{complex(x).real:.4g}" for x in material.index)
     return (
         f"stairfit staircase: wedge {beta2_deg:.4g} deg, {material.layer_um:g} um layers, "

@@ -428,3 +428,28 @@ def test_a_broken_fit_folder_gives_one_line(fit_folder, tmp_path, capsys):
     status = main(["predict", "--gloss", "--fit", str(bad), "--sigma-deg", "3"])
     err = capsys.readouterr().err
     assert status == 2 and "--fit with --sigma-deg" in err, err
+
+
+def test_the_delta_method_differentiates_only_what_the_surface_depends_on():
+    """The delta method's standard deviation of a fit whose covariance also holds a model-error
+    term (correlated with the width) equals that of the same fit without it: the gloss does not
+    depend on the term, so leaving it out of the Jacobian changes nothing."""
+    from dataclasses import replace
+
+    from stairfit import gloss as g
+
+    base = g.given_gloss_model("gaussian", np.array([400.0, 700.0]), np.array([1.5, 1.5]), 4.0)
+    keys = (("sigma_rad", None), ("scale", None), ("floor", None))
+    cov = np.array([[0.04, 0.0, 0.0], [0.0, 1e-4, 5e-6], [0.0, 5e-6, 1e-5]])
+    plain = replace(base, keys=keys, names=("sigma", "scale", "floor"),
+                    best=np.array([4.0, 1.0, 0.01]), covariance=cov)  # fmt: skip
+    extra = np.zeros((4, 4))
+    extra[:3, :3] = cov
+    extra[3, 3], extra[0, 3], extra[3, 0] = 0.09, 0.05, 0.05
+    with_term = replace(plain, keys=(*keys, ("model_error_frac", None)),
+                        names=(*plain.names, "model_error_frac"),
+                        best=np.array([4.0, 1.0, 0.01, 0.3]), covariance=extra)  # fmt: skip
+    a = g.gloss_table(plain, [30.0], 150.0, angles_deg=(60.0,))
+    b = g.gloss_table(with_term, [30.0], 150.0, angles_deg=(60.0,))
+    assert a[0].sd is not None and a[0].sd > 0.0
+    assert b[0].gloss == a[0].gloss and b[0].sd == pytest.approx(a[0].sd, rel=1e-12)

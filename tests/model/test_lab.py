@@ -431,6 +431,23 @@ def test_smith_g1_is_cos_over_the_projected_micro_area(kind, alpha):
     )
 
 
+def test_roughness_alpha_grows_with_the_width_and_never_wraps():
+    """`alpha = tan(width)` below the hold, monotone and finite with a finite derivative for
+    every width a fit can reach: a width `k pi` beyond a roughness is not that roughness again
+    (a fit of a GGX set ended at `12 pi + 0.0607` rad, the same surface as 0.0607, reported as
+    2163 deg)."""
+    widths = np.concatenate([np.geomspace(1e-6, 1.4, 200), np.linspace(1.4, 60.0, 2000)])
+    alpha = np.asarray(model.roughness_alpha(widths))
+    below = widths < model.ROUGHNESS_ANGLE_MAX_RAD
+    np.testing.assert_allclose(alpha[below], np.tan(widths[below]), rtol=1e-14)
+    assert np.all(np.isfinite(alpha)) and np.all(np.diff(alpha) >= 0.0)
+    grad = np.asarray(jax.vmap(jax.grad(model.roughness_alpha))(jnp.asarray(widths)))
+    assert np.all(np.isfinite(grad)) and np.all(grad >= 0.0)
+    wrapped = float(model.roughness_alpha(0.0607 + 12.0 * math.pi))
+    assert wrapped == pytest.approx(math.tan(model.ROUGHNESS_ANGLE_MAX_RAD))
+    assert wrapped > 100.0 * math.tan(0.0607)
+
+
 # ------------------------------------------------------------------------------------------
 # Extremes: finite values and derivatives
 # ------------------------------------------------------------------------------------------
