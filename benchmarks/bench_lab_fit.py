@@ -2,11 +2,13 @@
 
 Runs, each a fresh process timed from outside: `stairfit fit FOLDER --no-posterior` with an
 empty JAX cache (`STAIRFIT_JAX_CACHE` a new folder) and no measurement cache (`--no-cache`),
-then again with both caches filled (the user's second run), and (`--with-posterior`) the
-default fit with its posterior, warm. It then compares the fitted parameters with the
-renderer's truth.json (tests/pbr_photos.py: `edge_radius_um`, the GGX/Beckmann alpha against
-`tan(sigma)`, the floor against `k_cam x body / pi`, the scale against `k_cam`) and prints the
-model-error term and the facet kernel chosen. The set comes from benchmarks/make_pbr_set.py
+then again with both caches filled (the user's second run; an untimed `stairfit measure`
+first fills the measurement cache, which the cold runs do not write), and
+(`--with-posterior`) the default fit with its posterior, warm. It then compares the fitted
+parameters with the renderer's truth.json (tests/pbr_photos.py: `edge_radius_um`, the
+GGX/Beckmann alpha against `tan(sigma)`, the floor against `k_cam x body / pi`, the scale
+against `k_cam`) and prints the model-error term and the facet kernel chosen. The set comes
+from benchmarks/make_pbr_set.py
 (`--set dev` renders the development set in about half an hour on one thread).
 
     python benchmarks/make_pbr_set.py --set dev --out /data/pbr/dev
@@ -80,9 +82,20 @@ def _stages(results: Path) -> dict[str, float]:
     return {k: round(float(v), 1) for k, v in t.items()}
 
 
+def _fill_measurement_cache(exe: str, folder: Path, work: Path) -> None:
+    """Measure the set once, untimed, so that every warm run finds the measurement cache: the
+    cold runs (`--no-cache`) write none, so without this the first warm run would measure."""
+    env = dict(os.environ, STAIRFIT_JAX_CACHE=str(work / "measure-jax"))
+    _run([exe, "measure", str(folder), "-o", str(work / "measure"), "--quiet"], env)
+
+
 def _pair(exes: dict[str, str], folder: Path, work: Path, repeats: int) -> dict[str, object]:
     """Cold then warm `stairfit fit --no-posterior` of every exe, `repeats` times interleaved."""
     runs: dict[str, list[dict[str, Any]]] = {name: [] for name in exes}
+    first = next(iter(exes.values()))
+    _fill_measurement_cache(
+        first, folder, work, dict(os.environ, STAIRFIT_JAX_CACHE=str(work / "m"))
+    )
     for r in range(repeats):
         for name, exe in exes.items():
             base = work / f"{name}{r}"
@@ -133,6 +146,9 @@ def main(argv: list[str] | None = None) -> int:
     load = os.getloadavg()[0]
     timings = {}
     try:
+        _fill_measurement_cache(
+            exe, args.folder, work, dict(env, STAIRFIT_JAX_CACHE=str(work / "m"))
+        )
         out = work / "cold"
         timings["cold_no_posterior_s"] = _run(
             [exe, "fit", str(args.folder), "-o", str(out), "--no-posterior", "--no-cache",
