@@ -476,7 +476,7 @@ def select(
                 sigma_starts_rad=tuple(s * DEG for s in options.preset.sigma_starts_deg),
                 on_variant=lambda name: tick(),
                 kernels=kernels,
-                time_budget_s=options.preset.ladder_budget_s,
+                work_budget_gflop=options.preset.ladder_budget_gflop,
             )
         except (fitting.FitError, fitting.FitInputError) as err:
             raise UserError(f"the fit failed: {err}") from None

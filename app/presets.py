@@ -66,10 +66,11 @@ class Preset:
       `posterior_max_steps`: the step limit (then a warning); `posterior_chunk_steps`: how
       often (in steps) the stopping rule is checked (a chain stops at a multiple of it).
     * `float32_figures`: evaluate figures in float32 (fits are always float64).
-    * `ladder_budget_s`: no further variant of the ladder is started after this many CPU
-      seconds of its fits (after the lab model's kernel probes; the summary lists those not
-      tried; CPU time, so that a busy machine does not change the choice); None: every variant
-      is fitted.
+    * `ladder_budget_gflop`: no further variant of the ladder is started once its fits have
+      done this much work (solver steps weighted by XLA's flop count of one step,
+      `stairfit.fitting.step_gflop`; after the lab model's kernel probes; the summary lists
+      those not tried). Work, not time, so that the same photos give the same choice on any
+      machine, busy or not; None: every variant is fitted.
     """
 
     name: str
@@ -85,12 +86,22 @@ class Preset:
     posterior_max_steps: int
     posterior_chunk_steps: int
     float32_figures: bool
-    ladder_budget_s: float | None = None
+    ladder_budget_gflop: float | None = None
 
     def as_dict(self) -> dict[str, object]:
         """For results.json."""
         return asdict(self)
 
+
+BALANCED_GFLOP = 400.0
+"""The balanced preset's ladder budget (Gflop of solver work after the kernel probes): about
+what its earlier budget of 180 CPU seconds allowed on the machine it was set on. The physically
+based dev set's whole lab ladder takes 300 (benchmarks/results/lab_fit.md); an in-plane
+ladder of the standard scene, fillet rungs included, well under 100. It ends a misfitting
+climb into costly rungs (a rounded or fillet step weighs 100-1000 times a sharp one)."""
+
+FAST_GFLOP = 200.0
+"""The fast preset's ladder budget: half the balanced one."""
 
 PRESETS: dict[str, Preset] = {
     "fast": Preset(
@@ -107,7 +118,7 @@ PRESETS: dict[str, Preset] = {
         posterior_max_steps=1_500,
         posterior_chunk_steps=100,
         float32_figures=True,
-        ladder_budget_s=90.0,
+        ladder_budget_gflop=FAST_GFLOP,
     ),
     "balanced": Preset(
         name="balanced",
@@ -123,7 +134,7 @@ PRESETS: dict[str, Preset] = {
         posterior_max_steps=20_000,
         posterior_chunk_steps=100,
         float32_figures=False,
-        ladder_budget_s=180.0,
+        ladder_budget_gflop=BALANCED_GFLOP,
     ),
     "accurate": Preset(
         name="accurate",

@@ -366,6 +366,8 @@ def table_records(sel: fitting.Selection) -> list[Record]:
             "detail": r.detail,
             "chi2_measurement_errors_only": r.chi2_measurement,
             "elapsed_s": r.elapsed_s,
+            "solver_steps": r.solver_steps,
+            "work_gflop": r.work_gflop,
             "notes": r.notes,
         }
         for r in sel.table

@@ -18,8 +18,7 @@ layout table, is copied into the draft as a user keeps their extraction settings
     python benchmarks/bench_init.py [--fit] [--true-views] [--pbr DIR] [--keep DIR]
         [--fit-args "--model rounded+floor"] [--sets simulate,independent,pbr-dev]
 
-Results: benchmarks/results/init.md (newest run first; say whether the machine was loaded: the
-view angles do not depend on it, the fits' model choice can, through the ladder's time budget).
+Results: benchmarks/results/init.md (newest run first).
 """
 
 from __future__ import annotations

@@ -13,6 +13,7 @@ from ._accuracy import NumericalError as NumericalError
 from ._accuracy import numerical_error as numerical_error
 from ._core import SOLVERS as SOLVERS
 from ._core import fisher_information as fisher_information
+from ._core import step_gflop as step_gflop
 from ._curves import DENSE_STEP_RAD as DENSE_STEP_RAD
 from ._curves import ModelCurve as ModelCurve
 from ._curves import model_at as model_at

@@ -7,6 +7,7 @@ active set and the identifiability rule) is in `_least_squares.py` and `_identif
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from typing import NamedTuple
@@ -423,8 +424,8 @@ class CoreFit(NamedTuple):
 
     `success`: the chosen start converged; `message`: its optimistix result (with the message
     when it did not); `z`, `steps`, `ev`: its optimum, solver steps, evaluation; `starts_*`:
-    every start's width, chi^2 (inf if not finite) and convergence; `static`, `data`: what the
-    solve ran on.
+    every start's width, chi^2 (inf if not finite) and convergence; `total_steps`: the solver
+    steps of every start (the solve's work); `static`, `data`: what the solve ran on.
     """
 
     success: bool
@@ -434,6 +435,7 @@ class CoreFit(NamedTuple):
     starts_sigma: tuple[float, ...]
     starts_chi2: tuple[float, ...]
     starts_converged: tuple[bool, ...]
+    total_steps: int
     ev: Evaluation
     spec: FreeSpec
     data: Data
@@ -484,6 +486,45 @@ def _run_starts(
 
     with ThreadPoolExecutor(START_THREADS, thread_name_prefix="stairfit-start") as pool:
         return [first, *pool.map(lambda z0: _run(z0, static, data, solver, max_steps), rest)]
+
+
+class SolveWork(NamedTuple):
+    """One multi-start solve's work: its solver steps (every start) and what one step of it
+    evaluates (`static`, `data`), so that its cost can be counted when asked (`gflop`)."""
+
+    steps: int
+    static: Static
+    data: Data
+
+    def gflop(self) -> float:
+        """The solve's work in Gflop: its steps times `step_gflop`."""
+        return self.steps * step_gflop(self.static, self.data)
+
+
+def step_gflop(static: Static, data: Data) -> float:
+    """The work of one solver step of this forward model, in Gflop: the floating-point
+    operations XLA counts in the residuals (its cost analysis of the lowered program, before
+    any machine-specific optimisation) times one plus the free parameters (forward-mode
+    Jacobian columns). A machine-independent measure of what a solve costs, so that a budget
+    of it (`select_model(work_budget_gflop=...)`) ends a ladder at the same rung on any
+    machine; steps of a rounded or microfacet model weigh 10-1000 times those of a sharp one,
+    as their time does."""
+    leaves, tree = jax.tree_util.tree_flatten(data)
+    shapes = tuple((tuple(np.shape(x)), np.asarray(x).dtype.name) for x in leaves)
+    n_free = int(np.count_nonzero(np.asarray(data.free)))
+    return _residual_gflop(static, tree, shapes) * (1 + n_free)
+
+
+@functools.lru_cache(maxsize=64)
+def _residual_gflop(static: Static, tree: jax.tree_util.PyTreeDef,
+                    shapes: tuple[tuple[tuple[int, ...], str], ...]) -> float:  # fmt: skip
+    """XLA's flop count of `residuals` for this configuration and these array shapes (traced
+    and lowered, not compiled; memoised: the ladder asks once per forward model)."""
+    data = jax.tree_util.tree_unflatten(tree, [jax.ShapeDtypeStruct(s, d) for s, d in shapes])
+    z = jax.ShapeDtypeStruct((static.layout.size,), jnp.float64)
+    cost = jax.jit(lambda z, d: residuals(z, (static, d))).lower(z, data).cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    return float(cost.get("flops", 0.0)) / 1e9
 
 
 def costly_solve(static: Static) -> bool:
@@ -546,6 +587,7 @@ def fit_core(
         starts_sigma=tuple(float(np.exp(z[0])) for z in z0s),
         starts_chi2=tuple(float(c) for c in chi2),
         starts_converged=tuple(r.converged for r in runs),
+        total_steps=sum(r.steps for r in runs),
         ev=best.ev,
         spec=spec,
         data=data,

@@ -17,7 +17,7 @@ import optimistix as optx
 
 from stairfit import model
 
-from ._core import CoreFit, fit_core, make_solver
+from ._core import CoreFit, SolveWork, fit_core, make_solver
 from ._errors import FitError, FitInputError, FitWarning, emit, with_overrides
 from ._identify import IDENTIFIABILITY_THRESHOLD, PROFILE_DELTA, apply_fix, on_bound, unidentified
 from ._observations import Observations, Spectral
@@ -129,7 +129,7 @@ def fit_least_squares(
         extra += tuple(z for f in start_from if (z := fillet_split_start(problem, f)) is not None)
     refined = _refine(problem, spec_for(variant, problem), solver, opts, extra, stop_when_fixed)
     result = make_result(problem, variant, refined.core, opts.solver, refined.records,
-                         refined.unidentified, t0)  # fmt: skip
+                         refined.unidentified, t0, refined.solves)  # fmt: skip
     if not result.success and opts.on_failure == "raise":
         raise FitError(
             f"least squares did not converge for variant {variant.name!r} with {opts.solver}: "
@@ -142,11 +142,13 @@ def fit_least_squares(
 
 
 class _Refined(NamedTuple):
-    """The last core fit of the refinement loop, its warnings and the unidentified labels."""
+    """The last core fit of the refinement loop, its warnings, the unidentified labels and the
+    work of every solve in the loop."""
 
     core: CoreFit
     records: list[FitWarning]
     unidentified: list[str]
+    solves: tuple[SolveWork, ...]
 
 
 class _Step(NamedTuple):
@@ -171,8 +173,12 @@ def _refine(
     nothing changes (at most `2 x slots + 2` rounds), or until every parameter in `stop` is
     fixed (`fit_least_squares`); `extra` starts go into every solve."""
 
+    spent: list[SolveWork] = []  # every solve, the near-bound checks' included
+
     def solve(s: FreeSpec) -> CoreFit:
-        return fit_core(problem, s, solver, opts.max_steps, opts.sigma_starts_rad, extra)
+        core = fit_core(problem, s, solver, opts.max_steps, opts.sigma_starts_rad, extra)
+        spent.append(SolveWork(core.total_steps, core.static, core.data))
+        return core
 
     core = solve(spec)
     records: list[FitWarning] = []
@@ -187,7 +193,7 @@ def _refine(
         if step.spec is None or (stop and stop <= fixed_names(records)):
             break
         core = step.core if step.core is not None else solve(step.spec)
-    return _Refined(core, records, names)
+    return _Refined(core, records, names, tuple(spent))
 
 
 FIXING_CODES = ("unidentified", "at_bound")

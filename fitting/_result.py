@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._core import CoreFit
+from ._core import CoreFit, SolveWork
 from ._errors import FitWarning
 from ._identify import covariance, within_stderr_of_bound
 from ._params import (
@@ -96,6 +96,10 @@ class FitResult:
         z: the optimum in the unconstrained coordinates (every slot; used by the posterior).
         free_slots: indices of the free slots of `z`, in covariance order.
         elapsed_s: wall time of the fit (compilation included on a first call).
+        solves: every solve of the fit (its refinement's refits included) with its solver
+            steps (every start): `solver_steps` adds them up, `work_gflop()` weighs each by
+            the cost of one of its steps, a measure of the fit's work that is the same on every
+            machine.
         problem: the prepared problem (observations, spectral setup, priors, options).
         spec: the final free set (with parameters fixed on bounds); used by the posterior.
     """
@@ -133,8 +137,19 @@ class FitResult:
     z: np.ndarray = field(repr=False)
     free_slots: tuple[int, ...] = field(repr=False)
     elapsed_s: float = 0.0
+    solves: tuple[SolveWork, ...] = field(default=(), repr=False)
     problem: Problem | None = field(default=None, repr=False)
     spec: FreeSpec | None = field(default=None, repr=False)
+
+    @property
+    def solver_steps(self) -> int:
+        """The solver steps of every start of every solve of the fit."""
+        return sum(s.steps for s in self.solves)
+
+    def work_gflop(self) -> float:
+        """The fit's work in Gflop: every solve's steps at the cost of one of its steps
+        (`fitting.step_gflop`; counted when asked: it lowers each forward model once)."""
+        return sum(s.gflop() for s in self.solves)
 
     @property
     def parameters(self) -> tuple[Parameter, ...]:
@@ -311,8 +326,10 @@ def make_result(
     records: list[FitWarning],
     unidentified: list[str],
     t0: float,
+    solves: tuple[SolveWork, ...] | None = None,
 ) -> FitResult:
-    """Assemble the immutable result from the last core fit (`core.spec` is the final spec)."""
+    """Assemble the immutable result from the last core fit (`core.spec` is the final spec);
+    `solves`: every solve that led to it (default: `core` alone)."""
     obs, ev = problem.observations, core.ev
     cov_z, cov, corr = _physical_covariance(problem, core)
     estimates, bound_records = _estimates(problem.parameters(core.spec), core, cov)
@@ -361,6 +378,8 @@ def make_result(
         z=np.asarray(core.z),
         free_slots=tuple(int(s) for s in core.free_slots),
         elapsed_s=time.perf_counter() - t0,
+        solves=(SolveWork(core.total_steps, core.static, core.data),) if solves is None
+        else solves,
         problem=problem,
         spec=core.spec,
     )

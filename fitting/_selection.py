@@ -48,8 +48,11 @@ class ComparisonRow:
     `detail` (its reason: the chi^2 and tail probability of a misfit, the parameter the data
     cannot constrain, the solver's message, why a rung was skipped), `notes` (parameters fixed
     by the fit and why, in short), `chi2_measurement` (chi^2 with the measurement errors alone,
-    without the model-error term), `dof`, `elapsed_s` (wall time of the variant's fit).
-    `status_text` is the status in words with its detail.
+    without the model-error term), `dof`, `elapsed_s` (wall time of the variant's fit),
+    `solver_steps` (the solver steps the ladder spent on it, every start and refit) and
+    `work_gflop` (their work, `FitResult.work_gflop`: what the ladder's budget counts); both 0
+    where the row's fit came from the kernel probes or their recheck, or where a rung ended in
+    an error without a fit. `status_text` is the status in words with its detail.
     """
 
     name: str
@@ -67,6 +70,8 @@ class ComparisonRow:
     chi2_measurement: float = math.nan
     dof: int = 0
     elapsed_s: float = 0.0
+    solver_steps: int = 0
+    work_gflop: float = 0.0
 
     @property
     def status_text(self) -> str:
@@ -212,7 +217,7 @@ def select_model(
     options: LeastSquaresOptions | None = None,
     on_variant: Callable[[str], None] | None = None,
     kernels: tuple[str, ...] = ("gaussian",),
-    time_budget_s: float | None = None,
+    work_budget_gflop: float | None = None,
     **option_overrides: Any,
 ) -> Selection:
     """Fit every variant of `ladder` and choose the simplest the data support (module doc).
@@ -230,11 +235,12 @@ def select_model(
     `solver`, `max_steps`, `sigma_starts_rad`) set each least-squares fit; failures are
     recorded in the table with their `Status`, and warnings of the chosen fit are emitted while
     those of the others are only recorded in their results. `on_variant(name)` is called after
-    each variant's fit (for progress bars). `time_budget_s`: no further variant of the ladder is
-    started once it has used this much CPU time (this process's, all threads; counted after
-    the kernel probes; those left are listed as not tried): CPU time, not wall time, so that a
-    busy machine does not change which variants are fitted and hence the choice; a variant that adds
-    nothing over its parent (`Status.ADDS_NOTHING`) is not scored and its children are not tried.
+    each variant's fit (for progress bars). `work_budget_gflop`: no further variant of the
+    ladder is started once its fits have done this much work (solver steps, every start and
+    refit, each weighted by `step_gflop`; counted after the kernel probes; those left are
+    listed as not tried): work, not time, so that the same data give the same choice on any
+    machine, busy or not. A variant that adds nothing
+    over its parent (`Status.ADDS_NOTHING`) is not scored and its children are not tried.
     """
     if criterion not in CRITERIA:
         raise FitInputError(f"criterion = {criterion!r}; choose one of {', '.join(CRITERIA)}")
@@ -250,14 +256,15 @@ def select_model(
     opts = opts._replace(on_failure="flag", emit_warnings=False)
     if len(ladder) == 0:
         raise FitInputError("the ladder is empty; give at least one variant")
-    if time_budget_s is not None and not time_budget_s > 0:
-        raise FitInputError(f"time_budget_s = {time_budget_s!r}; give a positive number of seconds")
+    if work_budget_gflop is not None and not work_budget_gflop > 0:
+        raise FitInputError(
+            f"work_budget_gflop = {work_budget_gflop!r}; give a positive number of Gflop"
+        )
     facets = None
     if len(kernels) > 1:
         settings = _Settings(opts, model_error, on_variant or (lambda name: None))
         facets = choose_kernel(problem, ladder, kernels, criterion, threshold, settings)
     # the budget is the ladder's: the kernel probes decide what the ladder fits, so they run whole
-    deadline = None if time_budget_s is None else time.process_time() + time_budget_s
     kernel = facets.kernel if facets is not None else kernels[0]
     ladder = tuple(v._replace(kernel=kernel) for v in ladder)
     probes = facets.fits if facets is not None else ()
@@ -266,7 +273,7 @@ def select_model(
         sel = _forced(problem, forced._replace(kernel=kernel), model_error, criterion, threshold,
                       opts, probes)  # fmt: skip
         return _with_facets(sel, facets)
-    opts = _Settings(opts, model_error, on_variant or (lambda name: None), deadline, time_budget_s,
+    opts = _Settings(opts, model_error, on_variant or (lambda name: None), work_budget_gflop,
                      probes)  # fmt: skip
     sel = _select_ladder(problem, ladder, rounded_rungs, criterion, threshold, opts)
     if facets is not None:
@@ -466,14 +473,13 @@ def _with_facets(sel: Selection, facets: Facets | None) -> Selection:
 
 
 class _Settings(NamedTuple):
-    """How every variant of a ladder is fitted; `deadline` (a `time.process_time` value: CPU
-    seconds) and `budget_s`: no further variant is started after the deadline (None: no limit)."""
+    """How every variant of a ladder is fitted; `budget_gflop`: no further variant is started
+    once the ladder's rows have done this much work (`ladder_work`; None: no limit)."""
 
     options: LeastSquaresOptions
     model_error: bool
     on_variant: Callable[[str], None]
-    deadline: float | None = None
-    budget_s: float | None = None
+    budget_gflop: float | None = None
     starts: tuple[FitResult, ...] = ()
     """Fits of the same problem (the chosen kernel's probes) whose optima also start the
     variant of the same name (`_probe_starts`)."""
@@ -529,7 +535,7 @@ def _with_rounding(sel: Selection, rounding: Rounding) -> Selection:
     took = f" (in {rounding.elapsed_s:.0f} s)" if rounding.fitted else ""
     if rounding.fitted and any(r.detail == PROBE_KEPT for r in sel.table):
         took = (
-            f" (in {rounding.elapsed_s:.0f} s: the ladder's time budget was spent, so the "
+            f" (in {rounding.elapsed_s:.0f} s: the ladder's budget was spent, so the "
             "rungs the kernel probes had fitted are kept)"
         )
     reason = f"{sel.reason}; the rounded variants {what}{took} because {rounding.reason}"
@@ -716,7 +722,8 @@ def _fit_ladder(
         parents = tuple(fits[u.name] for u in parents_of(v, known) if u.name in fits)
         t0 = time.perf_counter()
         fit = _kept_probe(v, settings, parents)
-        if fit is not None:
+        kept = fit is not None  # its steps were spent by the kernel probes, not the ladder
+        if kept:
             settings.on_variant(v.name)  # a rung done, for the progress bar
         try:
             if fit is None:
@@ -729,6 +736,7 @@ def _fit_ladder(
             rows[v.name] = not_fitted_row(v, Status.UNIDENTIFIABLE, str(err))
             continue
         row = _row(fit, v, math.nan, time.perf_counter() - t0)
+        row = row if kept else _with_work(row, fit)  # a kept probe's work is not the ladder's
         judged = fit.success or _stopped(fit, v, parents)
         nothing = _adds_nothing(fit, v, parents) if judged else None
         if nothing is not None:
@@ -752,14 +760,26 @@ def _skip_reason(
     any_fitted: bool,
 ) -> str | None:
     """Why `v` is not tried (None: it is): every parent added nothing (the escalation stops
-    where each route to a rung passes through one that changed nothing), or the ladder's time
-    budget is spent and some variant has already converged."""
+    where each route to a rung passes through one that changed nothing), or the ladder's
+    budget is spent (`ladder_work`) and some variant has already converged."""
     if _parents_added_nothing(v, known, rows):
         names = " and ".join(repr(u.name) for u in parents_of(v, known))
         return f"not tried: {names} added nothing"
-    if any_fitted and settings.deadline is not None and time.process_time() > settings.deadline:
-        return f"not tried: the ladder's time budget ({settings.budget_s:g} CPU s) was spent"
+    budget = settings.budget_gflop
+    if any_fitted and budget is not None and ladder_work(rows) >= budget:
+        return f"not tried: the ladder's budget ({budget:g} Gflop of solver work) was spent"
     return None
+
+
+def ladder_work(rows: dict[str, ComparisonRow]) -> float:
+    """The work (Gflop) the ladder has done on `rows` (the kernel probes' not counted)."""
+    return sum(r.work_gflop for r in rows.values())
+
+
+def _with_work(row: ComparisonRow, fit: FitResult) -> ComparisonRow:
+    """The row with the work of its fit (`FitResult.solver_steps`, `work_gflop`: each solve
+    of its refinement at the cost of its own steps)."""
+    return dataclasses.replace(row, solver_steps=fit.solver_steps, work_gflop=fit.work_gflop())
 
 
 def _parents_added_nothing(
@@ -771,7 +791,7 @@ def _parents_added_nothing(
                                  for r in parents)  # fmt: skip
 
 
-PROBE_KEPT = "the kernel probe's fit of this variant: the ladder's time budget was spent"
+PROBE_KEPT = "the kernel probe's fit of this variant: the ladder's budget was spent"
 """A ladder row's detail when the budget left no time to fit the variant again, and the chosen
 kernel's probe had fitted that very variant (same free parameters and kernel)."""
 
@@ -815,7 +835,9 @@ def _adds_nothing_row(
     soon as they are fixed, `fit_least_squares(stop_when_fixed=...)`)."""
     best = _best_parent(parents)
     if _stopped(fit, v, parents):
-        row = dataclasses.replace(_row(best, v, math.nan, row.elapsed_s), notes=row.notes)
+        row = dataclasses.replace(_row(best, v, math.nan, row.elapsed_s), notes=row.notes,
+                                  solver_steps=row.solver_steps,  # its own work, not the parent's
+                                  work_gflop=row.work_gflop)  # fmt: skip
     return dataclasses.replace(row, status=Status.ADDS_NOTHING, detail=why)
 
 

@@ -274,7 +274,7 @@ def test_the_linear_scale_start_uses_the_lab_models_own_body_term(lab_arrays, ke
 
 
 def test_a_spent_budget_keeps_the_kernel_probes_fit_of_a_variant(lab_arrays):
-    """When the ladder's CPU budget is spent by the kernel probes (the variant set: every rung
+    """When the ladder's budget is spent at once (the variant set: every rung
     after the first was "not tried"), a variant the chosen kernel's probe has already fitted is
     taken from that fit instead of being left out; the others stay "not tried"."""
     from stairfit.fitting._selection import PROBE_KEPT
@@ -284,13 +284,14 @@ def test_a_spent_budget_keeps_the_kernel_probes_fit_of_a_variant(lab_arrays):
     ladder = tuple(v for v in fitting.DEFAULT_LADDER
                    if fitting.FILLET not in v.free and not v.per_wedge_sigma)  # fmt: skip
     sel = fitting.select_model(fitting.prepare(obs, spec, lab=geo), ladder=ladder,
-                               kernels=("gaussian", "ggx"), time_budget_s=1e-9,
+                               kernels=("gaussian", "ggx"), work_budget_gflop=1e-9,
                                rounded_rungs="when_needed", options=fitting.LeastSquaresOptions(
                                    on_failure="flag", emit_warnings=False))  # fmt: skip
     rows = {r.name: r for r in sel.table}
     assert rows["sharp+floor"].detail == PROBE_KEPT
     assert sel.chosen == "sharp+floor" and sel.fit.variant.kernel == "ggx"
-    assert "time budget" in rows["sharp+delta_n+floor"].detail
+    assert "budget (1e-09 Gflop of solver work) was spent" in rows["sharp+delta_n+floor"].detail
+    assert rows["sharp+floor"].work_gflop == 0  # the probes' work is not the ladder's
 
 
 def test_the_reason_says_when_the_rounded_rungs_were_taken_from_the_kernel_probes() -> None:
@@ -303,7 +304,7 @@ def test_the_reason_says_when_the_rounded_rungs_were_taken_from_the_kernel_probe
     sel = s.Selection("rounded+floor", None, (row,), "chosen", "bic", 2.0, False, {})  # type: ignore[arg-type]
     why = "the best sharp variant misfits"
     kept = s._with_rounding(sel, s.Rounding("when_needed", True, why, 4, 0.0)).reason
-    assert "time budget was spent, so the rungs the kernel probes had fitted are kept" in kept
+    assert "budget was spent, so the rungs the kernel probes had fitted are kept" in kept
     plain = dataclasses.replace(sel, table=(s.not_fitted_row(v, s.Status.MISFITS, "x"),))
     fitted = s._with_rounding(plain, s.Rounding("when_needed", True, why, 4, 12.0)).reason
     assert "were fitted (in 12 s) because the best sharp variant misfits" in fitted

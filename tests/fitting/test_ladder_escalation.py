@@ -1,6 +1,6 @@
 """The ladder on data a rung cannot improve (issue 40): a rung that adds nothing over its parent
-is reported as such, not scored (no tie on rounding noise) and not escalated from; a time
-budget ends the selection with the rungs it did not try listed."""
+is reported as such, not scored (no tie on rounding noise) and not escalated from; a budget of
+solver steps ends the selection with the rungs it did not try listed."""
 
 from __future__ import annotations
 
@@ -74,33 +74,97 @@ def test_a_fit_told_to_stop_when_its_added_parameter_is_fixed_does_not_refit_wit
     assert other.chi2 == full.chi2 and _fixed(other) == _fixed(full)
 
 
-def test_a_spent_time_budget_leaves_the_other_rungs_untried():
-    obs, spec = zoo.standard(fitting.Params(sigma_rad=6 * DEG, delta_n=0.05, scale=1.0), 3,
-                             0.02)[:2]  # fmt: skip
-    sel = fitting.select_model(obs, spec, ladder=LADDER, time_budget_s=1e-6)
+def _delta_n_observations() -> tuple[fitting.Observations, fitting.Spectral]:
+    return zoo.standard(fitting.Params(sigma_rad=6 * DEG, delta_n=0.05, scale=1.0), 3, 0.02)[:2]
+
+
+def test_a_spent_budget_leaves_the_other_rungs_untried():
+    obs, spec = _delta_n_observations()
+    sel = fitting.select_model(obs, spec, ladder=LADDER, work_budget_gflop=1e-9)
     rows = {r.name: r for r in sel.table}
     assert rows["sharp"].status in (fitting.Status.OK, fitting.Status.MISFITS)  # always fitted
+    assert rows["sharp"].solver_steps > 0 and rows["sharp"].work_gflop > 0
     untried = [r for r in sel.table if r.name != "sharp"]
     assert all(r.status == fitting.Status.NOT_FITTED for r in untried), sel.report()
-    assert all("time budget (1e-06 CPU s)" in r.detail for r in untried)
-    with pytest.raises(fitting.FitInputError, match="time_budget_s"):
-        fitting.select_model(obs, spec, ladder=LADDER, time_budget_s=0.0)
+    assert all("budget (1e-09 Gflop of solver work) was spent" in r.detail for r in untried)
+    assert all(r.solver_steps == 0 and r.work_gflop == 0 for r in untried)
+    for bad in (0.0, -3.0, float("nan")):
+        with pytest.raises(fitting.FitInputError, match="work_budget_gflop"):
+            fitting.select_model(obs, spec, ladder=LADDER, work_budget_gflop=bad)
 
 
-def test_the_time_budget_counts_cpu_time_not_wall_time(monkeypatch):
-    """A busy machine must not change the choice: wall time that passes while the fit waits
-    for a core (here: a wall clock that jumps an hour per reading) does not spend the budget,
-    so every rung is tried."""
+def test_the_budget_counts_work_so_the_choice_does_not_depend_on_the_clock(monkeypatch):
+    """The budget is work, not time: a ladder given exactly the work its first rungs did
+    stops at the same rung whatever the clocks say (here: clocks that jump an hour per reading,
+    a machine far slower or busier than any); a row's work is its steps (every start and
+    refit, at least its best start's) times the cost of one step."""
     import types
 
     from stairfit.fitting import _selection
 
-    real = _selection.time
+    obs, spec = _delta_n_observations()
+    whole = fitting.select_model(obs, spec, ladder=LADDER)
+    order = sorted(LADDER, key=lambda u: len(u.features))
+    rows = {r.name: r for r in whole.table}
+    for name, fit in whole.fits.items():
+        assert rows[name].solver_steps >= fit.num_steps > 0, whole.report()
+        assert rows[name].work_gflop == pytest.approx(fit.work_gflop()) and fit.work_gflop() > 0
+    from stairfit.report import table_records  # results.json keeps each row's work
+
+    records = {r["variant"]: r for r in table_records(whole)}
+    assert all((records[n]["solver_steps"], records[n]["work_gflop"])
+               == (r.solver_steps, r.work_gflop) for n, r in rows.items())  # fmt: skip
+    first_two = rows[order[0].name].work_gflop + rows[order[1].name].work_gflop
+    assert all(rows[v.name].work_gflop > 0 for v in order[:2]), whole.report()
     hour = iter(range(0, 10**9, 3600))
     fake = types.SimpleNamespace(perf_counter=lambda: float(next(hour)),
-                                 process_time=real.process_time)  # fmt: skip
+                                 process_time=lambda: float(next(hour)))  # fmt: skip
     monkeypatch.setattr(_selection, "time", fake)
-    obs, spec = zoo.standard(fitting.Params(sigma_rad=6 * DEG, delta_n=0.05, scale=1.0), 3,
-                             0.02)[:2]  # fmt: skip
-    sel = fitting.select_model(obs, spec, ladder=LADDER, time_budget_s=3600.0)
-    assert not any("time budget" in r.detail for r in sel.table), sel.report()
+    cut = fitting.select_model(obs, spec, ladder=LADDER, work_budget_gflop=first_two)
+    tried = [r.name for r in cut.table if "budget" not in r.detail]
+    assert set(tried) == {v.name for v in order[:2]}, cut.report()
+    assert cut.chosen in tried
+    more = fitting.select_model(obs, spec, ladder=LADDER, work_budget_gflop=first_two * 1.001)
+    assert {r.name for r in more.table if "budget" not in r.detail} >= set(tried) | {
+        order[2].name}, more.report()
+
+
+def test_a_step_of_a_richer_model_weighs_more():
+    """The work of a step follows the forward model's cost: a rounded step weighs far more
+    than a sharp one, and a free parameter more adds a Jacobian column."""
+    from stairfit.fitting import _least_squares
+
+    obs, spec = _delta_n_observations()
+    problem = fitting.prepare(obs, spec)
+
+    def per_step(name: str) -> float:
+        v = next(u for u in fitting.DEFAULT_LADDER if u.name == name)
+        s = _least_squares.spec_for(v, problem)
+        return fitting.step_gflop(problem.static_for(s), problem.arrays_for(s))
+
+    sharp, floor, rounded = per_step("sharp"), per_step("sharp+floor"), per_step("rounded")
+    assert 0 < sharp < floor < rounded
+    assert rounded > 10 * sharp
+
+
+def test_each_solve_of_a_fit_is_weighed_at_its_own_cost():
+    """A rounded rung whose radius the refinement fixes at 0 refits with the sharp model: its
+    work weighs the rounded solve's steps at the rounded cost, not at the final sharp one."""
+    import dataclasses
+
+    from stairfit.fitting import _least_squares
+    from stairfit.fitting._core import SolveWork
+
+    obs, spec = _delta_n_observations()
+    problem = fitting.prepare(obs, spec)
+    fit = fitting.fit_least_squares(problem, variant=LADDER[0])
+
+    def solve(name: str) -> SolveWork:
+        v = next(u for u in fitting.DEFAULT_LADDER if u.name == name)
+        s = _least_squares.spec_for(v, problem)
+        return SolveWork(40, problem.static_for(s), problem.arrays_for(s))
+
+    both = dataclasses.replace(fit, solves=(solve("rounded"), solve("sharp")))
+    assert both.solver_steps == 80
+    sharp_only = dataclasses.replace(fit, solves=(solve("sharp"), solve("sharp")))
+    assert both.work_gflop() > 5 * sharp_only.work_gflop() > 0
