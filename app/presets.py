@@ -97,8 +97,8 @@ BALANCED_GFLOP = 400.0
 """The balanced preset's ladder budget (Gflop of solver work after the kernel probes): about
 what its earlier budget of 180 CPU seconds allowed on the machine it was set on. The physically
 based dev set's whole lab ladder takes 300 (benchmarks/results/lab_fit.md); an in-plane
-ladder of the standard scene, fillet rungs included, well under 100. It ends a misfitting
-climb into costly rungs (a rounded or fillet step weighs 100-1000 times a sharp one)."""
+ladder of the standard scene, fillet rungs included, under 60. It ends a misfitting climb into
+costly rungs (a rounded or fillet step weighs 100-1000 times a sharp in-plane one)."""
 
 FAST_GFLOP = 200.0
 """The fast preset's ladder budget: half the balanced one."""

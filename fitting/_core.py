@@ -490,15 +490,31 @@ def _run_starts(
 
 class SolveWork(NamedTuple):
     """One multi-start solve's work: its solver steps (every start) and what one step of it
-    evaluates (`static`, `data`), so that its cost can be counted when asked (`gflop`)."""
+    evaluates (`static`, the data's structure and shapes, the free parameters; not the arrays
+    themselves), so that its cost can be counted when asked (`gflop`)."""
 
     steps: int
     static: Static
-    data: Data
+    tree: jax.tree_util.PyTreeDef
+    shapes: tuple[tuple[tuple[int, ...], str], ...]
+    n_free: int
+
+    @classmethod
+    def of(cls, steps: int, static: Static, data: Data) -> SolveWork:
+        """The work of `steps` steps of the forward model `static` on `data`."""
+        leaves, tree = jax.tree_util.tree_flatten(data)
+        shapes = tuple((tuple(np.shape(x)), _dtype_name(x)) for x in leaves)
+        return cls(steps, static, tree, shapes, int(np.count_nonzero(np.asarray(data.free))))
 
     def gflop(self) -> float:
-        """The solve's work in Gflop: its steps times `step_gflop`."""
-        return self.steps * step_gflop(self.static, self.data)
+        """The solve's work in Gflop: its steps times the cost of one (`step_gflop`)."""
+        return self.steps * _residual_gflop(self.static, self.tree, self.shapes) * (1 + self.n_free)
+
+
+def _dtype_name(x: object) -> str:
+    """An array's dtype name without copying it to the host (numpy's rules for scalars)."""
+    dtype = getattr(x, "dtype", None)
+    return np.dtype(dtype).name if dtype is not None else np.asarray(x).dtype.name
 
 
 def step_gflop(static: Static, data: Data) -> float:
@@ -507,12 +523,9 @@ def step_gflop(static: Static, data: Data) -> float:
     any machine-specific optimisation) times one plus the free parameters (forward-mode
     Jacobian columns). A machine-independent measure of what a solve costs, so that a budget
     of it (`select_model(work_budget_gflop=...)`) ends a ladder at the same rung on any
-    machine; steps of a rounded or microfacet model weigh 10-1000 times those of a sharp one,
-    as their time does."""
-    leaves, tree = jax.tree_util.tree_flatten(data)
-    shapes = tuple((tuple(np.shape(x)), np.asarray(x).dtype.name) for x in leaves)
-    n_free = int(np.count_nonzero(np.asarray(data.free)))
-    return _residual_gflop(static, tree, shapes) * (1 + n_free)
+    machine; a step of a costlier model (rounded, filleted, microfacet) weighs more, as its
+    time does."""
+    return SolveWork.of(1, static, data).gflop()
 
 
 @functools.lru_cache(maxsize=64)

@@ -177,7 +177,7 @@ def _refine(
 
     def solve(s: FreeSpec) -> CoreFit:
         core = fit_core(problem, s, solver, opts.max_steps, opts.sigma_starts_rad, extra)
-        spent.append(SolveWork(core.total_steps, core.static, core.data))
+        spent.append(SolveWork.of(core.total_steps, core.static, core.data))
         return core
 
     core = solve(spec)

@@ -378,7 +378,7 @@ def make_result(
         z=np.asarray(core.z),
         free_slots=tuple(int(s) for s in core.free_slots),
         elapsed_s=time.perf_counter() - t0,
-        solves=(SolveWork(core.total_steps, core.static, core.data),) if solves is None
+        solves=(SolveWork.of(core.total_steps, core.static, core.data),) if solves is None
         else solves,
         problem=problem,
         spec=core.spec,

@@ -162,7 +162,7 @@ def test_each_solve_of_a_fit_is_weighed_at_its_own_cost():
     def solve(name: str) -> SolveWork:
         v = next(u for u in fitting.DEFAULT_LADDER if u.name == name)
         s = _least_squares.spec_for(v, problem)
-        return SolveWork(40, problem.static_for(s), problem.arrays_for(s))
+        return SolveWork.of(40, problem.static_for(s), problem.arrays_for(s))
 
     both = dataclasses.replace(fit, solves=(solve("rounded"), solve("sharp")))
     assert both.solver_steps == 80
