@@ -98,7 +98,7 @@ BALANCED_GFLOP = 400.0
 what its earlier budget of 180 CPU seconds allowed on the machine it was set on. The physically
 based dev set's whole lab ladder takes 300 (benchmarks/results/lab_fit.md); an in-plane
 ladder of the standard scene, fillet rungs included, under 60. It ends a misfitting climb into
-costly rungs (a rounded or fillet step weighs 100-1000 times a sharp in-plane one)."""
+costly rungs (a rounded or fillet step weighs 200-2000 times a sharp in-plane one)."""
 
 FAST_GFLOP = 200.0
 """The fast preset's ladder budget: half the balanced one."""
