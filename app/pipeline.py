@@ -45,6 +45,7 @@ __all__ = [
     "FitSetup",
     "Observations",
     "RowLabel",
+    "budget_notes",
     "cache_notes",
     "check_model_name",
     "check_photos",
@@ -121,6 +122,7 @@ def fit(
         warnings.warn(warning, StairfitWarning, stacklevel=2)
     with watching_compilation(options.progress) as compiled:
         selection = select(obs.data, setup, options, lab)
+        notes.extend(budget_notes(selection, options.preset))
         selection, accuracy = refine(scene, obs.data, selection, options, setup)
         timings["fit_s"] = time.perf_counter() - t0
         fitted = FitOutcome(
@@ -240,6 +242,21 @@ def measure(
         raise UserError(f"{scene.path}: {err}{where}") from None
     forget_previews(kept)
     return table
+
+
+def budget_notes(selection: fitting.Selection, preset: Preset) -> list[str]:
+    """A note when the preset's ladder budget left rungs untried, naming them and the preset
+    that fits every rung."""
+    from stairfit import fitting
+
+    untried = fitting.budget_untried(selection)
+    if not untried:
+        return []
+    return [
+        f"{len(untried)} rung(s) of the ladder were not tried ({', '.join(untried)}): the "
+        f"'{preset.name}' preset's budget of {preset.ladder_budget_gflop:g} Gflop of solver "
+        "work was spent; --preset accurate fits every rung"
+    ]
 
 
 def cache_notes(scene: Scene, table: imaging.MeasurementTable) -> list[str]:

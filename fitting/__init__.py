@@ -74,6 +74,7 @@ from ._selection import ROUNDED_RUNGS as ROUNDED_RUNGS
 from ._selection import ComparisonRow as ComparisonRow
 from ._selection import Rounding as Rounding
 from ._selection import Selection as Selection
+from ._selection import budget_untried as budget_untried
 from ._selection import fillet_needed as fillet_needed
 from ._selection import not_fitted_row as not_fitted_row
 from ._selection import parents_of as parents_of

@@ -767,8 +767,18 @@ def _skip_reason(
         return f"not tried: {names} added nothing"
     budget = settings.budget_gflop
     if any_fitted and budget is not None and ladder_work(rows) >= budget:
-        return f"not tried: the ladder's budget ({budget:g} Gflop of solver work) was spent"
+        return f"{BUDGET_SPENT} ({budget:g} Gflop of solver work) was spent"
     return None
+
+
+BUDGET_SPENT = "not tried: the ladder's budget"
+"""How the detail of a rung left untried by the ladder's budget begins (`budget_untried`)."""
+
+
+def budget_untried(sel: Selection) -> tuple[str, ...]:
+    """The rungs of `sel` that the ladder's budget left untried, in ladder order."""
+    untried = (r for r in sel.table if r.status == Status.NOT_FITTED)
+    return tuple(r.name for r in untried if r.detail.startswith(BUDGET_SPENT))
 
 
 def ladder_work(rows: dict[str, ComparisonRow]) -> float:

@@ -168,3 +168,21 @@ def test_each_solve_of_a_fit_is_weighed_at_its_own_cost():
     assert both.solver_steps == 80
     sharp_only = dataclasses.replace(fit, solves=(solve("sharp"), solve("sharp")))
     assert both.work_gflop() > 5 * sharp_only.work_gflop() > 0
+
+
+def test_the_fit_notes_the_rungs_the_budget_left_untried():
+    """`stairfit fit` says which rungs the preset's budget left out and how to fit them all;
+    a ladder that tried every rung gets no such note."""
+    from stairfit.pipeline import budget_notes
+    from stairfit.presets import PRESETS
+
+    obs, spec = _delta_n_observations()
+    cut = fitting.select_model(obs, spec, ladder=LADDER, work_budget_gflop=1e-9)
+    untried = fitting.budget_untried(cut)
+    assert untried == tuple(v.name for v in LADDER if v.name != "sharp"), cut.report()
+    (note,) = budget_notes(cut, PRESETS["balanced"])
+    assert f"{len(untried)} rung(s) of the ladder were not tried" in note
+    assert all(name in note for name in untried)
+    assert "400 Gflop" in note and "--preset accurate" in note
+    whole = fitting.select_model(obs, spec, ladder=LADDER)
+    assert fitting.budget_untried(whole) == () and budget_notes(whole, PRESETS["balanced"]) == []
