@@ -94,11 +94,10 @@ class Preset:
 
 
 BALANCED_GFLOP = 400.0
-"""The balanced preset's ladder budget (Gflop of solver work after the kernel probes): about
-what its earlier budget of 180 CPU seconds allowed on the machine it was set on. The physically
-based dev set's whole lab ladder takes 300 (benchmarks/results/lab_fit.md); an in-plane
-ladder of the standard scene, fillet rungs included, under 60. It ends a misfitting climb into
-costly rungs (a rounded or fillet step weighs 200-2000 times a sharp in-plane one)."""
+"""The balanced preset's ladder budget (Gflop of solver work after the kernel probes): enough
+for the whole ladder of the physically based dev set and of the in-plane standard scene, and
+an end to a misfitting climb into costly rungs (the measured work of each:
+benchmarks/results/lab_fit.md)."""
 
 FAST_GFLOP = 200.0
 """The fast preset's ladder budget: half the balanced one."""

@@ -239,8 +239,8 @@ def select_model(
     ladder is started once its fits have done this much work (solver steps, every start and
     refit, each weighted by `step_gflop`; counted after the kernel probes; those left are
     listed as not tried): work, not time, so that the same data give the same choice on any
-    machine, busy or not. A variant that adds nothing
-    over its parent (`Status.ADDS_NOTHING`) is not scored and its children are not tried.
+    machine, busy or not. A variant that adds nothing over its parent (`Status.ADDS_NOTHING`)
+    is not scored and its children are not tried.
     """
     if criterion not in CRITERIA:
         raise FitInputError(f"criterion = {criterion!r}; choose one of {', '.join(CRITERIA)}")
