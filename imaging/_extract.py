@@ -50,7 +50,7 @@ from ._blockvar import (
 from ._decode import RawFrame
 from ._errors import ImagingError
 from ._noise import NoiseModel
-from ._roi import MAX_ERODE_PX, RoiMask
+from ._roi import MAX_ERODE_PX, RoiMask, thickness_px
 from ._stripes import MIN_FIT_STRIPS, Pixels, StripeFit, fit_stripes, strip_blocks
 
 
@@ -208,6 +208,9 @@ class RoiData:
         stripes: the fitted stripes, or None.
         greens: with stripes, the de-striped sums of the two green sites (`_green_sites`),
             else None.
+        site_factors: for an ROI too thin for the channels' planes (`THIN_SITES_PX`), per
+            channel the ratio of green's mean over all the ROI's pixels to its mean at that
+            channel's sites (`green_site_factors`), else None.
     """
 
     blocks: Blocks
@@ -219,6 +222,7 @@ class RoiData:
     plain: np.ndarray
     stripes: StripeFit | None
     greens: GreenSites | None = None
+    site_factors: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -246,6 +250,55 @@ def _green_sites(frame: RawFrame, px: Pixels, fit: StripeFit) -> GreenSites:
     counts = np.array([first.sum(), second.sum()], dtype=np.float64)
     sums = np.array([values[first].sum(), values[second].sum()])
     return GreenSites(counts, sums)
+
+
+THIN_SITES_PX = 6.0
+"""An ROI thinner than this (px across, `thickness_px`) holds at most three rows or columns of
+R's and of B's sites across it, too few for their planes (§Channel sites) to move their means
+to the ROI's centroid; their means are then moved by green's profile (`green_site_factors`)."""
+
+
+def green_site_factors(data: np.ndarray, mask: np.ndarray, frame: RawFrame) -> np.ndarray | None:
+    """Per channel, green's mean over all the ROI's pixels over green's mean at the channel's
+    own sites: green at every pixel is its own value on a green site and, on an R or B site,
+    the mean of its two green neighbours inside the ROI along the ROI's length (left and right
+    when the ROI runs more along the rows, else above and below), which lie at the same
+    position across it. A channel's mean times its factor is its mean over the whole ROI when
+    the channels share one relative profile across it, however curved (a thin face's edge, a
+    highlight): what a plane cannot do with one or two rows of sites (docs/imaging.md §Channel
+    sites). None where an R or B site has no such neighbour or the frame is no Bayer
+    mosaic."""
+    if not _bayer(frame):
+        return None
+    assert frame.cfa is not None
+    hb, wb = mask.shape
+    yy, xx = np.mgrid[0:hb, 0:wb]
+    colour = frame.cfa[yy % 2, xx % 2]
+    black = frame.black[yy % 2, xx % 2].astype(np.float64)
+    value = data.astype(np.float64) - black
+    green = mask & (colour == 1)
+    gv = np.pad(np.where(green, value, 0.0), 1)
+    gn = np.pad(green.astype(np.float64), 1)
+    ys, xs = np.nonzero(mask)
+    cov = np.cov(np.stack([xs, ys]).astype(np.float64)) if ys.size > 1 else np.eye(2)
+    along_rows = cov[0, 0] >= cov[1, 1]  # the ROI's length runs more along the rows
+    if along_rows:
+        total, count = gv[1:-1, :-2] + gv[1:-1, 2:], gn[1:-1, :-2] + gn[1:-1, 2:]
+    else:
+        total, count = gv[:-2, 1:-1] + gv[2:, 1:-1], gn[:-2, 1:-1] + gn[2:, 1:-1]
+    other = mask & (colour != 1)
+    if np.any(count[other] == 0):
+        return None
+    g_at = np.where(green, value, total / np.where(count > 0, count, 1.0))
+    g_all = float(g_at[mask].mean())
+    factors = np.ones(3)
+    for c in range(3):
+        sites = mask & (colour == c)
+        g_c = float(g_at[sites].mean()) if sites.any() else math.nan
+        if not (math.isfinite(g_c) and g_c > 0 and g_all > 0):
+            return None
+        factors[c] = g_all / g_c
+    return factors
 
 
 def roi_channel_stats(
@@ -349,7 +402,9 @@ def roi_data(
     noise_local = np.array([a.noise_variance(est.slopes[c], step) for c, a in enumerate(acc)])
     weights, plain, lev = _noise_weights(acc, fit, px)
     greens = _green_sites(frame, px, fit) if fit is not None and px is not None else None
-    return RoiData(blocks, est, base, noise_local, lev, weights, plain, fit, greens)  # type: ignore[arg-type]
+    thin = fit is None and thickness_px(roi.mask) < THIN_SITES_PX
+    factors = green_site_factors(data, mask, frame) if thin else None
+    return RoiData(blocks, est, base, noise_local, lev, weights, plain, fit, greens, factors)  # type: ignore[arg-type]
 
 
 MAX_DETREND_DEGREE = 3
@@ -456,7 +511,10 @@ def finish_stats(
     for c, base in enumerate(rd.base):
         if base.n_pixels == 0:
             continue
-        means[c] = base.mean_dn + shifts[c]
+        if rd.site_factors is None:
+            means[c] = base.mean_dn + shifts[c]
+        else:  # too thin for a plane: green's profile moves it (THIN_SITES_PX)
+            means[c] = base.mean_dn * float(rd.site_factors[c])
         var, nu = float(est.cov[c, c]), float(est.dof[c])
         # the variance of a pull (x - mu) / s with s^2 ~ V chi2_nu / nu is nu / (nu - 2)
         infl = nu / (nu - 2) if nu > 2 else 1.0

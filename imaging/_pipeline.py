@@ -69,7 +69,7 @@ from ._roi import (
 )
 from ._table import MeasurementRow, MeasurementTable
 
-TABLE_VERSION = 15
+TABLE_VERSION = 16
 """Part of every cache key: bump it when a change to the code changes measured values.
 
 3: the exposure_source, marker_ids, marker_cell_px and placement columns (3-D placement).
@@ -91,6 +91,8 @@ TABLE_VERSION = 15
     B's errors (issue 45).
 15: block means detrended by a quadratic, then a cubic surface where a plane leaves the
     correlation unresolved (a near lamp's highlight across a face).
+16: an ROI thinner than THIN_SITES_PX moves its channels by green's profile across it
+    instead of by their planes (docs/imaging.md §Channel sites).
 """
 
 

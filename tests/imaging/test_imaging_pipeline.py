@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from stairfit import imaging
-from stairfit.imaging import _pipeline, synthetic
+from stairfit.imaging import _extract, _pipeline, _roi, synthetic
 
 EXPOSURE = imaging.Exposure(exposure_time_s=1 / 100, f_number=8.0, iso=200)
 SIZE = (600, 400)  # (width, height)
@@ -425,3 +425,33 @@ def test_preview_shows_saturated_pixels(tmp_path: Path) -> None:
     # face f0 covers (20..190)^2 raw px = (10..95)^2 preview px, and nothing else is saturated
     assert magenta[20:85, 20:85].all()
     assert magenta.sum() == pytest.approx((171 / 2) ** 2, rel=0.05)
+
+
+@pytest.mark.parametrize("along_rows", [True, False])
+def test_a_thin_roi_moves_its_channels_by_greens_profile(tmp_path: Path, along_rows: bool) -> None:
+    """An ROI 3 px thick (a face seen near grazing) holds one row of R's sites and two of B's
+    (or columns): a plane cannot move their means to the ROI's centroid, and under a curved
+    profile across it (a face's edge: 15% and 25% brighter on either side of its middle row)
+    R's and B's plain means are 6-12% from the ROI's mean. Green sits on every row; moved by
+    its profile (`green_site_factors`), each channel of this grey face gives the ROI's mean of
+    all its pixels (docs/imaging.md §Channel sites)."""
+    yy, _ = np.mgrid[0:120, 0:300]
+    d = yy - 57.0
+    truth = np.where(np.abs(d) <= 5, 3000.0 * (1.0 + 0.05 * d + 0.2 * d * d), 3000.0)
+    corners = [(20, 55.6), (280, 55.6), (280, 58.4), (20, 58.4)]  # (x, y)
+    if not along_rows:  # the same ROI and profile turned by 90 deg: columns instead of rows
+        truth = truth.T.copy()
+        corners = [(b, a) for a, b in corners]
+    y, x = np.mgrid[0 : truth.shape[0], 0 : truth.shape[1]]
+    frame = _frame_from(tmp_path, np.rint(truth + 1000).astype(np.uint16))
+    roi = imaging.roi_mask(corners, truth.shape, 0, photo="h", wedge="w")
+    assert 2.5 <= _roi.thickness_px(roi.mask) < _extract.THIN_SITES_PX
+    rows, cols = roi.box()
+    chan = frame.cfa[y[rows, cols] % 2, x[rows, cols] % 2]
+    want = np.rint(truth[rows, cols][roi.mask]).mean()
+    stats = imaging.roi_channel_stats(frame, roi, imaging.ExtractionSettings())
+    for c, s in enumerate(stats):
+        plain = np.rint(truth[rows, cols][roi.mask & (chan == c)]).mean()
+        if c != 1:  # R and B sit on other rows than the ROI's mean
+            assert abs(plain / want - 1) > 0.01
+        assert s.mean_dn == pytest.approx(want, rel=1e-3)
