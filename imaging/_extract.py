@@ -222,7 +222,7 @@ class RoiData:
     plain: np.ndarray
     stripes: StripeFit | None
     greens: GreenSites | None = None
-    site_factors: np.ndarray | None = None
+    site_factors: SiteFactors | None = None
 
 
 @dataclass(frozen=True)
@@ -258,7 +258,31 @@ R's and of B's sites across it, too few for their planes (§Channel sites) to mo
 to the ROI's centroid; their means are then moved by green's profile (`green_site_factors`)."""
 
 
-def green_site_factors(data: np.ndarray, mask: np.ndarray, frame: RawFrame) -> np.ndarray | None:
+@dataclass(frozen=True)
+class SiteFactors:
+    """Green's profile across a thin ROI (`green_site_factors`).
+
+    Attributes:
+        factors: (3,) per channel, green's mean over all the ROI's pixels over its mean at that
+            channel's sites.
+        noise_gain: (3,) the relative variance of each factor per unit variance of one green
+            pixel (1 / DN^2): `sum_p (a_p / g_all - b_p / g_c)^2` over the green pixels, `a_p`
+            and `b_p` their weights in the two means.
+    """
+
+    factors: np.ndarray
+    noise_gain: np.ndarray
+
+
+def _spread(inv: np.ndarray, along_rows: bool) -> np.ndarray:
+    """Per pixel, the sum of `inv` over its two neighbours along the rows (or the columns)."""
+    pad = np.pad(inv, 1)
+    if along_rows:
+        return pad[1:-1, :-2] + pad[1:-1, 2:]
+    return pad[:-2, 1:-1] + pad[2:, 1:-1]
+
+
+def green_site_factors(data: np.ndarray, mask: np.ndarray, frame: RawFrame) -> SiteFactors | None:
     """Per channel, green's mean over all the ROI's pixels over green's mean at the channel's
     own sites: green at every pixel is its own value on a green site and, on an R or B site,
     the mean of its two green neighbours inside the ROI along the ROI's length (left and right
@@ -266,8 +290,8 @@ def green_site_factors(data: np.ndarray, mask: np.ndarray, frame: RawFrame) -> n
     position across it. A channel's mean times its factor is its mean over the whole ROI when
     the channels share one relative profile across it, however curved (a thin face's edge, a
     highlight): what a plane cannot do with one or two rows of sites (docs/imaging.md §Channel
-    sites). None where an R or B site has no such neighbour or the frame is no Bayer
-    mosaic."""
+    sites). With it, how much green's pixel noise moves each factor. None where an R or B site
+    has no such neighbour or the frame is no Bayer mosaic."""
     if not _bayer(frame):
         return None
     assert frame.cfa is not None
@@ -277,28 +301,32 @@ def green_site_factors(data: np.ndarray, mask: np.ndarray, frame: RawFrame) -> n
     black = frame.black[yy % 2, xx % 2].astype(np.float64)
     value = data.astype(np.float64) - black
     green = mask & (colour == 1)
-    gv = np.pad(np.where(green, value, 0.0), 1)
-    gn = np.pad(green.astype(np.float64), 1)
     ys, xs = np.nonzero(mask)
     cov = np.cov(np.stack([xs, ys]).astype(np.float64)) if ys.size > 1 else np.eye(2)
-    along_rows = cov[0, 0] >= cov[1, 1]  # the ROI's length runs more along the rows
-    if along_rows:
-        total, count = gv[1:-1, :-2] + gv[1:-1, 2:], gn[1:-1, :-2] + gn[1:-1, 2:]
-    else:
-        total, count = gv[:-2, 1:-1] + gv[2:, 1:-1], gn[:-2, 1:-1] + gn[2:, 1:-1]
+    along_rows = bool(cov[0, 0] >= cov[1, 1])  # the ROI's length runs more along the rows
+    total = _spread(np.where(green, value, 0.0), along_rows)
+    count = _spread(green.astype(np.float64), along_rows)
     other = mask & (colour != 1)
     if np.any(count[other] == 0):
         return None
+    inv = np.where(other, 1.0 / np.where(count > 0, count, 1.0), 0.0)
     g_at = np.where(green, value, total / np.where(count > 0, count, 1.0))
+    n_all = float(mask.sum())
     g_all = float(g_at[mask].mean())
-    factors = np.ones(3)
+    weight_all = (green + _spread(inv, along_rows)) / n_all  # each green pixel's weight in g_all
+    factors, gain = np.ones(3), np.zeros(3)
     for c in range(3):
         sites = mask & (colour == c)
         g_c = float(g_at[sites].mean()) if sites.any() else math.nan
         if not (math.isfinite(g_c) and g_c > 0 and g_all > 0):
             return None
         factors[c] = g_all / g_c
-    return factors
+        if c == 1:
+            weight_c = green / green.sum()
+        else:  # each site's two green neighbours share its weight
+            weight_c = _spread(np.where(sites, inv, 0.0), along_rows) / sites.sum()
+        gain[c] = float(np.sum(((weight_all / g_all - weight_c / g_c) * green) ** 2))
+    return SiteFactors(factors, gain)
 
 
 def roi_channel_stats(
@@ -514,7 +542,7 @@ def finish_stats(
         if rd.site_factors is None:
             means[c] = base.mean_dn + shifts[c]
         else:  # too thin for a plane: green's profile moves it (THIN_SITES_PX)
-            means[c] = base.mean_dn * float(rd.site_factors[c])
+            means[c] = base.mean_dn * float(rd.site_factors.factors[c])
         var, nu = float(est.cov[c, c]), float(est.dof[c])
         # the variance of a pull (x - mu) / s with s^2 ~ V chi2_nu / nu is nu / (nu - 2)
         infl = nu / (nu - 2) if nu > 2 else 1.0
@@ -531,6 +559,11 @@ def finish_stats(
             # the fitted stripes move the mean by their own noise: what the pixel weights add
             # to the plain mean's noise (docs/imaging.md §Layer stripes)
             total = max(total + w_var - p_var, w_var)
+        if rd.site_factors is not None:  # green's pixel noise moves the factor
+            green_var = noise.variance(rd.level[1]) if noise is not None else rd.noise_local[1]
+            extra = means[c] ** 2 * float(rd.site_factors.noise_gain[c]) * float(green_var)
+            if math.isfinite(extra) and extra > 0:
+                total, w_var = total + extra, w_var + extra
         totals[c], noises[c] = total, w_var
     before = np.sqrt(totals)
     corrs = np.array(_correlations(est.cov))
