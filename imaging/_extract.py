@@ -568,14 +568,8 @@ def finish_stats(
     before = np.sqrt(totals)
     corrs = np.array(_correlations(est.cov))
     parity = _green_parity(rd, noise)
-    corrected = None if parity is None else _parity_corrected(means, totals, parity, fit)
-    if corrected is not None:
-        means, totals, extra = corrected
-        for c in (0, 2):  # d's own noise is pixel noise
-            noises[c] += extra * means[c] ** 2
-    elif parity is not None:
-        totals, extra = _parity_terms(means, totals, parity)
     if parity is not None:
+        totals, extra = _parity_terms(means, totals, parity)
         # the R-B covariance that the fit builds from corr_rb and the stderrs, less the parity
         # term's (it moves R and B in opposite directions); the others keep their covariance
         after = np.sqrt(totals)
@@ -650,42 +644,6 @@ def _green_parity(rd: RoiData, noise: NoiseModel | None) -> tuple[float, float] 
 PARITY_Z = 2.0
 """The two greens' difference counts in R's and B's errors when it exceeds its noise's
 standard error this many times (`_parity_terms`)."""
-
-
-PARITY_AXIS_DEG = 5.0
-"""Stripes within this angle of the pixel rows (or columns) vary along one axis only, so that
-R shares its rows (columns) with one green and B with the other (`_parity_corrected`)."""
-
-
-def _parity_corrected(
-    means: np.ndarray, totals: np.ndarray, parity: tuple[float, float], fit: StripeFit | None
-) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """R's and B's means moved by the greens' parity difference `d` (`_green_parity`), with its
-    noise in their variances, for stripes along the pixel rows or columns (within
-    PARITY_AXIS_DEG) whose `|d|` exceeds PARITY_Z times its standard error `sd`; else None.
-
-    Such a pattern, and what its fit leaves, varies along one image axis: across rows, R's
-    sites share their rows with G1 and B's with G2, so R's residual is G1's, `+d / 2` of the
-    level, and B's is `-d / 2` (across columns the other way round). R is divided by `1 + d / 2`
-    (to first order) and B by `1 - d / 2`; `sd^2 / 4` of their values squared is added to
-    their variances (and taken from their covariance: returned as the third item)."""
-    d, sd = parity
-    if fit is None or abs(d) <= PARITY_Z * sd:
-        return None
-    angle = fit.angle_deg % 180.0
-    if abs(angle - 90.0) < PARITY_AXIS_DEG:  # the pattern changes along y: rows alternate
-        sign = 1.0
-    elif min(angle, 180.0 - angle) < PARITY_AXIS_DEG:  # along x: columns alternate
-        sign = -1.0
-    else:
-        return None
-    means, totals = means.copy(), totals.copy()
-    means[0] *= 1.0 - sign * d / 2.0
-    means[2] *= 1.0 + sign * d / 2.0
-    extra = sd**2 / 4.0
-    for c in (0, 2):
-        totals[c] += extra * means[c] ** 2
-    return means, totals, extra
 
 
 def _parity_terms(

@@ -92,8 +92,7 @@ TABLE_VERSION = 16
 15: block means detrended by a quadratic, then a cubic surface where a plane leaves the
     correlation unresolved (a near lamp's highlight across a face).
 16: an ROI thinner than THIN_SITES_PX moves its channels by green's profile across it
-    instead of by their planes (docs/imaging.md §Channel sites); stripes along the pixel rows
-    or columns move R and B by the greens' parity difference (§Layer stripes).
+    instead of by their planes (docs/imaging.md §Channel sites).
 """
 
 
