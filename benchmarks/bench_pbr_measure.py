@@ -97,11 +97,13 @@ def compare(
     colour = np.tile(np.array([[0, 1], [1, 2]]), (setup.height // 2, setup.width // 2))
     rows = []
     index = {p["file"]: i for i, p in enumerate(truth["photos"])}  # a blind photo is left out
+    # a kept render is named by the photo's place in the setup (a folder may hold a subset)
+    render_index = {pb.photo_name(j): j for j in range(len(setup.photos))}
     for spec, fm in measured:
         i = index[spec.name]
         photo = truth["photos"][i]
         render = (
-            pb.load_render(renders, i)
+            pb.load_render(renders, render_index[spec.name])
             if renders is not None and (renders / "renders" / f"{spec.name}.npz").exists()
             else None
         )
