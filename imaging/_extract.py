@@ -539,10 +539,7 @@ def finish_stats(
     for c, base in enumerate(rd.base):
         if base.n_pixels == 0:
             continue
-        if rd.site_factors is None:
-            means[c] = base.mean_dn + shifts[c]
-        else:  # too thin for a plane: green's profile moves it (THIN_SITES_PX)
-            means[c] = base.mean_dn * float(rd.site_factors.factors[c])
+        means[c] = _moved_mean(rd, c, base.mean_dn, shifts[c])
         var, nu = float(est.cov[c, c]), float(est.dof[c])
         # the variance of a pull (x - mu) / s with s^2 ~ V chi2_nu / nu is nu / (nu - 2)
         infl = nu / (nu - 2) if nu > 2 else 1.0
@@ -559,11 +556,8 @@ def finish_stats(
             # the fitted stripes move the mean by their own noise: what the pixel weights add
             # to the plain mean's noise (docs/imaging.md §Layer stripes)
             total = max(total + w_var - p_var, w_var)
-        if rd.site_factors is not None:  # green's pixel noise moves the factor
-            green_var = noise.variance(rd.level[1]) if noise is not None else rd.noise_local[1]
-            extra = means[c] ** 2 * float(rd.site_factors.noise_gain[c]) * float(green_var)
-            if math.isfinite(extra) and extra > 0:
-                total, w_var = total + extra, w_var + extra
+        extra = _profile_variance(rd, noise, c, float(means[c]))
+        total, w_var = total + extra, w_var + extra
         totals[c], noises[c] = total, w_var
     before = np.sqrt(totals)
     corrs = np.array(_correlations(est.cov))
@@ -611,6 +605,25 @@ def finish_stats(
             )
         )
     return tuple(out)  # type: ignore[return-value]
+
+
+def _moved_mean(rd: RoiData, c: int, plain: float, shift: float) -> float:
+    """Channel c's mean moved to the whole ROI: by its plane (`_centroid_shifts`), or in an ROI
+    too thin for one by green's profile (`THIN_SITES_PX`, `green_site_factors`)."""
+    if rd.site_factors is None:
+        return plain + shift
+    return plain * float(rd.site_factors.factors[c])
+
+
+def _profile_variance(rd: RoiData, noise: NoiseModel | None, c: int, mean: float) -> float:
+    """The variance (DN^2) that green's pixel noise adds to channel c's mean through green's
+    profile (`SiteFactors.noise_gain`; 0 without one), at the photo's noise model's variance
+    for green's level, else green's own neighbour differences."""
+    if rd.site_factors is None:
+        return 0.0
+    green_var = noise.variance(rd.level[1]) if noise is not None else rd.noise_local[1]
+    extra = mean**2 * float(rd.site_factors.noise_gain[c]) * float(green_var)
+    return extra if math.isfinite(extra) and extra > 0 else 0.0
 
 
 def _green_parity(rd: RoiData, noise: NoiseModel | None) -> tuple[float, float] | None:
