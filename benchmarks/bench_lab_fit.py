@@ -14,9 +14,14 @@ from benchmarks/make_pbr_set.py
     python benchmarks/make_pbr_set.py --set dev --out /data/pbr/dev
     python benchmarks/bench_lab_fit.py /data/pbr/dev
     python benchmarks/bench_lab_fit.py SET --compare-exe OTHER/.venv/bin/stairfit --repeats 2
+    python benchmarks/bench_lab_fit.py SET --model rounded+floor --compare-xla-flags \
+        "--xla_backend_optimization_level=3 --xla_llvm_disable_expensive_passes=false"
 
 `--compare-exe` times another installation's `stairfit` (e.g. the commit before a change, in
-its own checkout and virtual environment) beside this one: in each repeat both run cold and
+its own checkout and virtual environment) beside this one, `--compare-xla-flags FLAGS` this
+installation again with `XLA_FLAGS=FLAGS` (the command line keeps an option the user set, e.g.
+XLA's defaults in place of stairfit's compile options); `--model VARIANT` forces one variant
+in every fit (the kernel probes still run), for shorter runs: in each repeat both run cold and
 then warm, one after another, each with its own empty JAX cache, so that a slow phase of the
 machine hits them alike; the medians and each run's `fit_s`, `compile_s` and `measure_s`
 (results.json) are printed, with both fits' chosen model and parameters.
@@ -82,28 +87,34 @@ def _stages(results: Path) -> dict[str, float]:
     return {k: round(float(v), 1) for k, v in t.items()}
 
 
-def _fill_measurement_cache(exe: str, folder: Path, work: Path) -> None:
+def _fill_measurement_cache(exe: str, folder: Path, work: Path, env: dict[str, str]) -> None:
     """Measure the set once, untimed, so that every warm run finds the measurement cache: the
     cold runs (`--no-cache`) write none, so without this the first warm run would measure."""
-    env = dict(os.environ, STAIRFIT_JAX_CACHE=str(work / "measure-jax"))
     _run([exe, "measure", str(folder), "-o", str(work / "measure"), "--quiet"], env)
 
 
-def _pair(exes: dict[str, str], folder: Path, work: Path, repeats: int) -> dict[str, object]:
-    """Cold then warm `stairfit fit --no-posterior` of every exe, `repeats` times interleaved."""
+def _pair(
+    exes: dict[str, tuple[str, dict[str, str]]],
+    folder: Path,
+    work: Path,
+    repeats: int,
+    fit_args: list[str],
+) -> dict[str, object]:
+    """Cold then warm `stairfit fit --no-posterior` of every (exe, extra environment),
+    `repeats` times interleaved."""
     runs: dict[str, list[dict[str, Any]]] = {name: [] for name in exes}
-    first = next(iter(exes.values()))
+    first = next(iter(exes.values()))[0]
     _fill_measurement_cache(
         first, folder, work, dict(os.environ, STAIRFIT_JAX_CACHE=str(work / "m"))
     )
     for r in range(repeats):
-        for name, exe in exes.items():
+        for name, (exe, extra) in exes.items():
             base = work / f"{name}{r}"
-            env = dict(os.environ, STAIRFIT_JAX_CACHE=str(base / "jax"))
+            env = dict(os.environ, STAIRFIT_JAX_CACHE=str(base / "jax"), **extra)
             cold = _run([exe, "fit", str(folder), "-o", str(base / "cold"), "--no-posterior",
-                         "--no-cache", "--quiet"], env)  # fmt: skip
+                         "--no-cache", "--quiet", *fit_args], env)  # fmt: skip
             warm = _run([exe, "fit", str(folder), "-o", str(base / "warm"), "--no-posterior",
-                         "--quiet"], env)  # fmt: skip
+                         "--quiet", *fit_args], env)  # fmt: skip
             runs[name].append({"cold_s": round(cold, 1), "warm_s": round(warm, 1),
                                "cold_stages": _stages(base / "cold" / "results.json"),
                                "warm_stages": _stages(base / "warm" / "results.json")})  # fmt: skip
@@ -124,20 +135,30 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("folder", type=Path, help="a set from benchmarks/make_pbr_set.py")
     parser.add_argument("--with-posterior", action="store_true")
     parser.add_argument("--compare-exe", help="another installation's stairfit, timed beside")
-    parser.add_argument("--repeats", type=int, default=1, help="with --compare-exe")
+    parser.add_argument(
+        "--compare-xla-flags",
+        metavar="FLAGS",
+        help="this installation again with XLA_FLAGS=FLAGS, timed beside",
+    )
+    parser.add_argument("--repeats", type=int, default=1, help="with --compare-*")
+    parser.add_argument("--model", help="force this variant in every fit (shorter runs)")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats {args.repeats}: give at least 1")
     exe = str(Path(sys.executable).with_name("stairfit"))
     work = Path(tempfile.mkdtemp(prefix="bench_lab_fit_"))
-    if args.compare_exe:
+    fit_args = ["--model", args.model] if args.model else []
+    if args.compare_exe or args.compare_xla_flags is not None:
+        other = ((args.compare_exe, {}) if args.compare_exe
+                 else (exe, {"XLA_FLAGS": args.compare_xla_flags}))  # fmt: skip
         load = os.getloadavg()[0]
         try:
-            pair = _pair({"this": exe, "other": args.compare_exe}, args.folder, work,
-                         args.repeats)  # fmt: skip
+            pair = _pair({"this": (exe, {}), "other": other}, args.folder, work, args.repeats,
+                         fit_args)  # fmt: skip
         finally:
             shutil.rmtree(work, ignore_errors=True)
-        print(json.dumps({"folder": str(args.folder), "other": args.compare_exe,
+        print(json.dumps({"folder": str(args.folder), "other": [other[0], other[1]],
+                          "fit_args": fit_args,
                           "load_average_start_end": [round(load, 2),
                                                      round(os.getloadavg()[0], 2)],
                           **pair}, indent=1))  # fmt: skip
@@ -152,10 +173,10 @@ def main(argv: list[str] | None = None) -> int:
         out = work / "cold"
         timings["cold_no_posterior_s"] = _run(
             [exe, "fit", str(args.folder), "-o", str(out), "--no-posterior", "--no-cache",
-             "--quiet"], env)  # fmt: skip
+             "--quiet", *fit_args], env)  # fmt: skip
         timings["warm_no_posterior_s"] = _run(
             [exe, "fit", str(args.folder), "-o", str(work / "warm"), "--no-posterior",
-             "--quiet"], env)  # fmt: skip
+             "--quiet", *fit_args], env)  # fmt: skip
         if args.with_posterior:
             timings["warm_posterior_s"] = _run(
                 [exe, "fit", str(args.folder), "-o", str(work / "post"), "--quiet"], env

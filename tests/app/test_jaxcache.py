@@ -152,7 +152,12 @@ ti = jnp.linspace(-1.4, 1.4, 7)[:, None]
 to = jnp.linspace(-1.5, 1.5, 41)[None, :]
 f = jax.jit(lambda p: model.brdf(ti, to, p[0], p[1], p[2]))
 p = jnp.array([0.5, 1.46, 0.08])
-np.save(sys.argv[1], np.concatenate([f(p).ravel(), jax.jacfwd(f)(p).ravel()]))
+w_i = jnp.array([[0.3, 0.1, 0.95], [-0.5, 0.2, 0.84]])
+w_o = jnp.array([[-0.2, -0.1, 0.97], [0.6, 0.05, 0.8]])[:, None, :]
+g = jax.jit(lambda q: model.lab_density_rounded(w_i, w_o, 0.6, q[0], q[1], 150.0, q[2], "ggx"))
+q = jnp.array([1.46, 0.06, 25.0])
+np.save(sys.argv[1], np.concatenate([f(p).ravel(), jax.jacfwd(f)(p).ravel(),
+                                     g(q).ravel(), jax.jacfwd(g)(q).ravel()]))
 """
 
 
@@ -173,7 +178,8 @@ def test_the_installed_xla_knows_the_flag_and_gives_the_same_numbers(tmp_path: P
         runs[flags] = np.load(out)
     fast, default = runs.values()
     assert np.all(np.isfinite(fast)) and np.any(fast != 0)
-    # the same model to rounding: the emitters order some floating-point operations apart
+    # the same models (in-plane, rough rounded lab) to rounding: the emitters order some
+    # floating-point operations apart
     np.testing.assert_allclose(fast, default, rtol=1e-12, atol=1e-15 * np.max(np.abs(default)))
 
 
