@@ -15,12 +15,12 @@ from benchmarks/make_pbr_set.py
     python benchmarks/bench_lab_fit.py /data/pbr/dev
     python benchmarks/bench_lab_fit.py SET --compare-exe OTHER/.venv/bin/stairfit --repeats 2
     python benchmarks/bench_lab_fit.py SET --model rounded+floor --compare-xla-flags \
-        "--xla_backend_optimization_level=3 --xla_llvm_disable_expensive_passes=false"
+        "--xla_backend_optimization_level=1 --xla_llvm_disable_expensive_passes=true"
 
 `--compare-exe` times another installation's `stairfit` (e.g. the commit before a change, in
 its own checkout and virtual environment) beside this one, `--compare-xla-flags FLAGS` this
-installation again with `XLA_FLAGS=FLAGS` (the command line keeps an option the user set, e.g.
-XLA's defaults in place of stairfit's compile options); `--model VARIANT` forces one variant
+installation again with `XLA_FLAGS=FLAGS` (other XLA options; the command line adds its own
+unless FLAGS sets it); `--model VARIANT` forces one variant
 in every fit (the kernel probes still run), for shorter runs: in each repeat both run cold and
 then warm, one after another, each with its own empty JAX cache, so that a slow phase of the
 machine hits them alike; the medians and each run's `fit_s`, `compile_s` and `measure_s`
