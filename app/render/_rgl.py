@@ -13,10 +13,10 @@ interpolated bilinearly in `s`, linearly between the parameters' nodes; `ndf` an
 
 What the file holds here: `spectra` at every node `s` of the sample grid is the model's value
 at the light direction that node stands for (`vndf.sample(s)`, computed with Mitsuba's own warp
-class), divided by the `ndf / (4 sigma)` factor Mitsuba will multiply it by, so that at every
-node the reconstruction returns the model exactly; between nodes it interpolates. The `ndf` is
-the staircase's backscatter, `D(m) ~ p(m, m) cos(theta_m)` (the microfacet relation
-`f(m, m) = F G D(m) / 4 cos^2`, which the RGL pipeline measures), normalised so that
+algorithm, `_warp`), divided by the `ndf / (4 sigma)` factor Mitsuba will multiply it by, so
+that at every node the reconstruction returns the model exactly; between nodes it interpolates.
+The `ndf` is the staircase's backscatter, `D(m) ~ p(m, m) cos(theta_m)` (the microfacet
+relation `f(m, m) = F G D(m) / 4 cos^2`, which the RGL pipeline measures), normalised so that
 `integral D cos = 1` and mixed with a uniform share (`NDF_FLOOR`) so that every direction has
 nodes; it peaks at the tread's and the riser's normals and along the plane across the layers,
 where the two-bounce path's and the rounded edges' half vectors lie. `sigma` is the NDF's
@@ -43,6 +43,7 @@ from stairfit.model import roughness_alpha
 
 from ._material import ArcGrid, Material, arc_grid, clamp_beta2_deg, density
 from ._tensorfile import tensor_bytes
+from ._warp import sample_continuous
 
 NDF_FLOOR = 0.05
 """Share of a uniform distribution (`1 / pi`) in the NDF the tables are warped by: it gives
@@ -170,10 +171,13 @@ def mitsuba_value(
     """Mitsuba's BSDF value `(..., C)` for the camera direction `w_i` and the light direction
     `w_o` (local frame): `p(w_o -> w_i) (w_o . z) / (w_i . z)`, 0 below the surface. `arcs`:
     see `density`."""
-    p = density(material, beta2_deg, to_face(w_o), to_face(w_i), arcs)
+    w_i, w_o = np.broadcast_arrays(np.asarray(w_i, float), np.asarray(w_o, float))
     up = (w_i[..., 2] > 0.0) & (w_o[..., 2] > 0.0)
-    ratio = np.where(up, w_o[..., 2] / np.where(up, w_i[..., 2], 1.0), 0.0)
-    return p * ratio[..., None]
+    out = np.zeros((*up.shape, len(material.index)))
+    # only pairs above the surface are evaluated: the model's costly part
+    p = density(material, beta2_deg, to_face(w_o[up]), to_face(w_i[up]), arcs)
+    out[up] = p * (w_o[up][:, 2] / w_i[up][:, 2])[:, None]
+    return out
 
 
 # --- the tables ------------------------------------------------------------------------------
@@ -229,7 +233,8 @@ def projected_area(ndf: NDArray, size: tuple[int, int]) -> NDArray:
     dm = (ndf * trapezoid_weights(n_theta, n_phi) * jacobian(u[..., 0])).reshape(-1)
     s = grid(*size)
     w = spherical(u_to_theta(s[..., 0]), u_to_phi(s[..., 1])).reshape(-1, 3)
-    return (np.maximum(w @ m.T, 0.0) @ dm).reshape(size[1], size[0])
+    blocks = np.array_split(w, max(1, len(w) // 128))  # small blocks: no (n_w, n_m) array
+    return np.concatenate([np.maximum(b @ m.T, 0.0) @ dm for b in blocks]).reshape(size[1], size[0])
 
 
 def tabulate(
@@ -239,14 +244,8 @@ def tabulate(
     progress: Callable[[str], None] | None = None,
 ) -> Tables:
     """The `.bsdf` tables of the staircase at wedge angle `beta2_deg` (see the module's
-    docstring). Needs Mitsuba (its sample-warping class, so that the nodes are where its
-    `measured` plugin will look)."""
-    try:
-        import mitsuba
-    except ImportError:
-        raise ImportError("the RGL tables need Mitsuba 3's sample warping: install the render "
-                          'extra (pip install -e ".[render]")') from None  # fmt: skip
-    warp_class = mitsuba.scalar_rgb.MarginalContinuous2D0
+    docstring). The sample nodes are warped by Mitsuba's own algorithm (`_warp`), so that
+    they are where its `measured` plugin will look."""
     res = resolution
     beta2 = float(clamp_beta2_deg(beta2_deg))
     say = progress or (lambda _: None)
@@ -266,10 +265,7 @@ def tabulate(
     lights, factor, to_pdf = [], [], []
     for a in range(res.phi_i):
         for b in range(res.theta_i):
-            warp = warp_class(vndf[a, b], normalize=True)
-            drawn = [warp.sample(p) for p in s]
-            u_m = np.array([tuple(d[0]) for d in drawn])
-            pdf_u = np.array([d[1] for d in drawn])
+            u_m, pdf_u = (x.astype(float) for x in sample_continuous(vndf[a, b], s))
             m = spherical(u_to_theta(u_m[:, 0]), u_to_phi(u_m[:, 1]))
             cos = m @ cams[a, b]
             lights.append(2.0 * cos[:, None] * m - cams[a, b])
