@@ -257,6 +257,13 @@ class LabChoice(NamedTuple):
     warning: str | None = None
 
 
+def uses_lab_model(scene: Scene) -> bool:
+    """Whether the fit models the directions in 3-D (`lab_choice`): `[fit] geometry` "lab",
+    or "auto" with a near lamp."""
+    mode = scene.fit.geometry
+    return mode == "lab" or (mode == "auto" and scene.light.near)
+
+
 def lab_choice(scene: Scene, rows: Sequence[MeasurementRow]) -> LabChoice:
     """Which model of the directions the fit uses, by the scene's `[fit] geometry`
     (`scene.GEOMETRIES`): "lab" always, "in_plane" never, "auto" when the lamp is near. A
@@ -266,7 +273,7 @@ def lab_choice(scene: Scene, rows: Sequence[MeasurementRow]) -> LabChoice:
     near = scene.light.near
     if mode == "lab":
         return LabChoice(True, 'the scene asks for it ([fit] geometry = "lab")')
-    if mode == "auto" and near:
+    if uses_lab_model(scene):
         return LabChoice(True, "the lamp is near (its position is given): each face is lit "
                                "from its own direction")  # fmt: skip
     why = ('the scene asks for it ([fit] geometry = "in_plane")' if mode == "in_plane"

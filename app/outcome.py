@@ -37,6 +37,9 @@ class FitOptions:
     freeze_imports: bool = False
     """Freeze what the late imports made out of the collector's way (`gc.freeze()` after the
     posterior's and the report's imports, `pipeline`): the console script only (`cli.entry`)."""
+    kernel: str | None = None
+    """The lab model's facet kernel, given (`--kernel`): no kernel probes. None: every kernel
+    the model has is probed and the criterion chooses."""
 
 
 @dataclass(frozen=True)

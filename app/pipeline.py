@@ -76,6 +76,7 @@ DEG = np.pi / 180
 def fit_scene(scene: Scene, out: Path, options: FitOptions) -> FitOutcome:
     """The whole pipeline into the (temporary) folder `out`: measure the photos, their
     observations, then `fit`."""
+    check_kernel(scene, options.kernel)
     specs = tuple(photo_specs(scene))
     t0 = time.perf_counter()
     table = measure(scene, out, options, specs)
@@ -439,6 +440,37 @@ def check_model_name(name: str) -> None:
         raise UserError(f"--model: unknown variant {name!r}; {hint}")
 
 
+def check_kernel_name(name: str) -> None:
+    """A `--kernel` the lab model does not have is a user error, caught before any work."""
+    from stairfit import model
+
+    if name not in model.LAB_KERNELS:
+        raise UserError(f"--kernel: unknown facet kernel {name!r}; use one of "
+                        f"{', '.join(model.LAB_KERNELS)}")  # fmt: skip
+
+
+def offered_kernels(lab: bool, given: str | None) -> tuple[str, ...]:
+    """The facet kernels the fit compares: the given one alone (`--kernel`: no probes;
+    `check_kernel` has checked that the scene allows it), else every kernel of the lab model,
+    or the in-plane model's Gaussian."""
+    from stairfit import model
+
+    if given is not None:
+        return (given,)
+    return model.LAB_KERNELS if lab else ("gaussian",)
+
+
+def check_kernel(scene: Scene, kernel: str | None) -> None:
+    """A microfacet `--kernel` on a scene the fit models in one plane (Gaussian facets only)
+    is a user error, caught before the photos are measured."""
+    from .lab import uses_lab_model
+
+    if kernel is not None and kernel != "gaussian" and not uses_lab_model(scene):
+        raise UserError(f"--kernel {kernel}: this scene is fitted in one plane, where the facets "
+                        "are Gaussian; microfacet facets need the lab model (give the lamp's "
+                        'position, or set [fit] geometry = "lab"; docs/scene.md)')  # fmt: skip
+
+
 def ladder_for(preset: Preset, lab: bool = False) -> tuple[fitting.Variant, ...]:
     """The model ladder of a preset (shared sigma only, or also per-wedge sigma); the lab
     model has no fillet rungs (docs/model.md §7.6)."""
@@ -460,8 +492,8 @@ def select(
 ) -> fitting.Selection:
     """Fit the ladder and choose (or fit the forced variant): `fitting.select_model` with the
     preset's settings; the science (nested starts, the rounding gate, status words) is there.
-    With `lab` geometry, the lab model with every facet kernel offered."""
-    from stairfit import fitting, model
+    With `lab` geometry, the lab model with every facet kernel offered (`offered_kernels`)."""
+    from stairfit import fitting
 
     ladder = ladder_for(options.preset, lab is not None)
     resolution = fitting.Resolution(options.preset.rounded_resolution, options.preset.fillet_rays)
@@ -471,7 +503,7 @@ def select(
         )
     except fitting.FitInputError as err:
         raise UserError(f"the fit failed: {err}") from None
-    kernels = model.LAB_KERNELS if lab is not None else ("gaussian",)
+    kernels = offered_kernels(lab is not None, options.kernel)
     if options.model is not None:
         check_model_name(options.model)
         ladder = fitting.DEFAULT_LADDER

@@ -420,6 +420,7 @@ def results_dict(outcome: FitOutcome, figures: dict[str, str]) -> Record:
             "preset": outcome.options.preset.as_dict(),
             "posterior": outcome.options.posterior,
             "forced_model": outcome.options.model,
+            "forced_kernel": outcome.options.kernel,
             "model_error": outcome.options.model_error,
             "seed": outcome.options.seed,
             "workers": outcome.options.workers,
@@ -482,6 +483,11 @@ def specimen_record(outcome: FitOutcome) -> Record:
     }
 
 
+def _given_kernel(kernel: str | None, lab: bool) -> str | None:
+    """Why the lab model's facets are what they are when no probes ran."""
+    return f"given (--kernel {kernel}): the kernels were not compared" if kernel and lab else None
+
+
 def directions_record(outcome: FitOutcome) -> Record:
     """How the fit modelled the directions (docs/fitting.md §10): `model` ("lab" or
     "in_plane"), why, the facets' kernel and how it was chosen, the roughness `alpha` of
@@ -493,11 +499,12 @@ def directions_record(outcome: FitOutcome) -> Record:
     fit, sel = outcome.selection.fit, outcome.selection
     lab = fit.problem is not None and fit.problem.lab is not None
     kernel = fit.requested.kernel
+    given = _given_kernel(outcome.options.kernel, lab)
     record: Record = {
         "model": "lab" if lab else "in_plane",
         "reason": outcome.lab_reason,
         "facets": kernel if lab else "gaussian",
-        "facets_reason": sel.facets.reason if sel.facets is not None else None,
+        "facets_reason": sel.facets.reason if sel.facets is not None else given,
         "facets_table": [] if sel.facets is None else table_records_of(sel.facets.rows),
         "alpha": [],
         "out_of_plane": [],

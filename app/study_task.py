@@ -171,6 +171,7 @@ def options_fingerprint(options: FitOptions) -> Record:
         "preset": options.preset.as_dict(),
         "posterior": options.posterior,
         "model": options.model,
+        "kernel": options.kernel,
         "model_error": options.model_error,
         "seed": options.seed,
     }

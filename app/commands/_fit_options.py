@@ -10,7 +10,7 @@ from .. import _ranges
 from ..errors import UserError
 from ..imaging_specs import CACHE_DIR
 from ..outcome import FitOptions
-from ..pipeline import check_model_name
+from ..pipeline import check_kernel_name, check_model_name
 from ..presets import PRESETS, get_preset
 
 
@@ -36,6 +36,12 @@ def add_fit_options(p: argparse.ArgumentParser) -> None:
         help="force one model variant (e.g. 'sharp+delta_n') instead of selecting",
     )
     p.add_argument(
+        "--kernel",
+        default=None,
+        help="the facets' kernel of the lab model (gaussian, ggx or beckmann) instead of "
+        "fitting each and choosing (docs/fitting.md)",
+    )
+    p.add_argument(
         "--no-model-error", action="store_true", help="do not fit a fractional model-error term"
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the posterior sampler")
@@ -56,6 +62,8 @@ def options_from_args(args: argparse.Namespace) -> FitOptions:
         raise UserError(f"--seed: {args.seed} is negative; give an integer >= 0")
     if args.model is not None:
         check_model_name(args.model)
+    if args.kernel is not None:
+        check_kernel_name(args.kernel)
     return FitOptions(
         preset=get_preset(args.preset),
         posterior=not args.no_posterior,
@@ -66,4 +74,5 @@ def options_from_args(args: argparse.Namespace) -> FitOptions:
         workers=args.workers,
         cache=not args.no_cache,
         progress=not args.quiet,
+        kernel=args.kernel,
     )

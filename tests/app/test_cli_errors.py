@@ -302,8 +302,11 @@ def test_output_below_a_file_is_one_line_naming_the_file(
         (["--workers", "0"], ("--workers", ">= 1")),
         # checked after measuring (fit.select), but before any model is fitted
         (["--model", "sharp+delta_m"], ("--model", "did you mean 'sharp+delta_n'?")),
+        (["--kernel", "ggxx"], ("--kernel", "unknown facet kernel 'ggxx'", "ggx, beckmann")),
+        # this scene's lamp is distant: fitted in one plane, Gaussian facets only
+        (["--kernel", "ggx"], ("--kernel ggx", "fitted in one plane", '[fit] geometry = "lab"')),
     ],
-    ids=["workers", "model"],
+    ids=["workers", "model", "kernel-name", "kernel-in-plane"],
 )
 def test_bad_fit_options(
     photos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], options, fragments

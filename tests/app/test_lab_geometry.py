@@ -15,6 +15,7 @@ import tomli_w
 from stairfit.errors import UserError
 from stairfit.imaging import MeasurementRow
 from stairfit.lab import LAMP_DISK, lab_choice, lab_geometry, reference_distance_mm
+from stairfit.pipeline import check_kernel, check_kernel_name, offered_kernels
 from stairfit.scene import load_scene
 
 SCENE = {
@@ -127,6 +128,27 @@ def test_which_model_of_the_directions_the_fit_uses(tmp_path, light, geometry, u
     assert (choice.warning is not None) is warns
     if warns:
         assert "\n" not in choice.warning and "[fit] geometry" in choice.warning
+    # `--kernel`: a microfacet kernel only where the fit uses the lab model
+    check_kernel(scene, "gaussian")
+    if use:
+        check_kernel(scene, "beckmann")
+    else:
+        with pytest.raises(UserError, match="fitted in one plane"):
+            check_kernel(scene, "ggx")
+
+
+def test_the_kernels_a_fit_compares() -> None:
+    """Every kernel of the lab model (probed), the in-plane model's Gaussian, or the one given
+    with `--kernel` alone (no probes); an unknown name is refused."""
+    from stairfit import model
+
+    assert offered_kernels(True, None) == model.LAB_KERNELS and len(model.LAB_KERNELS) == 3
+    assert offered_kernels(False, None) == ("gaussian",)
+    assert offered_kernels(True, "ggx") == ("ggx",)
+    for name in model.LAB_KERNELS:
+        check_kernel_name(name)
+    with pytest.raises(UserError, match="unknown facet kernel 'GGX'"):
+        check_kernel_name("GGX")
 
 
 def test_an_in_plane_scene_needs_no_lab_model_and_gets_no_warning(tmp_path):
