@@ -142,6 +142,7 @@ def test_reflected_power_at_most_one(scalar, kernel: str, radius: float) -> None
     np.testing.assert_allclose(got, p * (lights[:, 2] / cams[:, 2])[:, None], rtol=1e-5)
 
 
+@pytest.mark.slow  # a chi-square test of 10 000 samples: about 30 s of the default suite
 def test_sampled_directions_follow_the_pdf_chi_square(scalar) -> None:
     """Pearson's chi-square of 10 000 light directions drawn by the plugin (rounded GGX
     staircase, camera out of the plane) against its pdf integrated over 20 x 20 cells of

@@ -180,6 +180,7 @@ def _lab_observations(lab_arrays, kernel: str, width: float, body_weight: float,
     )  # fmt: skip
 
 
+@pytest.mark.slow  # a recovery fit of its own simulation: about 70 s of the default suite
 def test_a_lab_fit_recovers_a_microfacet_truth_and_chooses_its_kernel(lab_arrays):
     """Data made by the lab model itself (GGX facets, alpha = tan(3.4 deg)), 0.5% noise: the
     probe prefers GGX by a wide margin and recovers its width, scale and floor. (The

@@ -171,6 +171,7 @@ def test_rough_arcs_with_the_cameras_visibility_keep_the_tip_lobe_as_sigma_vanis
     assert np.trapezoid(dens, theta_o) == pytest.approx(tip, rel=2e-3)
 
 
+@pytest.mark.slow  # 400 000 traced rays: about 30 s of the default suite
 def test_rough_arcs_near_a_grazing_view_match_the_tracer() -> None:
     """The variant set's 65-deg face (200 um layers, 40 um tips, Beckmann alpha 0.1, n 1.53)
     under a light 33 deg uphill in the plane: its density at views 70-85 deg, where the next
