@@ -16,11 +16,13 @@ from benchmarks/make_pbr_set.py
     python benchmarks/bench_lab_fit.py SET --compare-exe OTHER/.venv/bin/stairfit --repeats 2
     python benchmarks/bench_lab_fit.py SET --model rounded+floor --compare-xla-flags \
         "--xla_backend_optimization_level=1 --xla_llvm_disable_expensive_passes=true"
+    python benchmarks/bench_lab_fit.py SET --model rounded+floor --compare-kernel ggx
 
 `--compare-exe` times another installation's `stairfit` (e.g. the commit before a change, in
 its own checkout and virtual environment) beside this one, `--compare-xla-flags FLAGS` this
 installation again with `XLA_FLAGS=FLAGS` (other XLA options; the command line adds its own
-unless FLAGS sets it); `--model VARIANT` forces one variant
+unless FLAGS sets it), `--compare-kernel KERNEL` this installation again with `--kernel KERNEL`
+(no kernel probes); `--model VARIANT` forces one variant
 in every fit (the kernel probes still run), for shorter runs: in each repeat both run cold and
 then warm, one after another, each with its own empty JAX cache, so that a slow phase of the
 machine hits them alike; the medians and each run's `fit_s`, `compile_s` and `measure_s`
@@ -94,27 +96,27 @@ def _fill_measurement_cache(exe: str, folder: Path, work: Path, env: dict[str, s
 
 
 def _pair(
-    exes: dict[str, tuple[str, dict[str, str]]],
+    exes: dict[str, tuple[str, dict[str, str], list[str]]],
     folder: Path,
     work: Path,
     repeats: int,
     fit_args: list[str],
 ) -> dict[str, object]:
-    """Cold then warm `stairfit fit --no-posterior` of every (exe, extra environment),
-    `repeats` times interleaved."""
+    """Cold then warm `stairfit fit --no-posterior` of every (exe, extra environment, extra
+    options), `repeats` times interleaved."""
     runs: dict[str, list[dict[str, Any]]] = {name: [] for name in exes}
     first = next(iter(exes.values()))[0]
     _fill_measurement_cache(
         first, folder, work, dict(os.environ, STAIRFIT_JAX_CACHE=str(work / "m"))
     )
     for r in range(repeats):
-        for name, (exe, extra) in exes.items():
+        for name, (exe, extra, more) in exes.items():
             base = work / f"{name}{r}"
             env = dict(os.environ, STAIRFIT_JAX_CACHE=str(base / "jax"), **extra)
             cold = _run([exe, "fit", str(folder), "-o", str(base / "cold"), "--no-posterior",
-                         "--no-cache", "--quiet", *fit_args], env)  # fmt: skip
+                         "--no-cache", "--quiet", *fit_args, *more], env)  # fmt: skip
             warm = _run([exe, "fit", str(folder), "-o", str(base / "warm"), "--no-posterior",
-                         "--quiet", *fit_args], env)  # fmt: skip
+                         "--quiet", *fit_args, *more], env)  # fmt: skip
             runs[name].append({"cold_s": round(cold, 1), "warm_s": round(warm, 1),
                                "cold_stages": _stages(base / "cold" / "results.json"),
                                "warm_stages": _stages(base / "warm" / "results.json")})  # fmt: skip
@@ -140,6 +142,11 @@ def main(argv: list[str] | None = None) -> int:
         metavar="FLAGS",
         help="this installation again with XLA_FLAGS=FLAGS, timed beside",
     )
+    parser.add_argument(
+        "--compare-kernel",
+        metavar="KERNEL",
+        help="this installation again with --kernel KERNEL (no kernel probes), timed beside",
+    )
     parser.add_argument("--repeats", type=int, default=1, help="with --compare-*")
     parser.add_argument("--model", help="force this variant in every fit (shorter runs)")
     args = parser.parse_args(argv)
@@ -148,16 +155,19 @@ def main(argv: list[str] | None = None) -> int:
     exe = str(Path(sys.executable).with_name("stairfit"))
     work = Path(tempfile.mkdtemp(prefix="bench_lab_fit_"))
     fit_args = ["--model", args.model] if args.model else []
-    if args.compare_exe or args.compare_xla_flags is not None:
-        other = ((args.compare_exe, {}) if args.compare_exe
-                 else (exe, {"XLA_FLAGS": args.compare_xla_flags}))  # fmt: skip
+    if args.compare_exe or args.compare_xla_flags is not None or args.compare_kernel:
+        other: tuple[str, dict[str, str], list[str]] = (
+            (args.compare_exe, {}, []) if args.compare_exe
+            else (exe, {}, ["--kernel", args.compare_kernel]) if args.compare_kernel
+            else (exe, {"XLA_FLAGS": args.compare_xla_flags}, [])
+        )  # fmt: skip
         load = os.getloadavg()[0]
         try:
-            pair = _pair({"this": (exe, {}), "other": other}, args.folder, work, args.repeats,
+            pair = _pair({"this": (exe, {}, []), "other": other}, args.folder, work, args.repeats,
                          fit_args)  # fmt: skip
         finally:
             shutil.rmtree(work, ignore_errors=True)
-        print(json.dumps({"folder": str(args.folder), "other": [other[0], other[1]],
+        print(json.dumps({"folder": str(args.folder), "other": list(other),
                           "fit_args": fit_args,
                           "load_average_start_end": [round(load, 2),
                                                      round(os.getloadavg()[0], 2)],
