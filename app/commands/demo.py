@@ -47,6 +47,10 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{out}: already exists; choose another folder or add --force")
     settings = settings_from_args(args)
     options = options_from_args(args)
+    if options.kernel not in (None, "gaussian"):
+        raise UserError(f"--kernel {options.kernel}: the demo's simulated scene has a distant "
+                        "lamp and is fitted in one plane, where the facets are Gaussian; leave "
+                        "--kernel out or give gaussian")  # fmt: skip
     t0 = time.perf_counter()
     with staged_folder(out, args.force, command="demo", option="OUT") as tmp:
         photos = tmp / "photos"

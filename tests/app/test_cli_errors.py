@@ -388,8 +388,10 @@ def test_simulate_existing_folder_without_force(
         (["--output", "x"], ("--output", "OUT/fit")),
         (["--views", "1"], ("--views", "outside [3, 200]")),
         (["--seed", "-5"], ("--seed", ">= 0")),
+        # refused before any photo is simulated: the demo's lamp is distant
+        (["--kernel", "beckmann"], ("--kernel beckmann", "fitted in one plane", "Gaussian")),
     ],
-    ids=["output", "views", "seed"],
+    ids=["output", "views", "seed", "kernel"],
 )
 def test_demo_bad_options(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], options, fragments
