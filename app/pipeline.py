@@ -460,15 +460,21 @@ def offered_kernels(lab: bool, given: str | None) -> tuple[str, ...]:
     return model.LAB_KERNELS if lab else ("gaussian",)
 
 
+def check_kernel_geometry(kernel: str | None, lab: bool, scene: str, fix: str) -> None:
+    """A microfacet `--kernel` on a scene the fit models in one plane (`lab` False: Gaussian
+    facets only) is a user error; `scene` names the scene in the message, `fix` ends it."""
+    if kernel is not None and kernel != "gaussian" and not lab:
+        raise UserError(f"--kernel {kernel}: {scene} is fitted in one plane, where the facets "
+                        f"are Gaussian; {fix}")  # fmt: skip
+
+
 def check_kernel(scene: Scene, kernel: str | None) -> None:
-    """A microfacet `--kernel` on a scene the fit models in one plane (Gaussian facets only)
-    is a user error, caught before the photos are measured."""
+    """`check_kernel_geometry` for a scene file, before the photos are measured."""
     from .lab import uses_lab_model
 
-    if kernel is not None and kernel != "gaussian" and not uses_lab_model(scene):
-        raise UserError(f"--kernel {kernel}: this scene is fitted in one plane, where the facets "
-                        "are Gaussian; microfacet facets need the lab model (give the lamp's "
-                        'position, or set [fit] geometry = "lab"; docs/scene.md)')  # fmt: skip
+    check_kernel_geometry(kernel, uses_lab_model(scene), "this scene",
+                          "microfacet facets need the lab model (give the lamp's position, or "
+                          'set [fit] geometry = "lab"; docs/scene.md)')  # fmt: skip
 
 
 def ladder_for(preset: Preset, lab: bool = False) -> tuple[fitting.Variant, ...]:

@@ -62,39 +62,13 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
+from _timing import timed
+
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 PREDICT = ["predict", "--lobes", "--wedge-deg", "30", "--theta-i-deg", "0"]
 Run = Callable[[], tuple[float, float, float]]
 """One case: returns (wall time s, peak memory MB, CPU time s)."""
-
-
-_WRAPPER = (
-    "import resource, subprocess, sys, time\n"
-    "t0 = time.perf_counter()\n"
-    "r = subprocess.run(sys.argv[1:], capture_output=True, text=True)\n"
-    "wall = time.perf_counter() - t0\n"
-    "sys.stderr.write(r.stderr[-3000:] if r.returncode else '')\n"
-    "sys.stdout.write(r.stdout)\n"
-    "u = resource.getrusage(resource.RUSAGE_CHILDREN)\n"
-    "print(wall, u.ru_maxrss / 1024.0, u.ru_utime + u.ru_stime)\n"
-    "sys.exit(r.returncode)\n"
-)
-"""Runs one command and reports its wall time, its own peak RSS (MB) and CPU time (user +
-system, all threads: less distorted by other jobs than the wall time), as bench_demo.py does,
-and passes its standard output on."""
-
-
-def timed(cmd: list[str], env: dict[str, str]) -> tuple[float, float, float, str]:
-    """Wall time, peak memory (MB), CPU time and standard output of `cmd`, a fresh process."""
-    proc = subprocess.run(
-        [sys.executable, "-c", _WRAPPER, *cmd], env=env, capture_output=True, text=True
-    )
-    if proc.returncode != 0:
-        raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr}")
-    *out, last = proc.stdout.rstrip("\n").split("\n")
-    wall, mb, cpu = (float(x) for x in last.split())
-    return wall, mb, cpu, "\n".join(out)
 
 
 def peak_of(cmd: list[str], env: dict[str, str]) -> tuple[float, float, float]:

@@ -89,6 +89,11 @@ def _stages(results: Path) -> dict[str, float]:
     return {k: round(float(v), 1) for k, v in t.items()}
 
 
+def _fit_cmd(exe: str, folder: Path, out: Path, *options: str) -> list[str]:
+    """`stairfit fit FOLDER -o OUT --quiet OPTIONS...`."""
+    return [exe, "fit", str(folder), "-o", str(out), "--quiet", *options]
+
+
 def _fill_measurement_cache(exe: str, folder: Path, work: Path, env: dict[str, str]) -> None:
     """Measure the set once, untimed, so that every warm run finds the measurement cache: the
     cold runs (`--no-cache`) write none, so without this the first warm run would measure."""
@@ -113,10 +118,9 @@ def _pair(
         for name, (exe, extra, more) in exes.items():
             base = work / f"{name}{r}"
             env = dict(os.environ, STAIRFIT_JAX_CACHE=str(base / "jax"), **extra)
-            cold = _run([exe, "fit", str(folder), "-o", str(base / "cold"), "--no-posterior",
-                         "--no-cache", "--quiet", *fit_args, *more], env)  # fmt: skip
-            warm = _run([exe, "fit", str(folder), "-o", str(base / "warm"), "--no-posterior",
-                         "--quiet", *fit_args, *more], env)  # fmt: skip
+            options = ["--no-posterior", *fit_args, *more]
+            cold = _run(_fit_cmd(exe, folder, base / "cold", "--no-cache", *options), env)
+            warm = _run(_fit_cmd(exe, folder, base / "warm", *options), env)
             runs[name].append({"cold_s": round(cold, 1), "warm_s": round(warm, 1),
                                "cold_stages": _stages(base / "cold" / "results.json"),
                                "warm_stages": _stages(base / "warm" / "results.json")})  # fmt: skip
@@ -181,16 +185,14 @@ def main(argv: list[str] | None = None) -> int:
             exe, args.folder, work, dict(env, STAIRFIT_JAX_CACHE=str(work / "m"))
         )
         out = work / "cold"
+        options = ["--no-posterior", *fit_args]
         timings["cold_no_posterior_s"] = _run(
-            [exe, "fit", str(args.folder), "-o", str(out), "--no-posterior", "--no-cache",
-             "--quiet", *fit_args], env)  # fmt: skip
-        timings["warm_no_posterior_s"] = _run(
-            [exe, "fit", str(args.folder), "-o", str(work / "warm"), "--no-posterior",
-             "--quiet", *fit_args], env)  # fmt: skip
+            _fit_cmd(exe, args.folder, out, "--no-cache", *options), env
+        )
+        timings["warm_no_posterior_s"] = _run(_fit_cmd(exe, args.folder, work / "warm", *options),
+                                              env)  # fmt: skip
         if args.with_posterior:
-            timings["warm_posterior_s"] = _run(
-                [exe, "fit", str(args.folder), "-o", str(work / "post"), "--quiet"], env
-            )
+            timings["warm_posterior_s"] = _run(_fit_cmd(exe, args.folder, work / "post"), env)
         report = {
             "folder": str(args.folder),
             "load_average_start_end": [round(load, 2), round(os.getloadavg()[0], 2)],

@@ -27,32 +27,14 @@ import argparse
 import os
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
+from _timing import timed
+
 ROOT = Path(__file__).resolve().parents[1]
 MESH = ROOT / "tests" / "data" / "printed_sphere.obj"
-
-_WRAPPER = (
-    "import resource, subprocess, sys, time\n"
-    "t = time.perf_counter()\n"
-    "r = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL)\n"
-    "wall = time.perf_counter() - t\n"
-    "u = resource.getrusage(resource.RUSAGE_CHILDREN)\n"
-    "print(r.returncode, wall, u.ru_utime + u.ru_stime)\n"
-)
-
-
-def timed(cmd: list[str], env: dict[str, str]) -> tuple[float, float]:
-    """Wall and CPU seconds of `cmd` as a fresh process (SystemExit if it fails)."""
-    proc = subprocess.run([sys.executable, "-c", _WRAPPER, *cmd], env=env,
-                          capture_output=True, text=True)  # fmt: skip
-    code, wall, cpu = proc.stdout.split()
-    if code != "0":
-        raise SystemExit(f"{' '.join(cmd)} failed ({code}):\n{proc.stderr}")
-    return float(wall), float(cpu)
 
 
 def cases(exe: str, fit: Path, photos: Path, mesh: Path) -> dict[str, list[str]]:
@@ -86,7 +68,8 @@ def main(argv: list[str] | None = None) -> None:
                 for case, cmd in cases(exe, args.fit, args.photos, args.mesh).items():
                     run = Path(tmp) / f"{rep}-{label[:4]}-{case[:4]}"
                     env = {**os.environ, "STAIRFIT_JAX_CACHE": str(run / "jax-cache")}
-                    result = timed([*cmd, "-o", str(run / "out")], env)
+                    wall, _, cpu, _ = timed([*cmd, "-o", str(run / "out")], env)
+                    result = (wall, cpu)
                     times.setdefault((case, label), []).append(result)
                     print(f"# {case}, {label}: {result[0]:.1f} s wall, {result[1]:.0f} s CPU",
                           file=sys.stderr, flush=True)  # fmt: skip

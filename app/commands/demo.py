@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..errors import UserError
 from ..outputs import staged_folder
-from ..pipeline import fit_scene
+from ..pipeline import check_kernel_geometry, fit_scene
 from ..scene import load_scene
 from ..simulation import TRUTH_FILE, simulate
 from ._fit_options import add_fit_options, options_from_args
@@ -47,10 +47,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{out}: already exists; choose another folder or add --force")
     settings = settings_from_args(args)
     options = options_from_args(args)
-    if options.kernel not in (None, "gaussian"):
-        raise UserError(f"--kernel {options.kernel}: the demo's simulated scene has a distant "
-                        "lamp and is fitted in one plane, where the facets are Gaussian; leave "
-                        "--kernel out or give gaussian")  # fmt: skip
+    check_kernel_geometry(options.kernel, False, "the demo's simulated scene (a distant lamp)",
+                          "leave --kernel out or give gaussian")  # fmt: skip
     t0 = time.perf_counter()
     with staged_folder(out, args.force, command="demo", option="OUT") as tmp:
         photos = tmp / "photos"

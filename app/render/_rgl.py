@@ -175,8 +175,9 @@ def mitsuba_value(
     up = (w_i[..., 2] > 0.0) & (w_o[..., 2] > 0.0)
     out = np.zeros((*up.shape, len(material.index)))
     # only pairs above the surface are evaluated: the model's costly part
-    p = density(material, beta2_deg, to_face(w_o[up]), to_face(w_i[up]), arcs)
-    out[up] = p * (w_o[up][:, 2] / w_i[up][:, 2])[:, None]
+    cam, light = w_i[up], w_o[up]
+    p = density(material, beta2_deg, to_face(light), to_face(cam), arcs)
+    out[up] = p * (light[:, 2] / cam[:, 2])[:, None]
     return out
 
 
